@@ -1,0 +1,39 @@
+// Minimal command-line parsing for flatslam subcommands: positionals and --key value flags.
+// Concurrency: plain values.
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <vector>
+
+namespace flatslam::app {
+
+// Thrown for bad arguments; main prints it with the command's usage and exits with 2.
+struct UsageError {
+  std::string message;
+};
+
+class Args {
+ public:
+  // flags: names (without "--") that take a value; switches: names that take none.
+  Args(const std::vector<std::string>& argv, const std::set<std::string>& flags,
+       const std::set<std::string>& switches);
+
+  [[nodiscard]] const std::vector<std::string>& positional() const { return positional_; }
+  [[nodiscard]] bool has(const std::string& name) const { return values_.count(name) > 0; }
+  [[nodiscard]] std::optional<std::string> get(const std::string& name) const;
+  [[nodiscard]] std::string get_or(const std::string& name, const std::string& fallback) const;
+  [[nodiscard]] double get_double(const std::string& name, double fallback) const;
+  [[nodiscard]] int64_t get_int(const std::string& name, int64_t fallback) const;
+  [[nodiscard]] bool help() const { return help_; }
+
+ private:
+  std::vector<std::string> positional_;
+  std::map<std::string, std::string> values_;
+  bool help_ = false;
+};
+
+}  // namespace flatslam::app

@@ -1,0 +1,25 @@
+// The flatslam subcommands. Each takes the arguments after its name and returns the exit
+// code; bad arguments throw UsageError, bad input throws flatslam::Error.
+#pragma once
+
+#include <string>
+#include <vector>
+
+namespace flatslam::app {
+
+struct Command {
+  const char* name;
+  const char* summary;
+  const char* usage;  // full help text for `flatslam <cmd> --help`
+  int (*run)(const std::vector<std::string>& args);
+};
+
+int RunSynth(const std::vector<std::string>& args);
+int RunEval(const std::vector<std::string>& args);
+int RunInfo(const std::vector<std::string>& args);
+
+extern const char* const kSynthUsage;
+extern const char* const kEvalUsage;
+extern const char* const kInfoUsage;
+
+}  // namespace flatslam::app

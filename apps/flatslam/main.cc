@@ -1,0 +1,75 @@
+// flatslam command line: dispatches to subcommands. The only place that picks the allocator.
+#include <mimalloc-new-delete.h>
+
+#include <cstdio>
+#include <exception>
+#include <string>
+#include <vector>
+
+#include "args.h"
+#include "commands.h"
+#include "core/error.h"
+
+namespace {
+
+using flatslam::app::Command;
+
+const Command kCommands[] = {
+    {"synth", "render a synthetic scene, print what it holds or write it as a dataset",
+     flatslam::app::kSynthUsage, flatslam::app::RunSynth},
+    {"info", "open a dataset (KITTI, EuRoC, TUM RGB-D or synth:NAME) and describe it",
+     flatslam::app::kInfoUsage, flatslam::app::RunInfo},
+    {"eval", "ATE, RPE and KITTI metrics of an estimated trajectory against ground truth",
+     flatslam::app::kEvalUsage, flatslam::app::RunEval},
+};
+
+void PrintHelp(std::FILE* out) {
+  std::fprintf(out,
+               "flatslam: visual SLAM (monocular, stereo, RGB-D)\n\n"
+               "usage: flatslam <command> [options]   (flatslam <command> --help for details)\n\n"
+               "commands:\n");
+  for (const Command& c : kCommands) std::fprintf(out, "  %-8s %s\n", c.name, c.summary);
+  std::fprintf(out, "  %-8s %s\n", "help", "show this text");
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string> args(argv + 1, argv + argc);
+  if (args.empty()) {
+    PrintHelp(stderr);
+    return 2;
+  }
+  const std::string name = args.front();
+  if (name == "help" || name == "--help" || name == "-h") {
+    if (args.size() > 1) {
+      for (const Command& c : kCommands) {
+        if (args[1] == c.name) {
+          std::fputs(c.usage, stdout);
+          return 0;
+        }
+      }
+    }
+    PrintHelp(stdout);
+    return 0;
+  }
+  for (const Command& c : kCommands) {
+    if (name != c.name) continue;
+    std::vector<std::string> rest(args.begin() + 1, args.end());
+    try {
+      return c.run(rest);
+    } catch (const flatslam::app::UsageError& e) {
+      std::fprintf(stderr, "flatslam %s: %s\n\n%s", c.name, e.message.c_str(), c.usage);
+      return 2;
+    } catch (const flatslam::Error& e) {
+      std::fprintf(stderr, "flatslam %s: error: %s\n", c.name, e.what());
+      return 1;
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "flatslam %s: unexpected error: %s\n", c.name, e.what());
+      return 1;
+    }
+  }
+  std::fprintf(stderr, "flatslam: unknown command '%s'\n\n", name.c_str());
+  PrintHelp(stderr);
+  return 2;
+}

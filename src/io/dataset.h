@@ -1,0 +1,44 @@
+// One interface for every frame source: KITTI, EuRoC, TUM RGB-D and the synthetic renderer.
+// Concurrency: read() is const and may be called from several threads at once.
+#pragma once
+
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "io/types.h"
+
+namespace flatslam {
+
+class Dataset {
+ public:
+  virtual ~Dataset() = default;
+
+  // Short human-readable description, e.g. "KITTI 07 (mono)".
+  [[nodiscard]] virtual std::string name() const = 0;
+  [[nodiscard]] virtual const Calibration& calibration() const = 0;
+  [[nodiscard]] virtual size_t size() const = 0;
+  // Loads (or renders) frame i. Throws flatslam::Error naming the file on a missing,
+  // unreadable or wrongly sized image.
+  [[nodiscard]] virtual Frame read(size_t i) const = 0;
+  // Ground truth of the left camera (T_world_cam) at the frame timestamps when known.
+  [[nodiscard]] virtual std::optional<Trajectory> ground_truth() const = 0;
+};
+
+struct DatasetOptions {
+  // Requested sensor; empty = the richest the dataset offers (stereo/RGB-D over mono).
+  std::optional<Sensor> sensor;
+  // Synthetic scenes only: seed of the renderer's noise.
+  uint64_t seed = 1;
+};
+
+// Opens a dataset from a path or spec, detecting its layout:
+//   synth:NAME                   synthetic scene (see SyntheticSceneNames())
+//   .../sequences/NN             KITTI odometry sequence (poses from ../../poses/NN.txt)
+//   .../<seq> with mav0/         EuRoC ASL
+//   .../<seq> with rgb.txt       TUM RGB-D
+// Throws flatslam::Error naming what is missing.
+[[nodiscard]] std::unique_ptr<Dataset> OpenDataset(const std::string& spec,
+                                                   const DatasetOptions& options = {});
+
+}  // namespace flatslam
