@@ -44,6 +44,18 @@ class SlotTable {
     return static_cast<uint32_t>(slots_.size() - 1);
   }
 
+  // Undoes the acquire() that returned index when building its value failed: the slot
+  // goes back unused with its generation unchanged. A fresh slot is the last one and has
+  // generation 0; a recycled slot always has generation >= 1 and returns to the free
+  // list, whose capacity it just left (so this does not allocate).
+  void cancel(uint32_t index) {
+    if (index + 1 == slots_.size() && slots_[index].generation == 0) {
+      slots_.pop_back();
+    } else {
+      free_.push_back(index);
+    }
+  }
+
   // Invalidates every handle to the slot and makes it reusable.
   void release(uint32_t index) {
     Slot& slot = slots_[index];
@@ -102,14 +114,22 @@ class Arena {
   using value_type = T;
   using handle_type = Handle<T>;
 
+  // Strong guarantee: if T's constructor or an allocation throws, the arena is unchanged.
   template <class... Args>
   [[nodiscard]] Handle<T> create(Args&&... args) {
     const uint32_t index = slots_.acquire();
-    auto& slot = slots_[index];
-    values_.emplace_back(std::forward<Args>(args)...);
-    slot.payload = static_cast<uint32_t>(values_.size() - 1);
-    const Handle<T> h(index, slot.generation);
-    handles_.push_back(h);
+    const Handle<T> h(index, slots_[index].generation);
+    bool handle_pushed = false;
+    try {
+      handles_.push_back(h);
+      handle_pushed = true;
+      values_.emplace_back(std::forward<Args>(args)...);
+    } catch (...) {
+      if (handle_pushed) handles_.pop_back();
+      slots_.cancel(index);
+      throw;
+    }
+    slots_[index].payload = static_cast<uint32_t>(values_.size() - 1);
     return h;
   }
 
@@ -206,15 +226,37 @@ class StableArena {
   StableArena() = default;
   StableArena(const StableArena&) = delete;
   StableArena& operator=(const StableArena&) = delete;
-  StableArena(StableArena&&) noexcept = default;
-  StableArena& operator=(StableArena&&) noexcept = default;
+  // Moving transfers the pages, so values keep their addresses; the source is left empty.
+  StableArena(StableArena&& other) noexcept
+      : pages_(std::move(other.pages_)),
+        slots_(std::move(other.slots_)),
+        size_(std::exchange(other.size_, 0)) {
+    other.reset_moved_from();
+  }
+  // Destroys the values this arena held before taking over other's.
+  StableArena& operator=(StableArena&& other) noexcept {
+    if (this != &other) {
+      destroy_all();
+      pages_ = std::move(other.pages_);
+      slots_ = std::move(other.slots_);
+      size_ = std::exchange(other.size_, 0);
+      other.reset_moved_from();
+    }
+    return *this;
+  }
   ~StableArena() { destroy_all(); }
 
+  // Strong guarantee: if T's constructor or an allocation throws, the arena is unchanged.
   template <class... Args>
   [[nodiscard]] Handle<T> create(Args&&... args) {
     const uint32_t index = slots_.acquire();
-    if (index / kPageSize >= pages_.size()) pages_.push_back(std::make_unique<Page>());
-    ::new (static_cast<void*>(address(index))) T(std::forward<Args>(args)...);
+    try {
+      if (index / kPageSize >= pages_.size()) pages_.push_back(std::make_unique<Page>());
+      ::new (static_cast<void*>(address(index))) T(std::forward<Args>(args)...);
+    } catch (...) {
+      slots_.cancel(index);
+      throw;
+    }
     slots_[index].payload = 0;  // alive
     ++size_;
     return Handle<T>(index, slots_[index].generation);
@@ -275,6 +317,11 @@ class StableArena {
     for (uint32_t i = 0; i < slots_.slot_count(); ++i) {
       if (slots_[i].payload != detail::kNoDense) std::destroy_at(address(i));
     }
+  }
+  // Moved-from containers are only "valid but unspecified"; make this one empty.
+  void reset_moved_from() noexcept {
+    pages_.clear();
+    slots_ = detail::SlotTable();
   }
 
   std::vector<std::unique_ptr<Page>> pages_;

@@ -1,0 +1,269 @@
+#include "ecs/map.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+#include <unordered_map>
+
+#include "core/error.h"
+
+namespace flatslam {
+
+void KeyFrame::resize(size_t n) {
+  uv.resize(n, Eigen::Vector2f::Zero());
+  right_u.resize(n, -1.0f);
+  depth.resize(n, -1.0f);
+  angle.resize(n, 0.0f);
+  octave.resize(n, 0);
+  descriptor.resize(n, Descriptor{});
+  points.resize(n, PointHandle::null());
+}
+
+KeyFrameHandle Map::AddKeyFrame(KeyFrame&& keyframe) {
+  keyframe.id = next_keyframe_id_++;
+  FLATSLAM_CHECK(keyframe.points.size() == keyframe.uv.size() && keyframe.descriptor.size() == keyframe.uv.size(),
+                 "keyframe columns differ in size");
+  return keyframes_.create(std::move(keyframe));
+}
+
+PointHandle Map::AddPoint(const Eigen::Vector3d& position, KeyFrameHandle reference) {
+  MapPoint p;
+  p.position = position;
+  p.reference = reference;
+  if (const KeyFrame* kf = keyframes_.try_get(reference)) p.first_keyframe_id = kf->id;
+  return points_.create(std::move(p));
+}
+
+void Map::AddObservation(PointHandle p, KeyFrameHandle kf, uint32_t keypoint) {
+  MapPoint& point = points_.get(p);
+  KeyFrame& frame = keyframes_.get(kf);
+  FLATSLAM_CHECK(keypoint < frame.size(), "keypoint ", keypoint, " out of range for ", kf);
+  FLATSLAM_CHECK(frame.points[keypoint].is_null(), "keypoint ", keypoint, " of ", kf, " already bound");
+  for (const Observation& o : point.observations)
+    FLATSLAM_CHECK(o.keyframe != kf, p, " already observed by ", kf);
+  frame.points[keypoint] = p;
+  point.observations.push_back({kf, keypoint});
+}
+
+bool Map::EraseObservation(PointHandle p, KeyFrameHandle kf, size_t min_observations) {
+  MapPoint* point = points_.try_get(p);
+  if (!point) return false;
+  auto it = std::find_if(point->observations.begin(), point->observations.end(),
+                         [&](const Observation& o) { return o.keyframe == kf; });
+  if (it == point->observations.end()) return false;
+  if (KeyFrame* frame = keyframes_.try_get(kf)) frame->points[it->keypoint] = PointHandle::null();
+  point->observations.erase(it);
+  if (point->reference == kf && !point->observations.empty()) point->reference = point->observations.front().keyframe;
+  if (point->observations.size() < min_observations) {
+    ErasePoint(p);
+    return true;
+  }
+  return false;
+}
+
+void Map::ErasePoint(PointHandle p) {
+  MapPoint* point = points_.try_get(p);
+  if (!point) return;
+  for (const Observation& o : point->observations) {
+    if (KeyFrame* frame = keyframes_.try_get(o.keyframe)) {
+      if (frame->points[o.keypoint] == p) frame->points[o.keypoint] = PointHandle::null();
+    }
+  }
+  points_.erase(p);
+}
+
+void Map::RemoveCovisibilityLinks(KeyFrameHandle kf) {
+  KeyFrame& frame = keyframes_.get(kf);
+  for (const auto& [other, weight] : frame.covisible) {
+    if (KeyFrame* o = keyframes_.try_get(other)) {
+      std::erase_if(o->covisible, [&](const auto& link) { return link.first == kf; });
+    }
+  }
+  frame.covisible.clear();
+}
+
+void Map::EraseKeyFrame(KeyFrameHandle kf) {
+  if (!keyframes_.contains(kf)) return;
+  {
+    // Copy: EraseObservation may erase points, which never touches this keyframe's vector size.
+    const std::vector<PointHandle> seen = keyframes_.get(kf).points;
+    for (PointHandle p : seen) {
+      if (!p.is_null()) EraseObservation(p, kf);
+    }
+  }
+  RemoveCovisibilityLinks(kf);
+  KeyFrame& frame = keyframes_.get(kf);
+  const KeyFrameHandle parent = frame.parent;
+  const std::vector<KeyFrameHandle> children = frame.children;
+  // Children move to the erased keyframe's parent (or become roots if it had none).
+  for (KeyFrameHandle c : children) {
+    if (KeyFrame* child = keyframes_.try_get(c)) {
+      child->parent = parent;
+      if (KeyFrame* p = keyframes_.try_get(parent)) p->children.push_back(c);
+    }
+  }
+  if (KeyFrame* p = keyframes_.try_get(parent)) std::erase(p->children, kf);
+  keyframes_.erase(kf);
+}
+
+void Map::ReplacePoint(PointHandle from, PointHandle into) {
+  if (from == into || !points_.contains(from) || !points_.contains(into)) return;
+  const std::vector<Observation> moved = points_.get(from).observations;
+  const uint32_t visible = points_.get(from).visible, found = points_.get(from).found;
+  ErasePoint(from);
+  MapPoint& keep = points_.get(into);
+  keep.visible += visible;
+  keep.found += found;
+  for (const Observation& o : moved) {
+    KeyFrame* frame = keyframes_.try_get(o.keyframe);
+    if (!frame) continue;
+    const bool already = std::any_of(keep.observations.begin(), keep.observations.end(),
+                                     [&](const Observation& k) { return k.keyframe == o.keyframe; });
+    if (already || !frame->points[o.keypoint].is_null()) continue;
+    frame->points[o.keypoint] = into;
+    keep.observations.push_back(o);
+  }
+}
+
+void Map::UpdateCovisibility(KeyFrameHandle kf, int min_shared) {
+  std::unordered_map<KeyFrameHandle, int> shared;
+  const KeyFrame& frame = keyframes_.get(kf);
+  for (PointHandle p : frame.points) {
+    const MapPoint* point = points_.try_get(p);
+    if (!point) continue;
+    for (const Observation& o : point->observations)
+      if (o.keyframe != kf) ++shared[o.keyframe];
+  }
+  std::vector<std::pair<KeyFrameHandle, int>> links;
+  std::pair<KeyFrameHandle, int> best{KeyFrameHandle::null(), 0};
+  for (const auto& [other, weight] : shared) {
+    if (!keyframes_.contains(other)) continue;
+    const bool better = weight > best.second || (weight == best.second && other < best.first);
+    if (better) best = {other, weight};
+    if (weight >= min_shared) links.emplace_back(other, weight);
+  }
+  if (links.empty() && !best.first.is_null()) links.push_back(best);
+  std::sort(links.begin(), links.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second > b.second : a.first < b.first;
+  });
+
+  RemoveCovisibilityLinks(kf);
+  for (const auto& [other, weight] : links) {
+    KeyFrame& o = keyframes_.get(other);
+    o.covisible.emplace_back(kf, weight);
+    std::sort(o.covisible.begin(), o.covisible.end(), [](const auto& a, const auto& b) {
+      return a.second != b.second ? a.second > b.second : a.first < b.first;
+    });
+  }
+  KeyFrame& self = keyframes_.get(kf);
+  self.covisible = std::move(links);
+  if (self.parent.is_null() && !self.covisible.empty()) {
+    // A new keyframe hangs below its strongest neighbour, unless that would close a cycle:
+    // neighbours created before it are never its descendants.
+    const KeyFrameHandle parent = self.covisible.front().first;
+    if (keyframes_.get(parent).id < self.id) {
+      self.parent = parent;
+      keyframes_.get(parent).children.push_back(kf);
+    }
+  }
+}
+
+std::vector<KeyFrameHandle> Map::BestCovisible(KeyFrameHandle kf, size_t n) const {
+  std::vector<KeyFrameHandle> out;
+  const KeyFrame* frame = keyframes_.try_get(kf);
+  if (!frame) return out;
+  for (const auto& [other, weight] : frame->covisible) {
+    if (out.size() >= n) break;
+    if (keyframes_.contains(other)) out.push_back(other);
+  }
+  return out;
+}
+
+void Map::UpdatePointStats(PointHandle p, const MapScales& scales) {
+  MapPoint& point = points_.get(p);
+  if (point.observations.empty()) return;
+  Eigen::Vector3d normal = Eigen::Vector3d::Zero();
+  std::vector<const Descriptor*> descriptors;
+  descriptors.reserve(point.observations.size());
+  for (const Observation& o : point.observations) {
+    const KeyFrame& frame = keyframes_.get(o.keyframe);
+    normal += (point.position - frame.camera_center()).normalized();
+    descriptors.push_back(&frame.descriptor[o.keypoint]);
+  }
+  point.normal = normal.normalized();
+
+  // Distance range from the reference observation: the point can be matched at any level.
+  const KeyFrame* ref = keyframes_.try_get(point.reference);
+  const Observation* ref_obs = nullptr;
+  for (const Observation& o : point.observations)
+    if (o.keyframe == point.reference) ref_obs = &o;
+  if (!ref || !ref_obs) {
+    ref = &keyframes_.get(point.observations.front().keyframe);
+    ref_obs = &point.observations.front();
+  }
+  const float distance = static_cast<float>((point.position - ref->camera_center()).norm());
+  const int level = ref->octave[ref_obs->keypoint];
+  const float level_scale = std::pow(scales.scale_factor, static_cast<float>(level));
+  point.max_distance = distance * level_scale;
+  point.min_distance = point.max_distance / std::pow(scales.scale_factor, static_cast<float>(scales.levels - 1));
+
+  // Representative descriptor: least median distance to the others.
+  const size_t n = descriptors.size();
+  int best_median = 1 << 30;
+  std::vector<int> row(n);
+  for (size_t i = 0; i < n; ++i) {
+    for (size_t j = 0; j < n; ++j) row[j] = DescriptorDistance(*descriptors[i], *descriptors[j]);
+    std::nth_element(row.begin(), row.begin() + (n - 1) / 2, row.end());
+    const int median = row[(n - 1) / 2];
+    if (median < best_median) {
+      best_median = median;
+      point.descriptor = *descriptors[i];
+    }
+  }
+}
+
+std::string Map::Validate() const {
+  std::ostringstream problem;
+  const auto kf_handles = keyframes_.handles();
+  const auto kf_values = keyframes_.values();
+  for (size_t i = 0; i < kf_values.size(); ++i) {
+    const KeyFrame& kf = kf_values[i];
+    const KeyFrameHandle h = kf_handles[i];
+    for (uint32_t k = 0; k < kf.points.size(); ++k) {
+      const PointHandle p = kf.points[k];
+      if (p.is_null()) continue;
+      const MapPoint* point = points_.try_get(p);
+      if (!point) return (problem << h << " keypoint " << k << " refers to erased " << p, problem.str());
+      const bool back = std::any_of(point->observations.begin(), point->observations.end(),
+                                    [&](const Observation& o) { return o.keyframe == h && o.keypoint == k; });
+      if (!back) return (problem << p << " lacks the observation " << h << "/" << k, problem.str());
+    }
+    for (const auto& [other, w] : kf.covisible) {
+      const KeyFrame* o = keyframes_.try_get(other);
+      if (!o) return (problem << h << " covisible with erased " << other, problem.str());
+      const bool mirrored = std::any_of(o->covisible.begin(), o->covisible.end(),
+                                        [&](const auto& l) { return l.first == h && l.second == w; });
+      if (!mirrored) return (problem << "covisibility " << h << "-" << other << " not mirrored", problem.str());
+    }
+    if (!kf.parent.is_null()) {
+      const KeyFrame* parent = keyframes_.try_get(kf.parent);
+      if (!parent) return (problem << h << " has erased parent " << kf.parent, problem.str());
+      if (std::find(parent->children.begin(), parent->children.end(), h) == parent->children.end())
+        return (problem << h << " missing from its parent's children", problem.str());
+    }
+  }
+  const auto p_handles = points_.handles();
+  const auto p_values = points_.values();
+  for (size_t i = 0; i < p_values.size(); ++i) {
+    for (const Observation& o : p_values[i].observations) {
+      const KeyFrame* kf = keyframes_.try_get(o.keyframe);
+      if (!kf) return (problem << p_handles[i] << " observed by erased " << o.keyframe, problem.str());
+      if (o.keypoint >= kf->size() || kf->points[o.keypoint] != p_handles[i])
+        return (problem << p_handles[i] << " observation " << o.keyframe << "/" << o.keypoint << " not mirrored",
+                problem.str());
+    }
+  }
+  return {};
+}
+
+}  // namespace flatslam

@@ -1,0 +1,126 @@
+// The map world: keyframes and map points in generational arenas, observations as flat
+// {keyframe, keypoint} tables, covisibility weights and the spanning tree as handle lists.
+// Concurrency: no internal locking. The caller (the pipeline schedule) grants either one
+// writer or many readers; see MapLock in systems for how tracking and mapping share it.
+#pragma once
+
+#include <cstdint>
+#include <span>
+#include <utility>
+#include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+#include "ecs/arena.h"
+#include "ecs/descriptor.h"
+#include "ecs/handle.h"
+
+namespace flatslam {
+
+struct KeyFrame;
+struct MapPoint;
+using KeyFrameHandle = Handle<KeyFrame>;
+using PointHandle = Handle<MapPoint>;
+
+// One sighting of a map point: keypoint `keypoint` of `keyframe`.
+struct Observation {
+  KeyFrameHandle keyframe;
+  uint32_t keypoint = 0;
+};
+
+struct KeyFrame {
+  uint64_t id = 0;           // creation order within its map; for tie-breaking, never a clock
+  size_t frame_index = 0;    // index of the input frame it was made from
+  int64_t t_ns = 0;
+  Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();
+
+  // Per-keypoint struct-of-arrays, all of size() entries.
+  std::vector<Eigen::Vector2f> uv;       // undistorted pixel, level-0 coordinates
+  std::vector<float> right_u;            // stereo/RGB-D: x in the (virtual) right image, -1 none
+  std::vector<float> depth;              // metres, -1 none
+  std::vector<float> angle;              // keypoint orientation, radians
+  std::vector<uint8_t> octave;           // pyramid level
+  std::vector<Descriptor> descriptor;
+  std::vector<PointHandle> points;       // map point seen at the keypoint, null if none
+
+  std::vector<std::pair<KeyFrameHandle, int>> covisible;  // shared points, strongest first
+  KeyFrameHandle parent;                                  // spanning tree (null for a root)
+  std::vector<KeyFrameHandle> children;
+
+  [[nodiscard]] size_t size() const { return uv.size(); }
+  [[nodiscard]] Eigen::Vector3d camera_center() const { return T_cam_world.inverse().translation(); }
+  // Resizes every per-keypoint column to n (points null, right_u/depth -1).
+  void resize(size_t n);
+};
+
+struct MapPoint {
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();  // world frame
+  Descriptor descriptor{};                             // the observation closest to all others
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();   // mean viewing direction (unit)
+  float min_distance = 0, max_distance = 0;            // scale-invariance range, metres
+  std::vector<Observation> observations;
+  KeyFrameHandle reference;                            // keyframe that created it
+  uint64_t first_keyframe_id = 0;
+  uint32_t visible = 1;                                // frames where it should have been seen
+  uint32_t found = 1;                                  // frames where it was matched
+
+  [[nodiscard]] float found_ratio() const { return static_cast<float>(found) / static_cast<float>(visible); }
+};
+
+// Scale pyramid facts the map needs to keep distance ranges (see ScalePyramid in systems).
+struct MapScales {
+  float scale_factor = 1.2f;
+  int levels = 8;
+};
+
+class Map {
+ public:
+  [[nodiscard]] KeyFrameHandle AddKeyFrame(KeyFrame&& keyframe);
+  [[nodiscard]] PointHandle AddPoint(const Eigen::Vector3d& position, KeyFrameHandle reference);
+
+  // Links keypoint k of kf to point p (both directions). A keypoint already bound to another
+  // point, or a point already seen by kf, is an invariant error (checked).
+  void AddObservation(PointHandle p, KeyFrameHandle kf, uint32_t keypoint);
+  // Unlinks kf from p. A point left with fewer than min_observations sightings is erased;
+  // returns true when that happened.
+  bool EraseObservation(PointHandle p, KeyFrameHandle kf, size_t min_observations = 2);
+  // Removes p and every keyframe slot that refers to it.
+  void ErasePoint(PointHandle p);
+  // Removes kf: its observations, its covisibility links, and re-parents its children.
+  void EraseKeyFrame(KeyFrameHandle kf);
+  // Merges `from` into `into` (duplicate points): observations move unless the keyframe
+  // already sees `into`; `from` is erased. Visible/found counters add up.
+  void ReplacePoint(PointHandle from, PointHandle into);
+
+  // Recomputes kf's covisibility (keyframes sharing >= min_shared points; if none reach it,
+  // the single best one) and mirrors the weights into the neighbours. Sets the parent of a
+  // keyframe without one to its strongest neighbour.
+  void UpdateCovisibility(KeyFrameHandle kf, int min_shared = 15);
+  // The n strongest covisible keyframes of kf that are still alive.
+  [[nodiscard]] std::vector<KeyFrameHandle> BestCovisible(KeyFrameHandle kf, size_t n) const;
+  // Recomputes normal, distance range and representative descriptor of p from its observations.
+  void UpdatePointStats(PointHandle p, const MapScales& scales);
+
+  [[nodiscard]] Arena<KeyFrame>& keyframes() { return keyframes_; }
+  [[nodiscard]] const Arena<KeyFrame>& keyframes() const { return keyframes_; }
+  [[nodiscard]] Arena<MapPoint>& points() { return points_; }
+  [[nodiscard]] const Arena<MapPoint>& points() const { return points_; }
+  [[nodiscard]] KeyFrame& keyframe(KeyFrameHandle h) { return keyframes_.get(h); }
+  [[nodiscard]] const KeyFrame& keyframe(KeyFrameHandle h) const { return keyframes_.get(h); }
+  [[nodiscard]] MapPoint& point(PointHandle h) { return points_.get(h); }
+  [[nodiscard]] const MapPoint& point(PointHandle h) const { return points_.get(h); }
+
+  // Checks every cross reference (keyframe slots <-> observations, covisibility symmetry,
+  // spanning tree links); returns an empty string when consistent, else the first problem.
+  [[nodiscard]] std::string Validate() const;
+
+ private:
+  void RemoveCovisibilityLinks(KeyFrameHandle kf);
+
+  Arena<KeyFrame> keyframes_;
+  Arena<MapPoint> points_;
+  uint64_t next_keyframe_id_ = 0;
+};
+
+}  // namespace flatslam

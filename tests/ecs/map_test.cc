@@ -1,0 +1,172 @@
+#include "ecs/map.h"
+
+#include <random>
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+
+namespace flatslam {
+namespace {
+
+KeyFrame MakeKeyFrame(size_t keypoints, double x) {
+  KeyFrame kf;
+  kf.resize(keypoints);
+  kf.T_cam_world.translation() = Eigen::Vector3d(-x, 0, 0);
+  for (size_t i = 0; i < keypoints; ++i) kf.descriptor[i] = {i, i * 3, ~i, i ^ 0xff};
+  return kf;
+}
+
+// Keyframes 0..n-1 all see points 0..m-1 at keypoint index = point index.
+struct Fixture {
+  Map map;
+  std::vector<KeyFrameHandle> kfs;
+  std::vector<PointHandle> pts;
+  Fixture(size_t n, size_t m) {
+    for (size_t i = 0; i < n; ++i) kfs.push_back(map.AddKeyFrame(MakeKeyFrame(m, static_cast<double>(i))));
+    for (size_t j = 0; j < m; ++j) {
+      pts.push_back(map.AddPoint(Eigen::Vector3d(0, 0, 5.0 + j), kfs[0]));
+      for (size_t i = 0; i < n; ++i) map.AddObservation(pts[j], kfs[i], static_cast<uint32_t>(j));
+    }
+    for (KeyFrameHandle kf : kfs) map.UpdateCovisibility(kf);
+  }
+};
+
+TEST(Map, ObservationsAreMirrored) {
+  Fixture f(3, 20);
+  EXPECT_EQ(f.map.Validate(), "");
+  EXPECT_EQ(f.map.point(f.pts[4]).observations.size(), 3u);
+  EXPECT_EQ(f.map.keyframe(f.kfs[2]).points[4], f.pts[4]);
+  EXPECT_THROW(f.map.AddObservation(f.pts[4], f.kfs[2], 5), Error);  // keypoint taken
+}
+
+TEST(Map, ErasePointClearsSlotsAndStaysStale) {
+  Fixture f(3, 20);
+  f.map.ErasePoint(f.pts[7]);
+  for (KeyFrameHandle kf : f.kfs) EXPECT_TRUE(f.map.keyframe(kf).points[7].is_null());
+  EXPECT_FALSE(f.map.points().contains(f.pts[7]));
+  EXPECT_THROW((void)f.map.point(f.pts[7]), Error);
+  // The slot is reused by the next point, under a new generation.
+  const PointHandle fresh = f.map.AddPoint(Eigen::Vector3d::Zero(), f.kfs[0]);
+  EXPECT_EQ(fresh.index(), f.pts[7].index());
+  EXPECT_NE(fresh, f.pts[7]);
+  EXPECT_FALSE(f.map.points().contains(f.pts[7]));
+  EXPECT_EQ(f.map.Validate(), "");
+}
+
+TEST(Map, EraseObservationErasesPointBelowMinimum) {
+  Fixture f(2, 10);
+  EXPECT_TRUE(f.map.EraseObservation(f.pts[0], f.kfs[1]));  // one sighting left < 2
+  EXPECT_FALSE(f.map.points().contains(f.pts[0]));
+  EXPECT_TRUE(f.map.keyframe(f.kfs[0]).points[0].is_null());
+  EXPECT_EQ(f.map.Validate(), "");
+}
+
+TEST(Map, CovisibilityIsSymmetricAndSorted) {
+  Map map;
+  const KeyFrameHandle a = map.AddKeyFrame(MakeKeyFrame(60, 0));
+  const KeyFrameHandle b = map.AddKeyFrame(MakeKeyFrame(60, 1));
+  const KeyFrameHandle c = map.AddKeyFrame(MakeKeyFrame(60, 2));
+  for (uint32_t j = 0; j < 60; ++j) {
+    const PointHandle p = map.AddPoint(Eigen::Vector3d(0, 0, 4), a);
+    map.AddObservation(p, a, j);
+    if (j < 40) map.AddObservation(p, b, j);
+    if (j < 20) map.AddObservation(p, c, j);
+  }
+  for (KeyFrameHandle kf : {a, b, c}) map.UpdateCovisibility(kf);
+  const KeyFrame& ka = map.keyframe(a);
+  ASSERT_EQ(ka.covisible.size(), 2u);
+  EXPECT_EQ(ka.covisible[0], std::make_pair(b, 40));
+  EXPECT_EQ(ka.covisible[1], std::make_pair(c, 20));
+  EXPECT_EQ(map.BestCovisible(c, 1), std::vector<KeyFrameHandle>{a});  // ties broken by handle
+  EXPECT_EQ(map.keyframe(b).parent, a);
+  EXPECT_EQ(map.Validate(), "");
+}
+
+TEST(Map, EraseKeyFrameReparentsChildrenAndFreesItsSlot) {
+  Fixture f(4, 30);
+  // Chain: each keyframe's parent is the strongest earlier neighbour (kf 0 for all here).
+  f.map.EraseKeyFrame(f.kfs[0]);
+  EXPECT_FALSE(f.map.keyframes().contains(f.kfs[0]));
+  EXPECT_EQ(f.map.Validate(), "");
+  for (size_t i = 1; i < 4; ++i) {
+    const KeyFrame& kf = f.map.keyframe(f.kfs[i]);
+    for (const auto& link : kf.covisible) EXPECT_NE(link.first, f.kfs[0]);
+  }
+  const size_t slots = f.map.keyframes().slot_count();
+  const KeyFrameHandle again = f.map.AddKeyFrame(MakeKeyFrame(5, 9));
+  EXPECT_EQ(f.map.keyframes().slot_count(), slots);  // reused, not grown
+  EXPECT_NE(again, f.kfs[0]);
+}
+
+TEST(Map, ReplacePointMergesObservations) {
+  Map map;
+  const KeyFrameHandle a = map.AddKeyFrame(MakeKeyFrame(4, 0));
+  const KeyFrameHandle b = map.AddKeyFrame(MakeKeyFrame(4, 1));
+  const KeyFrameHandle c = map.AddKeyFrame(MakeKeyFrame(4, 2));
+  const PointHandle keep = map.AddPoint(Eigen::Vector3d(0, 0, 3), a);
+  const PointHandle dup = map.AddPoint(Eigen::Vector3d(0, 0, 3.01), b);
+  map.AddObservation(keep, a, 0);
+  map.AddObservation(keep, b, 1);
+  map.AddObservation(dup, b, 2);  // b sees both: its dup slot is dropped
+  map.AddObservation(dup, c, 3);
+  map.ReplacePoint(dup, keep);
+  EXPECT_FALSE(map.points().contains(dup));
+  const MapPoint& p = map.point(keep);
+  EXPECT_EQ(p.observations.size(), 3u);
+  EXPECT_EQ(map.keyframe(c).points[3], keep);
+  EXPECT_TRUE(map.keyframe(b).points[2].is_null());
+  EXPECT_EQ(map.Validate(), "");
+}
+
+TEST(Map, PointStatsFromObservations) {
+  Fixture f(3, 5);
+  MapScales scales;
+  f.map.UpdatePointStats(f.pts[0], scales);
+  const MapPoint& p = f.map.point(f.pts[0]);
+  EXPECT_NEAR(p.normal.norm(), 1.0, 1e-12);
+  EXPECT_GT(p.normal.z(), 0.9);  // cameras sit at z = 0 looking at z = 5
+  EXPECT_NEAR(p.max_distance, 5.0, 1e-5);  // reference kf 0 at the origin, octave 0
+  EXPECT_NEAR(p.min_distance, 5.0 / std::pow(1.2, 7), 1e-4);
+}
+
+TEST(Map, RandomChurnKeepsReferencesConsistentAndSlotsBounded) {
+  std::mt19937_64 rng(7);
+  Map map;
+  std::vector<KeyFrameHandle> live;
+  size_t max_slots = 0;
+  for (int step = 0; step < 3000; ++step) {
+    if (live.size() < 12 || rng() % 3 != 0) {
+      const KeyFrameHandle kf = map.AddKeyFrame(MakeKeyFrame(40, step));
+      // Each new keyframe sees some existing points and creates new ones.
+      uint32_t k = 0;
+      const auto handles = map.points().handles();
+      std::vector<PointHandle> existing(handles.begin(), handles.end());
+      std::shuffle(existing.begin(), existing.end(), rng);
+      for (size_t i = 0; i < existing.size() && k < 20; ++i, ++k) map.AddObservation(existing[i], kf, k);
+      for (; k < 40; ++k) {
+        const PointHandle p = map.AddPoint(Eigen::Vector3d(1, 2, 3), kf);
+        map.AddObservation(p, kf, k);
+      }
+      map.UpdateCovisibility(kf, 3);
+      live.push_back(kf);
+    } else {
+      const size_t victim = rng() % live.size();
+      map.EraseKeyFrame(live[victim]);
+      live.erase(live.begin() + static_cast<long>(victim));
+    }
+    if (live.size() > 30) {  // steady state: a sliding window of keyframes
+      map.EraseKeyFrame(live.front());
+      live.erase(live.begin());
+    }
+    // Points seen by nobody are culled, as local mapping does.
+    map.points().erase_if([](PointHandle, const MapPoint& p) { return p.observations.empty(); });
+    if (step % 100 == 0) ASSERT_EQ(map.Validate(), "") << "step " << step;
+    if (step > 1000) max_slots = std::max(max_slots, map.keyframes().slot_count());
+  }
+  EXPECT_EQ(map.Validate(), "");
+  EXPECT_LE(max_slots, 40u);  // bounded by the window, not by the 3000 steps
+}
+
+}  // namespace
+}  // namespace flatslam
