@@ -17,9 +17,11 @@ struct Command {
 int RunSynth(const std::vector<std::string>& args);
 int RunEval(const std::vector<std::string>& args);
 int RunInfo(const std::vector<std::string>& args);
+int RunRun(const std::vector<std::string>& args);
 
 extern const char* const kSynthUsage;
 extern const char* const kEvalUsage;
 extern const char* const kInfoUsage;
+extern const char* const kRunUsage;
 
 }  // namespace flatslam::app

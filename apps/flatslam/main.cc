@@ -19,6 +19,8 @@ const Command kCommands[] = {
      flatslam::app::kSynthUsage, flatslam::app::RunSynth},
     {"info", "open a dataset (KITTI, EuRoC, TUM RGB-D or synth:NAME) and describe it",
      flatslam::app::kInfoUsage, flatslam::app::RunInfo},
+    {"run", "SLAM over a dataset: trajectory, keyframes, per-frame stats, accuracy",
+     flatslam::app::kRunUsage, flatslam::app::RunRun},
     {"eval", "ATE, RPE and KITTI metrics of an estimated trajectory against ground truth",
      flatslam::app::kEvalUsage, flatslam::app::RunEval},
 };

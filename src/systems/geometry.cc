@@ -1,0 +1,461 @@
+#include "systems/geometry.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <numeric>
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/LU>
+#include <Eigen/SVD>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core/eigen.hpp>
+
+#include "core/error.h"
+
+namespace flatslam {
+namespace {
+
+constexpr double kRadToDeg = 180.0 / 3.14159265358979323846;
+
+using Matrix34d = Eigen::Matrix<double, 3, 4>;
+
+// Angle in degrees between the rays from c1 and c2 towards X.
+double ParallaxDeg(const Eigen::Vector3d& X, const Eigen::Vector3d& c1, const Eigen::Vector3d& c2) {
+  const Eigen::Vector3d r1 = X - c1;
+  const Eigen::Vector3d r2 = X - c2;
+  const double denom = r1.norm() * r2.norm();
+  if (denom <= 0) return 0;
+  const double cos_angle = std::clamp(r1.dot(r2) / denom, -1.0, 1.0);
+  return std::acos(cos_angle) * kRadToDeg;
+}
+
+// Squared pixel error of projecting camera-frame point x_cam; infinite behind the image plane.
+double ReprojectionError2(const Eigen::Matrix3d& K, const Eigen::Vector3d& x_cam,
+                          const Eigen::Vector2d& px) {
+  if (x_cam.z() == 0) return std::numeric_limits<double>::infinity();
+  const double inv_z = 1.0 / x_cam.z();
+  const double u = K(0, 0) * x_cam.x() * inv_z + K(0, 2);
+  const double v = K(1, 1) * x_cam.y() * inv_z + K(1, 2);
+  return (Eigen::Vector2d(u, v) - px).squaredNorm();
+}
+
+// Hartley normalization: centroid to origin, mean distance sqrt(2). Returns the 3x3 transform.
+Eigen::Matrix3d Normalize(const std::vector<Eigen::Vector2d>& px, std::vector<Eigen::Vector2d>* out) {
+  Eigen::Vector2d mean = Eigen::Vector2d::Zero();
+  for (const auto& p : px) mean += p;
+  mean /= static_cast<double>(std::max<size_t>(px.size(), 1));
+  double mean_dist = 0;
+  for (const auto& p : px) mean_dist += (p - mean).norm();
+  mean_dist /= static_cast<double>(std::max<size_t>(px.size(), 1));
+  const double s = mean_dist > 0 ? std::sqrt(2.0) / mean_dist : 1.0;
+  out->resize(px.size());
+  for (size_t i = 0; i < px.size(); ++i) (*out)[i] = s * (px[i] - mean);
+  Eigen::Matrix3d T;
+  T << s, 0, -s * mean.x(), 0, s, -s * mean.y(), 0, 0, 1;
+  return T;
+}
+
+// Eigenvector of the smallest eigenvalue of A^T A, reshaped row-major into 3x3.
+Eigen::Matrix3d SmallestNullVector(const Eigen::Matrix<double, 9, 9>& AtA) {
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 9, 9>> solver(AtA);
+  const Eigen::Matrix<double, 9, 1> h = solver.eigenvectors().col(0);
+  Eigen::Matrix3d M;
+  M << h(0), h(1), h(2), h(3), h(4), h(5), h(6), h(7), h(8);
+  return M;
+}
+
+// Homography x2 ~ H x1 from normalized points via DLT over the given indices.
+Eigen::Matrix3d FitHomography(const std::vector<Eigen::Vector2d>& x1,
+                              const std::vector<Eigen::Vector2d>& x2,
+                              const std::vector<int>& idx) {
+  Eigen::Matrix<double, 9, 9> AtA = Eigen::Matrix<double, 9, 9>::Zero();
+  Eigen::Matrix<double, 2, 9> rows;
+  for (int i : idx) {
+    const double u1 = x1[i].x(), v1 = x1[i].y(), u2 = x2[i].x(), v2 = x2[i].y();
+    rows << 0, 0, 0, -u1, -v1, -1, v2 * u1, v2 * v1, v2,  //
+        u1, v1, 1, 0, 0, 0, -u2 * u1, -u2 * v1, -u2;
+    AtA.noalias() += rows.transpose() * rows;
+  }
+  return SmallestNullVector(AtA);
+}
+
+// Fundamental matrix x2^T F x1 = 0 from normalized points (8-point), rank 2 enforced.
+Eigen::Matrix3d FitFundamental(const std::vector<Eigen::Vector2d>& x1,
+                               const std::vector<Eigen::Vector2d>& x2,
+                               const std::vector<int>& idx) {
+  Eigen::Matrix<double, 9, 9> AtA = Eigen::Matrix<double, 9, 9>::Zero();
+  Eigen::Matrix<double, 1, 9> row;
+  for (int i : idx) {
+    const double u1 = x1[i].x(), v1 = x1[i].y(), u2 = x2[i].x(), v2 = x2[i].y();
+    row << u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, 1;
+    AtA.noalias() += row.transpose() * row;
+  }
+  const Eigen::Matrix3d F = SmallestNullVector(AtA);
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Vector3d s = svd.singularValues();
+  s(2) = 0;
+  return svd.matrixU() * s.asDiagonal() * svd.matrixV().transpose();
+}
+
+struct ModelScore {
+  double score = 0;
+  std::vector<bool> inlier;
+  int num_inliers = 0;
+};
+
+// Symmetric transfer score of H (pixels): each direction adds (gate - chi2) when under the gate.
+void ScoreHomography(const Eigen::Matrix3d& H21, const std::vector<Eigen::Vector2d>& px1,
+                     const std::vector<Eigen::Vector2d>& px2, double inv_sigma2, double gate,
+                     ModelScore* out) {
+  const size_t n = px1.size();
+  out->score = 0;
+  out->num_inliers = 0;
+  out->inlier.assign(n, false);
+  const Eigen::FullPivLU<Eigen::Matrix3d> lu(H21);
+  if (!lu.isInvertible()) return;
+  const Eigen::Matrix3d H12 = lu.inverse();
+  for (size_t i = 0; i < n; ++i) {
+    const Eigen::Vector3d p2 = H21 * px1[i].homogeneous();
+    const Eigen::Vector3d p1 = H12 * px2[i].homogeneous();
+    if (p2.z() == 0 || p1.z() == 0) continue;
+    const double chi2_in2 = (p2.hnormalized() - px2[i]).squaredNorm() * inv_sigma2;
+    const double chi2_in1 = (p1.hnormalized() - px1[i]).squaredNorm() * inv_sigma2;
+    if (!(chi2_in2 <= gate) || !(chi2_in1 <= gate)) continue;
+    out->score += (gate - chi2_in2) + (gate - chi2_in1);
+    out->inlier[i] = true;
+    ++out->num_inliers;
+  }
+}
+
+// Symmetric epipolar score of F (pixels): distance to the epipolar line in both images,
+// gated at 1 DoF and scored against the 2 DoF ceiling so H and F scores are comparable.
+void ScoreFundamental(const Eigen::Matrix3d& F21, const std::vector<Eigen::Vector2d>& px1,
+                      const std::vector<Eigen::Vector2d>& px2, double inv_sigma2, double gate,
+                      double score_ceiling, ModelScore* out) {
+  const size_t n = px1.size();
+  out->score = 0;
+  out->num_inliers = 0;
+  out->inlier.assign(n, false);
+  for (size_t i = 0; i < n; ++i) {
+    const Eigen::Vector3d x1 = px1[i].homogeneous();
+    const Eigen::Vector3d x2 = px2[i].homogeneous();
+    const Eigen::Vector3d l2 = F21 * x1;
+    const Eigen::Vector3d l1 = F21.transpose() * x2;
+    const double n2 = l2.head<2>().squaredNorm();
+    const double n1 = l1.head<2>().squaredNorm();
+    if (n1 <= 0 || n2 <= 0) continue;
+    const double e2 = l2.dot(x2);
+    const double e1 = l1.dot(x1);
+    const double chi2_in2 = e2 * e2 / n2 * inv_sigma2;
+    const double chi2_in1 = e1 * e1 / n1 * inv_sigma2;
+    if (!(chi2_in2 <= gate) || !(chi2_in1 <= gate)) continue;
+    out->score += (score_ceiling - chi2_in2) + (score_ceiling - chi2_in1);
+    out->inlier[i] = true;
+    ++out->num_inliers;
+  }
+}
+
+std::vector<int> InlierIndices(const std::vector<bool>& inlier) {
+  std::vector<int> idx;
+  for (size_t i = 0; i < inlier.size(); ++i)
+    if (inlier[i]) idx.push_back(static_cast<int>(i));
+  return idx;
+}
+
+struct Motion {
+  Eigen::Matrix3d R;
+  Eigen::Vector3d t;
+};
+
+// Outcome of triangulating the model inliers under one candidate motion.
+struct MotionCheck {
+  int good = 0;                       // in front (where measurable) and reprojecting well
+  double parallax_deg = 0;            // scene parallax at the configured rank
+  std::vector<Eigen::Vector3d> points;
+  std::vector<bool> triangulated;
+};
+
+MotionCheck CheckMotion(const Motion& motion, const std::vector<Eigen::Vector2d>& px1,
+                        const std::vector<Eigen::Vector2d>& px2, const std::vector<bool>& inlier,
+                        const PinholeCamera& camera, const TwoViewOptions& options) {
+  const size_t n = px1.size();
+  MotionCheck out;
+  out.points.assign(n, Eigen::Vector3d::Zero());
+  out.triangulated.assign(n, false);
+  const Eigen::Matrix3d K = camera.K();
+  Matrix34d P1 = Matrix34d::Zero();
+  P1.leftCols<3>().setIdentity();
+  Matrix34d P2;
+  P2.leftCols<3>() = motion.R;
+  P2.col(3) = motion.t;
+  const Eigen::Vector3d c1 = Eigen::Vector3d::Zero();
+  const Eigen::Vector3d c2 = -motion.R.transpose() * motion.t;
+  const double max_err2 = options.max_reprojection_error_px * options.max_reprojection_error_px;
+  const double min_point_parallax = options.min_point_parallax_deg;
+  std::vector<double> parallaxes;
+  parallaxes.reserve(n);
+  for (size_t i = 0; i < n; ++i) {
+    if (!inlier[i]) continue;
+    const Eigen::Vector2d x1((px1[i].x() - camera.cx) / camera.fx, (px1[i].y() - camera.cy) / camera.fy);
+    const Eigen::Vector2d x2((px2[i].x() - camera.cx) / camera.fx, (px2[i].y() - camera.cy) / camera.fy);
+    const std::optional<Eigen::Vector3d> X = TriangulateDlt(P1, P2, x1, x2);
+    if (!X) continue;
+    const double parallax = ParallaxDeg(*X, c1, c2);
+    const bool measurable = parallax > min_point_parallax;
+    const Eigen::Vector3d X2 = motion.R * *X + motion.t;
+    // Depth sign is meaningless for near-parallel rays; only reject it where it is measurable.
+    if (measurable && (X->z() <= 0 || X2.z() <= 0)) continue;
+    if (!(ReprojectionError2(K, *X, px1[i]) <= max_err2)) continue;
+    if (!(ReprojectionError2(K, X2, px2[i]) <= max_err2)) continue;
+    ++out.good;
+    parallaxes.push_back(parallax);
+    if (measurable) {
+      out.points[i] = *X;
+      out.triangulated[i] = true;
+    }
+  }
+  if (!parallaxes.empty()) {
+    std::sort(parallaxes.begin(), parallaxes.end(), std::greater<double>());
+    const size_t rank = std::min<size_t>(static_cast<size_t>(options.parallax_rank), parallaxes.size() - 1);
+    out.parallax_deg = parallaxes[rank];
+  }
+  return out;
+}
+
+// The four (R, t) factorizations of an essential matrix, |t| = 1.
+std::vector<Motion> MotionsFromEssential(const Eigen::Matrix3d& E) {
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(E, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Eigen::Matrix3d& U = svd.matrixU();
+  const Eigen::Matrix3d& V = svd.matrixV();
+  Eigen::Matrix3d W;
+  W << 0, -1, 0, 1, 0, 0, 0, 0, 1;
+  Eigen::Matrix3d Ra = U * W * V.transpose();
+  Eigen::Matrix3d Rb = U * W.transpose() * V.transpose();
+  if (Ra.determinant() < 0) Ra = -Ra;
+  if (Rb.determinant() < 0) Rb = -Rb;
+  const Eigen::Vector3d t = U.col(2).normalized();
+  return {{Ra, t}, {Ra, -t}, {Rb, t}, {Rb, -t}};
+}
+
+// Candidate motions of a pixel homography (Malis-Vargas decomposition in OpenCV).
+std::vector<Motion> MotionsFromHomography(const Eigen::Matrix3d& H21, const Eigen::Matrix3d& K) {
+  cv::Mat H_cv, K_cv;
+  cv::eigen2cv(H21, H_cv);
+  cv::eigen2cv(K, K_cv);
+  std::vector<cv::Mat> rotations, translations, normals;
+  cv::decomposeHomographyMat(H_cv, K_cv, rotations, translations, normals);
+  std::vector<Motion> motions;
+  for (size_t k = 0; k < rotations.size(); ++k) {
+    Motion m;
+    cv::cv2eigen(rotations[k], m.R);
+    cv::cv2eigen(translations[k], m.t);
+    if (!m.R.allFinite() || !m.t.allFinite()) continue;
+    motions.push_back(m);
+  }
+  return motions;
+}
+
+// Picks k distinct indices of [0, n) with a partial Fisher-Yates shuffle of *pool.
+void SampleIndices(int k, std::vector<int>* pool, std::mt19937_64& rng, std::vector<int>* out) {
+  const int n = static_cast<int>(pool->size());
+  out->resize(k);
+  for (int j = 0; j < k; ++j) {
+    std::uniform_int_distribution<int> pick(j, n - 1);
+    std::swap((*pool)[j], (*pool)[pick(rng)]);
+    (*out)[j] = (*pool)[j];
+  }
+}
+
+}  // namespace
+
+std::optional<Eigen::Vector3d> TriangulateDlt(const Matrix34d& P1, const Matrix34d& P2,
+                                              const Eigen::Vector2d& x1, const Eigen::Vector2d& x2) {
+  Eigen::Matrix4d A;
+  A.row(0) = x1.x() * P1.row(2) - P1.row(0);
+  A.row(1) = x1.y() * P1.row(2) - P1.row(1);
+  A.row(2) = x2.x() * P2.row(2) - P2.row(0);
+  A.row(3) = x2.y() * P2.row(2) - P2.row(1);
+  for (int r = 0; r < 4; ++r) {
+    const double norm = A.row(r).norm();
+    if (norm > 0) A.row(r) /= norm;
+  }
+  Eigen::JacobiSVD<Eigen::Matrix4d> svd(A, Eigen::ComputeFullV);
+  const Eigen::Vector4d X = svd.matrixV().col(3);
+  if (!X.allFinite() || std::abs(X(3)) <= 1e-12 * X.head<3>().norm() || X(3) == 0) return std::nullopt;
+  return Eigen::Vector3d(X.head<3>() / X(3));
+}
+
+bool TriangulationOptions::Check() const {
+  return max_reprojection_error_px > 0 && min_parallax_deg >= 0 && min_parallax_deg < 180 &&
+         std::isfinite(min_depth);
+}
+
+TriangulatedPoint TriangulatePoint(const PinholeCamera& camera, const Eigen::Isometry3d& T_cam1_world,
+                                   const Eigen::Isometry3d& T_cam2_world, const Eigen::Vector2d& px1,
+                                   const Eigen::Vector2d& px2, const TriangulationOptions& options) {
+  FLATSLAM_CHECK(options.Check(), "TriangulatePoint: invalid TriangulationOptions");
+  FLATSLAM_CHECK(camera.fx > 0 && camera.fy > 0, "TriangulatePoint: camera has no focal length");
+  TriangulatedPoint out;
+  const Matrix34d P1 = T_cam1_world.matrix().topRows<3>();
+  const Matrix34d P2 = T_cam2_world.matrix().topRows<3>();
+  const Eigen::Vector2d x1((px1.x() - camera.cx) / camera.fx, (px1.y() - camera.cy) / camera.fy);
+  const Eigen::Vector2d x2((px2.x() - camera.cx) / camera.fx, (px2.y() - camera.cy) / camera.fy);
+  const std::optional<Eigen::Vector3d> X = TriangulateDlt(P1, P2, x1, x2);
+  if (!X) return out;  // kDegenerate
+  out.X_world = *X;
+  const Eigen::Vector3d c1 = T_cam1_world.inverse().translation();
+  const Eigen::Vector3d c2 = T_cam2_world.inverse().translation();
+  out.parallax_deg = ParallaxDeg(*X, c1, c2);
+  const Eigen::Vector3d X1 = T_cam1_world * *X;
+  const Eigen::Vector3d X2 = T_cam2_world * *X;
+  const Eigen::Matrix3d K = camera.K();
+  if (X1.z() <= options.min_depth || X2.z() <= options.min_depth) {
+    out.status = TriangulationStatus::kBehindCamera;
+    return out;
+  }
+  out.max_error_px = std::sqrt(std::max(ReprojectionError2(K, X1, px1), ReprojectionError2(K, X2, px2)));
+  if (!(out.max_error_px <= options.max_reprojection_error_px)) {
+    out.status = TriangulationStatus::kLargeError;
+    return out;
+  }
+  if (out.parallax_deg < options.min_parallax_deg) {
+    out.status = TriangulationStatus::kLowParallax;
+    return out;
+  }
+  out.status = TriangulationStatus::kOk;
+  return out;
+}
+
+bool TwoViewOptions::Check() const {
+  return ransac_iterations > 0 && sigma_px > 0 && chi2_one_dof > 0 && chi2_two_dof > 0 &&
+         homography_ratio > 0 && homography_ratio < 1 && max_reprojection_error_px > 0 &&
+         min_point_parallax_deg >= 0 && min_parallax_deg >= 0 && parallax_rank >= 0 &&
+         min_triangulated >= 0 && min_good_fraction >= 0 && min_good_fraction <= 1 &&
+         clear_winner_ratio > 0 && clear_winner_ratio <= 1;
+}
+
+std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d>& px1,
+                                               const std::vector<Eigen::Vector2d>& px2,
+                                               const PinholeCamera& camera, const TwoViewOptions& options,
+                                               std::mt19937_64& rng) {
+  FLATSLAM_CHECK(px1.size() == px2.size(), "InitializeTwoView: ", px1.size(), " points in view 1 but ",
+                 px2.size(), " in view 2");
+  FLATSLAM_CHECK(options.Check(), "InitializeTwoView: invalid TwoViewOptions");
+  FLATSLAM_CHECK(camera.fx > 0 && camera.fy > 0, "InitializeTwoView: camera has no focal length");
+  constexpr int kMinimalSet = 8;
+  const int n = static_cast<int>(px1.size());
+  if (n < kMinimalSet) return std::nullopt;
+
+  std::vector<Eigen::Vector2d> x1, x2;
+  const Eigen::Matrix3d T1 = Normalize(px1, &x1);
+  const Eigen::Matrix3d T2 = Normalize(px2, &x2);
+  const Eigen::Matrix3d T2_inv = T2.inverse();
+  const double inv_sigma2 = 1.0 / (options.sigma_px * options.sigma_px);
+
+  // Both hypotheses are scored on the same minimal sets (8 points fit H by least squares).
+  ModelScore best_h, best_f, trial;
+  Eigen::Matrix3d H21 = Eigen::Matrix3d::Identity(), F21 = Eigen::Matrix3d::Zero();
+  std::vector<int> pool(n), sample;
+  std::iota(pool.begin(), pool.end(), 0);
+  for (int it = 0; it < options.ransac_iterations; ++it) {
+    SampleIndices(kMinimalSet, &pool, rng, &sample);
+    const Eigen::Matrix3d H = T2_inv * FitHomography(x1, x2, sample) * T1;
+    ScoreHomography(H, px1, px2, inv_sigma2, options.chi2_two_dof, &trial);
+    if (trial.score > best_h.score) {
+      std::swap(best_h, trial);
+      H21 = H;
+    }
+    const Eigen::Matrix3d F = T2.transpose() * FitFundamental(x1, x2, sample) * T1;
+    ScoreFundamental(F, px1, px2, inv_sigma2, options.chi2_one_dof, options.chi2_two_dof, &trial);
+    if (trial.score > best_f.score) {
+      std::swap(best_f, trial);
+      F21 = F;
+    }
+  }
+  if (options.refine_on_inliers) {
+    // Least-squares re-fit on the consensus set; kept only when it scores higher.
+    for (int pass = 0; pass < 2; ++pass) {
+      if (best_h.num_inliers >= kMinimalSet) {
+        const Eigen::Matrix3d H = T2_inv * FitHomography(x1, x2, InlierIndices(best_h.inlier)) * T1;
+        ScoreHomography(H, px1, px2, inv_sigma2, options.chi2_two_dof, &trial);
+        if (trial.score > best_h.score) {
+          std::swap(best_h, trial);
+          H21 = H;
+        }
+      }
+      if (best_f.num_inliers >= kMinimalSet) {
+        const Eigen::Matrix3d F = T2.transpose() * FitFundamental(x1, x2, InlierIndices(best_f.inlier)) * T1;
+        ScoreFundamental(F, px1, px2, inv_sigma2, options.chi2_one_dof, options.chi2_two_dof, &trial);
+        if (trial.score > best_f.score) {
+          std::swap(best_f, trial);
+          F21 = F;
+        }
+      }
+    }
+  }
+  const double total = best_h.score + best_f.score;
+  if (!(total > 0)) return std::nullopt;
+  const double ratio = best_h.score / total;
+  const bool use_h = ratio > options.homography_ratio;
+  const ModelScore& model = use_h ? best_h : best_f;
+  if (model.num_inliers < kMinimalSet) return std::nullopt;
+
+  const Eigen::Matrix3d K = camera.K();
+  const std::vector<Motion> motions =
+      use_h ? MotionsFromHomography(H21, K) : MotionsFromEssential(K.transpose() * F21 * K);
+  if (motions.empty()) return std::nullopt;
+
+  int best = -1, best_good = -1, second_good = 0;
+  std::vector<MotionCheck> checks;
+  checks.reserve(motions.size());
+  for (const Motion& m : motions) {
+    checks.push_back(CheckMotion(m, px1, px2, model.inlier, camera, options));
+    const int good = checks.back().good;
+    if (good > best_good) {
+      second_good = std::max(second_good, best_good);
+      best_good = good;
+      best = static_cast<int>(checks.size()) - 1;
+    } else {
+      second_good = std::max(second_good, good);
+    }
+  }
+  if (getenv("GEO_DEBUG")) {
+    fprintf(stderr, "use_h %d ratio %.3f inliersH %d inliersF %d\n", use_h, ratio, best_h.num_inliers, best_f.num_inliers);
+    for (size_t k = 0; k < checks.size(); ++k) fprintf(stderr, "  cand %zu good %d parallax %.2f t %.3f %.3f %.3f\n", k, checks[k].good, checks[k].parallax_deg, motions[k].t.x(), motions[k].t.y(), motions[k].t.z());
+  }
+  const MotionCheck& winner = checks[best];
+  const double min_good = std::max<double>(options.min_good_fraction * model.num_inliers, options.min_triangulated);
+  if (best_good < min_good) return std::nullopt;
+  if (second_good >= options.clear_winner_ratio * best_good) return std::nullopt;
+  if (winner.parallax_deg < options.min_parallax_deg) return std::nullopt;
+
+  std::vector<double> depths;
+  for (int i = 0; i < n; ++i)
+    if (winner.triangulated[i]) depths.push_back(winner.points[i].z());
+  if (depths.empty()) return std::nullopt;
+  std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+  const double median_depth = depths[depths.size() / 2];
+  if (!(median_depth > 0)) return std::nullopt;
+
+  TwoViewResult result;
+  const double scale = 1.0 / median_depth;
+  result.T_2_1.linear() = motions[best].R;
+  result.T_2_1.translation() = motions[best].t * scale;
+  result.points.assign(n, Eigen::Vector3d::Zero());
+  result.triangulated = winner.triangulated;
+  for (int i = 0; i < n; ++i) {
+    if (!winner.triangulated[i]) continue;
+    result.points[i] = winner.points[i] * scale;
+    ++result.num_triangulated;
+  }
+  result.inliers = model.num_inliers;
+  result.used_homography = use_h;
+  result.parallax_deg = winner.parallax_deg;
+  result.homography_ratio = ratio;
+  return result;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,312 @@
+#include "systems/matcher.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <unordered_set>
+
+namespace flatslam {
+namespace {
+
+constexpr float kTwoPi = 6.28318530717958647692f;
+
+// Angle differences of matches in 30 bins; matches outside the three dominant bins are
+// rejected (a bin is kept only if it holds at least a tenth of the largest one).
+class RotationHistogram {
+ public:
+  void Add(float angle_diff, uint32_t id) {
+    float a = std::fmod(angle_diff, kTwoPi);
+    if (a < 0) a += kTwoPi;
+    const int bin = std::min(kBins - 1, static_cast<int>(a / kTwoPi * kBins));
+    bins_[bin].push_back(id);
+  }
+  [[nodiscard]] std::vector<uint32_t> Rejected() const {
+    std::array<int, kBins> order;
+    for (int i = 0; i < kBins; ++i) order[i] = i;
+    std::partial_sort(order.begin(), order.begin() + 3, order.end(),
+                      [&](int a, int b) { return bins_[a].size() > bins_[b].size(); });
+    const size_t largest = bins_[order[0]].size();
+    std::array<bool, kBins> keep{};
+    for (int k = 0; k < 3; ++k)
+      if (k == 0 || bins_[order[k]].size() * 10 >= largest) keep[order[k]] = true;
+    std::vector<uint32_t> out;
+    for (int i = 0; i < kBins; ++i)
+      if (!keep[i]) out.insert(out.end(), bins_[i].begin(), bins_[i].end());
+    return out;
+  }
+
+ private:
+  static constexpr int kBins = 30;
+  std::array<std::vector<uint32_t>, kBins> bins_;
+};
+
+std::unordered_set<PointHandle> MatchedPoints(const TrackedFrame& frame) {
+  std::unordered_set<PointHandle> set;
+  set.reserve(frame.points.size());
+  for (PointHandle p : frame.points)
+    if (!p.is_null()) set.insert(p);
+  return set;
+}
+
+// Level at which a point at `distance` is expected, from its scale-invariance range.
+int PredictLevel(const MapPoint& point, double distance, const ScalePyramid& pyramid) {
+  const double ratio = point.max_distance / distance;
+  const int level = static_cast<int>(std::ceil(std::log(ratio) / pyramid.log_scale_factor));
+  return std::clamp(level, 0, pyramid.levels - 1);
+}
+
+// Shared body of the frame- and keyframe-sourced projection searches.
+template <class GetPoint, class GetOctave, class GetAngle>
+int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOctave get_octave, GetAngle get_angle,
+                    const Map& map, const CameraGeometry& g, float radius, const MatcherOptions& options) {
+  std::unordered_set<PointHandle> taken = MatchedPoints(current);
+  const PinholeCamera& cam = g.camera;
+  RotationHistogram histogram;
+  std::vector<uint32_t> candidates;
+  int matches = 0;
+  for (size_t i = 0; i < n; ++i) {
+    const PointHandle p = get_point(i);
+    if (p.is_null() || taken.count(p)) continue;
+    const MapPoint* point = map.points().try_get(p);
+    if (!point) continue;
+    const Eigen::Vector3d Xc = current.T_cam_world * point->position;
+    if (Xc.z() <= 0) continue;
+    const double inv_z = 1.0 / Xc.z();
+    const double u = cam.fx * Xc.x() * inv_z + cam.cx, v = cam.fy * Xc.y() * inv_z + cam.cy;
+    if (!g.InImage(u, v)) continue;
+    const int octave = get_octave(i);
+    const float r = radius * g.pyramid.scale[octave];
+    candidates.clear();
+    current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, current.keypoints.uv, &candidates);
+    int best = 257;
+    int best_index = -1;
+    for (uint32_t k : candidates) {
+      if (!current.points[k].is_null()) continue;
+      const int o = current.keypoints.octave[k];
+      if (o < octave - 1 || o > octave + 1) continue;
+      if (g.bf > 0 && current.keypoints.right_u[k] >= 0) {
+        const double ur = u - g.bf * inv_z;
+        if (std::abs(ur - current.keypoints.right_u[k]) > r) continue;
+      }
+      const int d = Hamming(point->descriptor, current.keypoints.descriptor[k]);
+      if (d < best) {
+        best = d;
+        best_index = static_cast<int>(k);
+      }
+    }
+    if (best_index < 0 || best > options.max_distance) continue;
+    current.points[best_index] = p;
+    taken.insert(p);
+    ++matches;
+    histogram.Add(get_angle(i) - current.keypoints.angle[best_index], static_cast<uint32_t>(best_index));
+  }
+  if (options.check_orientation) {
+    for (uint32_t k : histogram.Rejected()) {
+      current.points[k] = PointHandle::null();
+      --matches;
+    }
+  }
+  return matches;
+}
+
+}  // namespace
+
+int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map,
+                      const CameraGeometry& geometry, float radius, const MatcherOptions& options) {
+  return ProjectAndMatch(
+      current, source.size(),
+      [&](size_t i) { return source.outlier[i] ? PointHandle::null() : source.points[i]; },
+      [&](size_t i) { return static_cast<int>(source.keypoints.octave[i]); },
+      [&](size_t i) { return source.keypoints.angle[i]; }, map, geometry, radius, options);
+}
+
+int MatchByProjection(TrackedFrame& current, const KeyFrame& source, const Map& map,
+                      const CameraGeometry& geometry, float radius, const MatcherOptions& options) {
+  return ProjectAndMatch(
+      current, source.size(), [&](size_t i) { return source.points[i]; },
+      [&](size_t i) { return static_cast<int>(source.octave[i]); }, [&](size_t i) { return source.angle[i]; },
+      map, geometry, radius, options);
+}
+
+int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const PointHandle> points,
+                     const CameraGeometry& g, float radius_scale, const MatcherOptions& options,
+                     std::vector<PointHandle>* seen) {
+  const std::unordered_set<PointHandle> taken = MatchedPoints(current);
+  const PinholeCamera& cam = g.camera;
+  const Eigen::Vector3d center = current.T_cam_world.inverse().translation();
+  std::vector<uint32_t> candidates;
+  int matches = 0;
+  for (PointHandle p : points) {
+    if (taken.count(p)) continue;
+    const MapPoint* point = map.points().try_get(p);
+    if (!point) continue;
+    const Eigen::Vector3d Xc = current.T_cam_world * point->position;
+    if (Xc.z() <= 0) continue;
+    const double inv_z = 1.0 / Xc.z();
+    const double u = cam.fx * Xc.x() * inv_z + cam.cx, v = cam.fy * Xc.y() * inv_z + cam.cy;
+    if (!g.InImage(u, v)) continue;
+    const Eigen::Vector3d ray = point->position - center;
+    const double distance = ray.norm();
+    if (distance < 0.8 * point->min_distance || distance > 1.2 * point->max_distance) continue;
+    const double view_cos = ray.dot(point->normal) / distance;
+    if (view_cos < 0.5) continue;
+    const int level = PredictLevel(*point, distance, g.pyramid);
+    if (seen) seen->push_back(p);
+    const float r = radius_scale * (view_cos > 0.998 ? 2.5f : 4.0f) * g.pyramid.scale[level];
+    candidates.clear();
+    current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, current.keypoints.uv, &candidates);
+    int best = 257, second = 257, best_level = -1, second_level = -1, best_index = -1;
+    for (uint32_t k : candidates) {
+      if (!current.points[k].is_null()) continue;
+      const int o = current.keypoints.octave[k];
+      if (o < level - 1 || o > level) continue;
+      if (g.bf > 0 && current.keypoints.right_u[k] >= 0) {
+        const double ur = u - g.bf * inv_z;
+        if (std::abs(ur - current.keypoints.right_u[k]) > r) continue;
+      }
+      const int d = Hamming(point->descriptor, current.keypoints.descriptor[k]);
+      if (d < best) {
+        second = best;
+        second_level = best_level;
+        best = d;
+        best_level = o;
+        best_index = static_cast<int>(k);
+      } else if (d < second) {
+        second = d;
+        second_level = o;
+      }
+    }
+    if (best_index < 0 || best > options.max_distance) continue;
+    if (best_level == second_level && best > options.nn_ratio * second) continue;
+    current.points[best_index] = p;
+    ++matches;
+  }
+  return matches;
+}
+
+Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, const PinholeCamera& camera) {
+  const Eigen::Isometry3d T_2_1 = kf2.T_cam_world * kf1.T_cam_world.inverse();
+  const Eigen::Vector3d t = T_2_1.translation();
+  Eigen::Matrix3d tx;
+  tx << 0, -t.z(), t.y(), t.z(), 0, -t.x(), -t.y(), t.x(), 0;
+  const Eigen::Matrix3d E = tx * T_2_1.linear();
+  const Eigen::Matrix3d K_inv = camera.K().inverse();
+  return K_inv.transpose() * E * K_inv;
+}
+
+std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame& kf1, const KeyFrame& kf2,
+                                                                 const Eigen::Matrix3d& F_2_1,
+                                                                 const CameraGeometry& g,
+                                                                 const MatcherOptions& options) {
+  // Epipole: the centre of kf1 seen from kf2; mono matches next to it have no parallax.
+  const Eigen::Vector3d c1_in_2 = kf2.T_cam_world * kf1.camera_center();
+  const double eu = g.camera.fx * c1_in_2.x() / c1_in_2.z() + g.camera.cx;
+  const double ev = g.camera.fy * c1_in_2.y() / c1_in_2.z() + g.camera.cy;
+  std::vector<int> matched_in_2(kf2.size(), -1);
+  std::vector<int> best_distance_2(kf2.size(), 257);
+  RotationHistogram histogram;
+  for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
+    if (!kf1.points[i1].is_null()) continue;
+    const bool stereo1 = kf1.right_u[i1] >= 0;
+    const Eigen::Vector3d line = F_2_1 * Eigen::Vector3d(kf1.uv[i1].x(), kf1.uv[i1].y(), 1.0);
+    const double line_norm2 = line.x() * line.x() + line.y() * line.y();
+    if (line_norm2 <= 0) continue;
+    int best = options.max_distance_strict + 1;
+    int best_index = -1;
+    for (uint32_t i2 = 0; i2 < kf2.size(); ++i2) {
+      if (!kf2.points[i2].is_null()) continue;
+      const int d = Hamming(kf1.descriptor[i1], kf2.descriptor[i2]);
+      if (d >= best) continue;
+      const bool stereo2 = kf2.right_u[i2] >= 0;
+      const double u2 = kf2.uv[i2].x(), v2 = kf2.uv[i2].y();
+      if (!stereo1 && !stereo2) {
+        const double de = (u2 - eu) * (u2 - eu) + (v2 - ev) * (v2 - ev);
+        if (de < 100.0 * g.pyramid.scale[kf2.octave[i2]]) continue;
+      }
+      const double num = line.x() * u2 + line.y() * v2 + line.z();
+      if (num * num / line_norm2 >= 3.84 * g.pyramid.sigma2[kf2.octave[i2]]) continue;
+      best = d;
+      best_index = static_cast<int>(i2);
+    }
+    if (best_index < 0) continue;
+    // One kf2 keypoint per kf1 keypoint: the closer descriptor wins.
+    if (matched_in_2[best_index] >= 0 && best_distance_2[best_index] <= best) continue;
+    matched_in_2[best_index] = static_cast<int>(i1);
+    best_distance_2[best_index] = best;
+  }
+  std::vector<std::pair<uint32_t, uint32_t>> out;
+  for (uint32_t i2 = 0; i2 < kf2.size(); ++i2) {
+    if (matched_in_2[i2] < 0) continue;
+    histogram.Add(kf1.angle[matched_in_2[i2]] - kf2.angle[i2], i2);
+  }
+  std::vector<uint8_t> rejected(kf2.size(), 0);
+  if (options.check_orientation)
+    for (uint32_t i2 : histogram.Rejected()) rejected[i2] = 1;
+  for (uint32_t i2 = 0; i2 < kf2.size(); ++i2)
+    if (matched_in_2[i2] >= 0 && !rejected[i2]) out.emplace_back(static_cast<uint32_t>(matched_in_2[i2]), i2);
+  return out;
+}
+
+int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> points, const CameraGeometry& g,
+               const MatcherOptions& options) {
+  FeatureGrid grid;
+  {
+    const KeyFrame& kf = map.keyframe(kf_handle);
+    grid.Build(kf.uv, g.camera.width, g.camera.height);
+  }
+  std::vector<uint32_t> candidates;
+  int fused = 0;
+  for (PointHandle p : points) {
+    const MapPoint* point = map.points().try_get(p);
+    if (!point) continue;
+    const KeyFrame& kf = map.keyframe(kf_handle);
+    if (std::any_of(point->observations.begin(), point->observations.end(),
+                    [&](const Observation& o) { return o.keyframe == kf_handle; }))
+      continue;
+    const Eigen::Vector3d Xc = kf.T_cam_world * point->position;
+    if (Xc.z() <= 0) continue;
+    const double inv_z = 1.0 / Xc.z();
+    const double u = g.camera.fx * Xc.x() * inv_z + g.camera.cx, v = g.camera.fy * Xc.y() * inv_z + g.camera.cy;
+    if (!g.InImage(u, v)) continue;
+    const Eigen::Vector3d ray = point->position - kf.camera_center();
+    const double distance = ray.norm();
+    if (distance < 0.8 * point->min_distance || distance > 1.2 * point->max_distance) continue;
+    if (ray.dot(point->normal) < 0.5 * distance) continue;
+    const int level = PredictLevel(*point, distance, g.pyramid);
+    const float r = options.fusion_radius * g.pyramid.scale[level];
+    candidates.clear();
+    grid.Query(static_cast<float>(u), static_cast<float>(v), r, kf.uv, &candidates);
+    int best = 257, best_index = -1;
+    for (uint32_t k : candidates) {
+      const int o = kf.octave[k];
+      if (o < level - 1 || o > level) continue;
+      const double eu = u - kf.uv[k].x(), ev = v - kf.uv[k].y();
+      double e2 = eu * eu + ev * ev;
+      double gate = 5.991;
+      if (g.bf > 0 && kf.right_u[k] >= 0) {
+        const double er = (u - g.bf * inv_z) - kf.right_u[k];
+        e2 += er * er;
+        gate = 7.8;
+      }
+      if (e2 * g.pyramid.inv_sigma2[o] > gate) continue;
+      const int d = Hamming(point->descriptor, kf.descriptor[k]);
+      if (d < best) {
+        best = d;
+        best_index = static_cast<int>(k);
+      }
+    }
+    if (best_index < 0 || best > options.max_distance_strict) continue;
+    const PointHandle existing = kf.points[best_index];
+    if (existing.is_null()) {
+      map.AddObservation(p, kf_handle, static_cast<uint32_t>(best_index));
+    } else if (existing != p) {
+      const size_t n_existing = map.point(existing).observations.size();
+      if (n_existing >= point->observations.size()) map.ReplacePoint(p, existing);
+      else map.ReplacePoint(existing, p);
+    }
+    ++fused;
+  }
+  return fused;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,70 @@
+// Descriptor matching guided by geometry: projection search (frame to frame, local map to
+// frame), epipolar search for triangulation, and fusion of duplicate map points.
+// Concurrency: pure functions of their inputs; the caller holds the map lock they need.
+#pragma once
+
+#include <cstdint>
+#include <span>
+#include <utility>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "ecs/map.h"
+#include "io/types.h"
+#include "systems/features.h"
+#include "systems/frame.h"
+
+namespace flatslam {
+
+struct MatcherOptions {
+  int max_distance = 100;         // Hamming gate for projection search (ORB-SLAM2 TH_HIGH)
+  int max_distance_strict = 50;   // Hamming gate for triangulation and fusion (TH_LOW)
+  float nn_ratio = 0.8f;          // best / second best at the same level, local-map search
+  bool check_orientation = true;  // keep matches whose rotation agrees with the dominant ones
+  float fusion_radius = 3.0f;     // pixels at level 0, times the level scale
+
+  [[nodiscard]] bool Check() const { return max_distance > 0 && nn_ratio > 0 && nn_ratio <= 1; }
+};
+
+// What a projection needs: camera, stereo baseline times fx (0 = monocular), pyramid.
+struct CameraGeometry {
+  PinholeCamera camera;
+  double bf = 0;  // baseline * fx; right_u = u - bf / z
+  ScalePyramid pyramid;
+
+  [[nodiscard]] bool InImage(double u, double v) const {
+    return u >= 0 && v >= 0 && u < camera.width && v < camera.height;
+  }
+};
+
+// Matches the map points seen by `source` (a previous frame) into `current`, whose pose is set.
+// Only unmatched keypoints of current are taken. Returns the number of new matches.
+int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map,
+                      const CameraGeometry& geometry, float radius, const MatcherOptions& options);
+// Same, from the map points of a keyframe.
+int MatchByProjection(TrackedFrame& current, const KeyFrame& source, const Map& map,
+                      const CameraGeometry& geometry, float radius, const MatcherOptions& options);
+// Matches local map points (not yet matched in current) that fall in the frustum of current,
+// at the level predicted from their distance. Updates `visible` counts through `seen` (the
+// points that passed the frustum test are appended). Returns the number of new matches.
+int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const PointHandle> points,
+                     const CameraGeometry& geometry, float radius_scale, const MatcherOptions& options,
+                     std::vector<PointHandle>* seen);
+
+// Pairs of keypoints of kf1 and kf2 that have no map point, agree in descriptor, satisfy the
+// epipolar constraint of F_2_1 (x2^T F x1 = 0) and, stereo aside, lie away from the epipole.
+std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame& kf1, const KeyFrame& kf2,
+                                                                 const Eigen::Matrix3d& F_2_1,
+                                                                 const CameraGeometry& geometry,
+                                                                 const MatcherOptions& options);
+
+// Projects `points` into kf and either adds an observation (free keypoint) or merges with the
+// point already there (the one with more observations survives). Returns the number of fusions.
+int FusePoints(Map& map, KeyFrameHandle kf, std::span<const PointHandle> points, const CameraGeometry& geometry,
+               const MatcherOptions& options);
+
+// Fundamental matrix mapping pixels of kf1 to epipolar lines in kf2.
+[[nodiscard]] Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, const PinholeCamera& camera);
+
+}  // namespace flatslam

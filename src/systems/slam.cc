@@ -1,0 +1,568 @@
+#include "systems/slam.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <unordered_map>
+#include <unordered_set>
+
+#include <tbb/parallel_invoke.h>
+
+#include "core/error.h"
+#include "systems/geometry.h"
+
+namespace flatslam {
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+// Back-projects keypoint i of a frame with depth into the world.
+Eigen::Vector3d Unproject(const PinholeCamera& cam, const Eigen::Isometry3d& T_cam_world, const Eigen::Vector2f& uv,
+                          float depth) {
+  const Eigen::Vector3d Xc((uv.x() - cam.cx) / cam.fx * depth, (uv.y() - cam.cy) / cam.fy * depth, depth);
+  return T_cam_world.inverse() * Xc;
+}
+
+}  // namespace
+
+const char* TrackingStateName(TrackingState state) {
+  switch (state) {
+    case TrackingState::kNotInitialized: return "not_initialized";
+    case TrackingState::kOk: return "ok";
+    case TrackingState::kLost: return "lost";
+  }
+  return "unknown";
+}
+
+bool SlamOptions::Check() const {
+  return orb.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
+         rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && min_init_points > 0 && min_motion_inliers > 0 &&
+         min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 &&
+         local_keyframes > 0 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1;
+}
+
+Slam::Slam(const Calibration& calibration, const SlamOptions& options)
+    : calibration_(calibration), options_(options), extractor_(options.orb) {
+  FLATSLAM_CHECK(options_.Check(), "invalid SLAM options");
+  FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
+  FLATSLAM_CHECK(calibration_.sensor != Sensor::kMonocular,
+                 "monocular tracking is not implemented yet: use a stereo or RGB-D sequence");
+  FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
+                 "stereo calibration without a baseline");
+  if (options_.max_frames_between_keyframes == 0)
+    options_.max_frames_between_keyframes =
+        calibration_.frame_rate_hz > 0 ? static_cast<int>(std::lround(calibration_.frame_rate_hz)) : 10;
+  geometry_.camera = calibration_.camera;
+  const double baseline =
+      calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m : options_.rgbd_virtual_baseline_m;
+  geometry_.bf = baseline * calibration_.camera.fx;
+  geometry_.pyramid = extractor_.scales();
+  map_scales_.scale_factor = geometry_.pyramid.scale_factor;
+  map_scales_.levels = geometry_.pyramid.levels;
+}
+
+double Slam::CloseDepth() const { return options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx; }
+
+void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
+  const auto start = std::chrono::steady_clock::now();
+  const PinholeCamera& cam = calibration_.camera;
+  FLATSLAM_CHECK(frame.left.cols == cam.width && frame.left.rows == cam.height, "frame ", frame.index, " is ",
+                 frame.left.cols, "x", frame.left.rows, ", calibration says ", cam.width, "x", cam.height);
+  out->index = frame.index;
+  out->t_ns = frame.t_ns;
+  if (calibration_.sensor == Sensor::kStereo) {
+    FLATSLAM_CHECK(!frame.right.empty(), "frame ", frame.index, " has no right image");
+    Keypoints right;
+    ImagePyramid left_pyramid, right_pyramid;
+    tbb::parallel_invoke([&] { extractor_.Extract(frame.left, &out->keypoints, &left_pyramid); },
+                         [&] { extractor_.Extract(frame.right, &right, &right_pyramid); });
+    MatchStereo(right, left_pyramid, right_pyramid, extractor_.scales(), cam.fx, calibration_.baseline_m,
+                options_.stereo, &out->keypoints);
+  } else {
+    FLATSLAM_CHECK(!frame.depth.empty(), "frame ", frame.index, " has no depth image");
+    extractor_.Extract(frame.left, &out->keypoints);
+    DepthFromImage(frame.depth, cam.fx, options_.rgbd_virtual_baseline_m, &out->keypoints);
+  }
+  out->Prepare(cam.width, cam.height);
+  (void)MsSince(start);
+}
+
+FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe) {
+  const auto start = std::chrono::steady_clock::now();
+  new_keyframe->reset();
+  FrameReport report;
+  report.index = frame.index;
+  report.t_ns = frame.t_ns;
+  report.features = static_cast<int>(frame.size());
+  for (float d : frame.keypoints.depth) report.stereo_points += d > 0 ? 1 : 0;
+
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  bool ok = false;
+  int matches = 0;
+  if (state_ == TrackingState::kNotInitialized) {
+    ok = Initialize(frame);
+    if (ok) *new_keyframe = reference_keyframe_;
+  } else {
+    ok = TrackWithMotion(frame) || TrackReferenceKeyFrame(frame);
+    if (ok) ok = TrackLocalMap(frame, &matches);
+    if (!ok) {
+      // Lost: start a new map segment at the predicted pose so the trajectory continues.
+      report.reinitialized = true;
+      frame.T_cam_world = velocity_ ? (*velocity_ * last_frame_->T_cam_world) : last_frame_->T_cam_world;
+      std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+      const Eigen::Isometry3d T = frame.T_cam_world;
+      if (Initialize(frame)) {
+        frame.T_cam_world = T;
+        *new_keyframe = reference_keyframe_;
+      }
+      velocity_.reset();
+    } else {
+      const int inliers = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
+                                                         [](PointHandle p) { return !p.is_null(); }));
+      report.inliers = inliers;
+      if (NeedKeyFrame(frame, inliers)) *new_keyframe = CreateKeyFrame(frame);
+    }
+  }
+
+  report.matches = matches;
+  if (state_ == TrackingState::kNotInitialized && !ok) {
+    report.state = TrackingState::kNotInitialized;
+  } else {
+    report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kOk;
+    state_ = TrackingState::kOk;
+    if (last_frame_ && !report.reinitialized) velocity_ = frame.T_cam_world * last_frame_->T_cam_world.inverse();
+    FramePose pose;
+    pose.t_ns = frame.t_ns;
+    pose.reference = reference_keyframe_;
+    pose.T_cam_world = frame.T_cam_world;
+    pose.T_cam_ref = frame.T_cam_world * map_.keyframe(reference_keyframe_).T_cam_world.inverse();
+    frame_poses_.push_back(pose);
+    report.T_world_cam = frame.T_cam_world.inverse();
+    frame.has_pose = true;
+    last_frame_ = std::move(frame);
+  }
+  report.keyframe = new_keyframe->has_value();
+  if (report.keyframe) ++pending_keyframes_;
+  report.track_ms = MsSince(start);
+  return report;
+}
+
+bool Slam::Initialize(TrackedFrame& frame) {
+  if (std::count_if(frame.keypoints.depth.begin(), frame.keypoints.depth.end(), [](float d) { return d > 0; }) <
+      options_.min_init_points)
+    return false;
+  if (first_keyframe_.is_null()) frame.T_cam_world = Eigen::Isometry3d::Identity();
+  std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  const KeyFrameHandle kf = CreateKeyFrame(frame, /*all_depth_points=*/true);
+  if (first_keyframe_.is_null()) first_keyframe_ = kf;
+  local_keyframes_ = {kf};
+  return true;
+}
+
+int Slam::OptimizeFramePose(TrackedFrame& frame) {
+  std::vector<PoseObservation> observations;
+  std::vector<uint32_t> index;
+  for (uint32_t i = 0; i < frame.size(); ++i) {
+    const PointHandle p = frame.points[i];
+    if (p.is_null()) continue;
+    const MapPoint* point = map_.points().try_get(p);
+    if (!point) {
+      frame.points[i] = PointHandle::null();
+      continue;
+    }
+    PoseObservation o;
+    o.X_world = point->position;
+    o.uv = frame.keypoints.uv[i].cast<double>();
+    o.right_u = frame.keypoints.right_u[i];
+    o.inv_sigma2 = geometry_.pyramid.inv_sigma2[frame.keypoints.octave[i]];
+    observations.push_back(o);
+    index.push_back(i);
+  }
+  if (observations.size() < 3) return 0;
+  const double baseline = geometry_.bf / geometry_.camera.fx;
+  const PoseOptimizationResult result =
+      OptimizePose(geometry_.camera, baseline, frame.T_cam_world, observations, options_.pose);
+  if (!result.success) return 0;
+  frame.T_cam_world = result.T_cam_world;
+  std::fill(frame.outlier.begin(), frame.outlier.end(), 0);
+  for (size_t k = 0; k < index.size(); ++k) {
+    if (!result.inlier[k]) {
+      frame.points[index[k]] = PointHandle::null();  // outliers are dropped from the frame
+    }
+  }
+  return result.num_inliers;
+}
+
+bool Slam::TrackWithMotion(TrackedFrame& frame) {
+  if (!velocity_ || !last_frame_) return false;
+  frame.T_cam_world = *velocity_ * last_frame_->T_cam_world;
+  std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  int matches = MatchByProjection(frame, *last_frame_, map_, geometry_, options_.motion_search_radius, options_.matcher);
+  if (matches < 20) {
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    matches = MatchByProjection(frame, *last_frame_, map_, geometry_, 2 * options_.motion_search_radius,
+                                options_.matcher);
+  }
+  if (matches < 20) return false;
+  return OptimizeFramePose(frame) >= options_.min_motion_inliers;
+}
+
+bool Slam::TrackReferenceKeyFrame(TrackedFrame& frame) {
+  if (!last_frame_) return false;
+  const KeyFrame* reference = map_.keyframes().try_get(reference_keyframe_);
+  if (!reference) return false;
+  // Without a motion prior, search wide around the last pose.
+  frame.T_cam_world = last_frame_->T_cam_world;
+  std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  int matches = MatchByProjection(frame, *last_frame_, map_, geometry_, 4 * options_.motion_search_radius,
+                                  options_.matcher);
+  matches += MatchByProjection(frame, *reference, map_, geometry_, 4 * options_.motion_search_radius, options_.matcher);
+  if (matches < 15) return false;
+  return OptimizeFramePose(frame) >= options_.min_motion_inliers;
+}
+
+bool Slam::TrackLocalMap(TrackedFrame& frame, int* matches) {
+  // Local keyframes: those sharing points with the frame, plus their best neighbours.
+  std::unordered_map<KeyFrameHandle, int> votes;
+  for (PointHandle p : frame.points) {
+    const MapPoint* point = map_.points().try_get(p);
+    if (!point) continue;
+    for (const Observation& o : point->observations) ++votes[o.keyframe];
+  }
+  if (votes.empty()) return false;
+  std::vector<std::pair<KeyFrameHandle, int>> ranked(votes.begin(), votes.end());
+  std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second > b.second : a.first < b.first;
+  });
+  local_keyframes_.clear();
+  std::unordered_set<KeyFrameHandle> in_set;
+  for (const auto& [kf, count] : ranked) {
+    if (local_keyframes_.size() >= options_.max_local_map_keyframes) break;
+    if (in_set.insert(kf).second) local_keyframes_.push_back(kf);
+  }
+  reference_keyframe_ = ranked.front().first;
+  const size_t direct = local_keyframes_.size();
+  for (size_t i = 0; i < direct && local_keyframes_.size() < options_.max_local_map_keyframes; ++i) {
+    for (KeyFrameHandle n : map_.BestCovisible(local_keyframes_[i], 10)) {
+      if (in_set.insert(n).second) local_keyframes_.push_back(n);
+      if (local_keyframes_.size() >= options_.max_local_map_keyframes) break;
+    }
+  }
+  local_points_.clear();
+  std::unordered_set<PointHandle> seen_points;
+  for (KeyFrameHandle kf : local_keyframes_) {
+    for (PointHandle p : map_.keyframe(kf).points)
+      if (!p.is_null() && seen_points.insert(p).second) local_points_.push_back(p);
+  }
+  std::vector<PointHandle> visible;
+  MatchLocalPoints(frame, map_, local_points_, geometry_, 1.0f, options_.matcher, &visible);
+  for (PointHandle p : visible)
+    if (MapPoint* point = map_.points().try_get(p)) ++point->visible;
+  *matches = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
+                                            [](PointHandle p) { return !p.is_null(); }));
+  const int inliers = OptimizeFramePose(frame);
+  for (PointHandle p : frame.points)
+    if (MapPoint* point = map_.points().try_get(p)) ++point->found;
+  return inliers >= options_.min_local_map_inliers;
+}
+
+bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
+  const KeyFrame* reference = map_.keyframes().try_get(reference_keyframe_);
+  if (!reference) return true;
+  const int min_observations = map_.keyframes().size() <= 2 ? 2 : 3;
+  int reference_points = 0;
+  for (PointHandle p : reference->points) {
+    const MapPoint* point = map_.points().try_get(p);
+    if (point && static_cast<int>(point->observations.size()) >= min_observations) ++reference_points;
+  }
+  const double close = CloseDepth();
+  int tracked_close = 0, untracked_close = 0;
+  for (size_t i = 0; i < frame.size(); ++i) {
+    const float d = frame.keypoints.depth[i];
+    if (d <= 0 || d >= close) continue;
+    if (frame.points[i].is_null()) ++untracked_close;
+    else ++tracked_close;
+  }
+  const bool need_close = tracked_close < 100 && untracked_close > 70;
+  const size_t since = frame.index - last_keyframe_frame_;
+  const bool idle = pending_keyframes_ == 0;
+  const bool timeout = since >= static_cast<size_t>(options_.max_frames_between_keyframes);
+  const bool weak = inliers < 0.25 * reference_points || need_close;
+  const bool thin = (inliers < 0.75 * reference_points || need_close) && inliers > 15;
+  if (!((timeout || idle || weak) && thin)) return false;
+  return idle || pending_keyframes_ < 3;
+}
+
+KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) {
+  KeyFrame kf;
+  kf.frame_index = frame.index;
+  kf.t_ns = frame.t_ns;
+  kf.T_cam_world = frame.T_cam_world;
+  kf.uv = frame.keypoints.uv;
+  kf.right_u = frame.keypoints.right_u;
+  kf.depth = frame.keypoints.depth;
+  kf.angle = frame.keypoints.angle;
+  kf.octave = frame.keypoints.octave;
+  kf.descriptor = frame.keypoints.descriptor;
+  kf.points.assign(frame.size(), PointHandle::null());
+  const KeyFrameHandle h = map_.AddKeyFrame(std::move(kf));
+  for (uint32_t i = 0; i < frame.size(); ++i) {
+    const PointHandle p = frame.points[i];
+    if (p.is_null() || !map_.points().contains(p)) continue;
+    const auto& obs = map_.point(p).observations;
+    if (std::any_of(obs.begin(), obs.end(), [&](const Observation& o) { return o.keyframe == h; })) continue;
+    map_.AddObservation(p, h, i);
+  }
+  // New points from stereo/RGB-D depth: all close ones, and at least the 100 nearest.
+  std::vector<uint32_t> by_depth;
+  for (uint32_t i = 0; i < frame.size(); ++i)
+    if (frame.keypoints.depth[i] > 0) by_depth.push_back(i);
+  std::sort(by_depth.begin(), by_depth.end(),
+            [&](uint32_t a, uint32_t b) { return frame.keypoints.depth[a] < frame.keypoints.depth[b]; });
+  const double close = all_depth_points ? 1e30 : CloseDepth();
+  int considered = 0;
+  for (uint32_t i : by_depth) {
+    if (frame.keypoints.depth[i] > close && considered > 100) break;
+    ++considered;
+    if (!frame.points[i].is_null()) continue;
+    const PointHandle p =
+        map_.AddPoint(Unproject(geometry_.camera, frame.T_cam_world, frame.keypoints.uv[i], frame.keypoints.depth[i]), h);
+    map_.AddObservation(p, h, i);
+    map_.UpdatePointStats(p, map_scales_);
+    frame.points[i] = p;
+    recent_points_.push_back(p);
+  }
+  map_.UpdateCovisibility(h);
+  reference_keyframe_ = h;
+  last_keyframe_frame_ = frame.index;
+  return h;
+}
+
+void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
+  struct Done {
+    std::atomic<int>& pending;
+    ~Done() { --pending; }
+  } done{pending_keyframes_};
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (!map_.keyframes().contains(keyframe)) return;
+    for (PointHandle p : map_.keyframe(keyframe).points)
+      if (map_.points().contains(p)) map_.UpdatePointStats(p, map_scales_);
+    map_.UpdateCovisibility(keyframe);
+    CullRecentPoints(keyframe);
+    Triangulate(keyframe);
+    Fuse(keyframe);
+    map_.UpdateCovisibility(keyframe);
+  }
+  LocalBundleAdjustment(keyframe);
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  if (map_.keyframes().contains(keyframe)) CullKeyFrames(keyframe);
+}
+
+void Slam::CullRecentPoints(KeyFrameHandle current) {
+  const uint64_t current_id = map_.keyframe(current).id;
+  const size_t min_observations = 3;  // stereo / RGB-D
+  std::vector<PointHandle> keep;
+  for (PointHandle p : recent_points_) {
+    MapPoint* point = map_.points().try_get(p);
+    if (!point) continue;
+    const uint64_t age = current_id - std::min(current_id, point->first_keyframe_id);
+    if (point->found_ratio() < 0.25f || (age >= 2 && point->observations.size() < min_observations)) {
+      map_.ErasePoint(p);
+    } else if (age < 3) {
+      keep.push_back(p);
+    }
+  }
+  recent_points_ = std::move(keep);
+}
+
+void Slam::Triangulate(KeyFrameHandle current) {
+  const std::vector<KeyFrameHandle> neighbours = map_.BestCovisible(current, options_.local_keyframes);
+  const double baseline = geometry_.bf / geometry_.camera.fx;
+  TriangulationOptions tri;
+  tri.max_reprojection_error_px = 2.0;
+  tri.min_parallax_deg = 0.0;
+  for (KeyFrameHandle n : neighbours) {
+    const KeyFrame& kf1 = map_.keyframe(current);
+    const KeyFrame& kf2 = map_.keyframe(n);
+    if ((kf1.camera_center() - kf2.camera_center()).norm() < baseline) continue;
+    const Eigen::Matrix3d F = FundamentalBetween(kf1, kf2, geometry_.camera);
+    const auto pairs = MatchForTriangulation(kf1, kf2, F, geometry_, options_.matcher);
+    for (const auto& [i1, i2] : pairs) {
+      const KeyFrame& a = map_.keyframe(current);
+      const KeyFrame& b = map_.keyframe(n);
+      if (!a.points[i1].is_null() || !b.points[i2].is_null()) continue;
+      const TriangulatedPoint t = TriangulatePoint(geometry_.camera, a.T_cam_world, b.T_cam_world,
+                                                   a.uv[i1].cast<double>(), b.uv[i2].cast<double>(), tri);
+      Eigen::Vector3d X;
+      // Low parallax: a stereo depth is more reliable than a triangulated one.
+      const double ray_cos = std::cos(t.parallax_deg * M_PI / 180.0);
+      if (t.status != TriangulationStatus::kDegenerate && t.status != TriangulationStatus::kBehindCamera &&
+          ray_cos < 0.9998 && t.ok()) {
+        X = t.X_world;
+      } else if (a.depth[i1] > 0 && a.depth[i1] < CloseDepth()) {
+        X = Unproject(geometry_.camera, a.T_cam_world, a.uv[i1], a.depth[i1]);
+      } else {
+        continue;
+      }
+      // Stereo measurements must agree too.
+      auto stereo_ok = [&](const KeyFrame& kf, uint32_t i) {
+        if (kf.right_u[i] < 0) return true;
+        const Eigen::Vector3d Xc = kf.T_cam_world * X;
+        if (Xc.z() <= 0) return false;
+        const double ur = geometry_.camera.fx * Xc.x() / Xc.z() + geometry_.camera.cx - geometry_.bf / Xc.z();
+        const double e = ur - kf.right_u[i];
+        return e * e * geometry_.pyramid.inv_sigma2[kf.octave[i]] < 3.84;
+      };
+      if (!stereo_ok(a, i1) || !stereo_ok(b, i2)) continue;
+      const PointHandle p = map_.AddPoint(X, current);
+      map_.AddObservation(p, current, i1);
+      map_.AddObservation(p, n, i2);
+      map_.UpdatePointStats(p, map_scales_);
+      recent_points_.push_back(p);
+    }
+  }
+}
+
+void Slam::Fuse(KeyFrameHandle current) {
+  std::vector<KeyFrameHandle> targets = map_.BestCovisible(current, options_.local_keyframes);
+  std::unordered_set<KeyFrameHandle> in_set(targets.begin(), targets.end());
+  const size_t first_order = targets.size();
+  for (size_t i = 0; i < first_order; ++i)
+    for (KeyFrameHandle n : map_.BestCovisible(targets[i], 5))
+      if (n != current && in_set.insert(n).second) targets.push_back(n);
+  // The current keyframe's points into the neighbours, then the neighbours' points into it.
+  std::vector<PointHandle> own;
+  for (PointHandle p : map_.keyframe(current).points)
+    if (!p.is_null()) own.push_back(p);
+  for (KeyFrameHandle t : targets) FusePoints(map_, t, own, geometry_, options_.matcher);
+  std::vector<PointHandle> theirs;
+  std::unordered_set<PointHandle> unique;
+  for (KeyFrameHandle t : targets)
+    for (PointHandle p : map_.keyframe(t).points)
+      if (!p.is_null() && unique.insert(p).second) theirs.push_back(p);
+  FusePoints(map_, current, theirs, geometry_, options_.matcher);
+  for (PointHandle p : map_.keyframe(current).points)
+    if (map_.points().contains(p)) map_.UpdatePointStats(p, map_scales_);
+}
+
+void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
+  BundleAdjustmentProblem problem;
+  std::vector<KeyFrameHandle> pose_handles;
+  std::vector<PointHandle> point_handles;
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (!map_.keyframes().contains(current)) return;
+    problem.camera = geometry_.camera;
+    problem.baseline_m = geometry_.bf / geometry_.camera.fx;
+    std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
+    auto add_pose = [&](KeyFrameHandle h, bool fixed) {
+      pose_index[h] = static_cast<uint32_t>(problem.poses.size());
+      problem.poses.push_back({map_.keyframe(h).T_cam_world, fixed || h == first_keyframe_});
+      pose_handles.push_back(h);
+    };
+    add_pose(current, false);
+    for (const auto& [n, w] : map_.keyframe(current).covisible)
+      if (map_.keyframes().contains(n)) add_pose(n, false);
+    std::unordered_map<PointHandle, uint32_t> point_index;
+    const size_t local_count = problem.poses.size();
+    for (size_t k = 0; k < local_count; ++k) {
+      for (PointHandle p : map_.keyframe(pose_handles[k]).points) {
+        if (p.is_null() || point_index.count(p) || !map_.points().contains(p)) continue;
+        point_index[p] = static_cast<uint32_t>(problem.points.size());
+        problem.points.push_back(map_.point(p).position);
+        point_handles.push_back(p);
+      }
+    }
+    for (size_t j = 0; j < point_handles.size(); ++j) {
+      for (const Observation& o : map_.point(point_handles[j]).observations) {
+        if (!pose_index.count(o.keyframe)) add_pose(o.keyframe, true);  // outside the window: fixed
+        const KeyFrame& kf = map_.keyframe(o.keyframe);
+        BundleAdjustmentObservation obs;
+        obs.pose_index = pose_index[o.keyframe];
+        obs.point_index = static_cast<uint32_t>(j);
+        obs.uv = kf.uv[o.keypoint].cast<double>();
+        obs.right_u = kf.right_u[o.keypoint];
+        obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
+        problem.observations.push_back(obs);
+      }
+    }
+  }
+  if (problem.observations.empty()) return;
+  // Solved on a copy, without the lock: tracking goes on meanwhile.
+  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, options_.bundle_adjustment);
+  if (!result.success) return;
+
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  for (size_t k = 0; k < problem.observations.size(); ++k) {
+    if (!result.outlier[k]) continue;
+    const auto& o = problem.observations[k];
+    map_.EraseObservation(point_handles[o.point_index], pose_handles[o.pose_index]);
+  }
+  for (size_t k = 0; k < problem.poses.size(); ++k) {
+    if (problem.poses[k].fixed) continue;
+    if (KeyFrame* kf = map_.keyframes().try_get(pose_handles[k])) kf->T_cam_world = problem.poses[k].T_cam_world;
+  }
+  for (size_t j = 0; j < problem.points.size(); ++j) {
+    if (MapPoint* point = map_.points().try_get(point_handles[j])) {
+      point->position = problem.points[j];
+      map_.UpdatePointStats(point_handles[j], map_scales_);
+    }
+  }
+}
+
+void Slam::CullKeyFrames(KeyFrameHandle current) {
+  for (const auto& [h, w] : std::vector<std::pair<KeyFrameHandle, int>>(map_.keyframe(current).covisible)) {
+    if (h == first_keyframe_ || h == reference_keyframe_ || !map_.keyframes().contains(h)) continue;
+    const KeyFrame& kf = map_.keyframe(h);
+    int considered = 0, redundant = 0;
+    for (uint32_t i = 0; i < kf.size(); ++i) {
+      const MapPoint* point = map_.points().try_get(kf.points[i]);
+      if (!point) continue;
+      if (kf.depth[i] <= 0 || kf.depth[i] > CloseDepth()) continue;  // only reliable close points count
+      ++considered;
+      if (point->observations.size() <= 3) continue;
+      int others = 0;
+      for (const Observation& o : point->observations) {
+        if (o.keyframe == h) continue;
+        const KeyFrame* other = map_.keyframes().try_get(o.keyframe);
+        if (other && other->octave[o.keypoint] <= kf.octave[i] + 1) ++others;
+        if (others >= 3) break;
+      }
+      if (others >= 3) ++redundant;
+    }
+    if (considered > 0 && redundant > options_.redundant_keyframe_ratio * considered) {
+      // Frames referring to the culled keyframe keep their absolute pose (see FrameTrajectory).
+      map_.EraseKeyFrame(h);
+    }
+  }
+}
+
+Trajectory Slam::FrameTrajectory() const {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  Trajectory out;
+  out.reserve(frame_poses_.size());
+  for (const FramePose& f : frame_poses_) {
+    TimedPose p;
+    p.t_ns = f.t_ns;
+    const KeyFrame* ref = map_.keyframes().try_get(f.reference);
+    const Eigen::Isometry3d T_cam_world = ref ? f.T_cam_ref * ref->T_cam_world : f.T_cam_world;
+    p.T_world_cam = T_cam_world.inverse();
+    out.push_back(p);
+  }
+  return out;
+}
+
+Trajectory Slam::KeyFrameTrajectory() const {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  std::vector<const KeyFrame*> kfs;
+  for (const KeyFrame& kf : map_.keyframes().values()) kfs.push_back(&kf);
+  std::sort(kfs.begin(), kfs.end(), [](const KeyFrame* a, const KeyFrame* b) { return a->t_ns < b->t_ns; });
+  Trajectory out;
+  for (const KeyFrame* kf : kfs) out.push_back({kf->t_ns, kf->T_cam_world.inverse()});
+  return out;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,134 @@
+// The SLAM core for stereo and RGB-D input: feature extraction (parallel across frames),
+// tracking (serial, in frame order) and local mapping (a background job per keyframe).
+// Concurrency: Extract() is const and runs on many frames at once; Track() is called from one
+// serial stage; MapKeyFrame() from one background queue. Track and MapKeyFrame share the map
+// through one map mutex held for short critical sections; local bundle adjustment solves a
+// copy of its window without the lock and writes back through handles, skipping any entity
+// erased meanwhile.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <mutex>
+#include <optional>
+#include <vector>
+
+#include "ecs/map.h"
+#include "io/types.h"
+#include "systems/bundle_adjustment.h"
+#include "systems/frame.h"
+#include "systems/matcher.h"
+#include "systems/orb_extractor.h"
+#include "systems/pose_optimizer.h"
+#include "systems/stereo_matcher.h"
+
+namespace flatslam {
+
+struct SlamOptions {
+  OrbOptions orb;                       // per image feature budget etc.
+  StereoOptions stereo;
+  MatcherOptions matcher;
+  PoseOptimizerOptions pose;
+  BundleAdjustmentOptions bundle_adjustment;
+  double rgbd_virtual_baseline_m = 0.08;  // RGB-D depth becomes a stereo measurement with this baseline
+  double close_depth_baselines = 40;    // "close" points (reliable stereo depth) are nearer than this x baseline
+  int min_init_points = 500;            // keypoints with depth needed to start a map
+  int min_motion_inliers = 10;          // after frame-to-frame tracking
+  int min_local_map_inliers = 30;       // after tracking the local map
+  float motion_search_radius = 7;       // pixels (x level scale) around the predicted position
+  int max_frames_between_keyframes = 0; // 0 = the frame rate (one second)
+  size_t local_keyframes = 10;          // covisible keyframes used for triangulation
+  size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
+  double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
+
+  [[nodiscard]] bool Check() const;
+};
+
+enum class TrackingState { kNotInitialized, kOk, kLost };
+[[nodiscard]] const char* TrackingStateName(TrackingState state);
+
+// Per-frame outcome of Track(), for stats.csv and the run summary.
+struct FrameReport {
+  size_t index = 0;
+  int64_t t_ns = 0;
+  TrackingState state = TrackingState::kNotInitialized;
+  bool keyframe = false;
+  bool reinitialized = false;  // tracking was lost and a new map segment started here
+  int features = 0;
+  int stereo_points = 0;       // keypoints with depth
+  int matches = 0;             // map points matched before the final pose optimization
+  int inliers = 0;
+  double extract_ms = 0;
+  double track_ms = 0;
+  Eigen::Isometry3d T_world_cam = Eigen::Isometry3d::Identity();
+};
+
+class Slam {
+ public:
+  // Throws flatslam::Error for monocular input (not supported yet) or invalid options.
+  Slam(const Calibration& calibration, const SlamOptions& options);
+
+  // Extracts features (left and right in parallel) and stereo/RGB-D depth into *out.
+  void Extract(const Frame& frame, TrackedFrame* out) const;
+  // Tracks the frame. When it becomes a keyframe, *new_keyframe is set: pass it to MapKeyFrame().
+  FrameReport Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe);
+  // Local mapping for one keyframe: point upkeep, triangulation, fusion, local BA, culling.
+  void MapKeyFrame(KeyFrameHandle keyframe);
+
+  // Estimated camera poses of all tracked frames (T_world_cam), refined by mapping through
+  // their reference keyframes. Call when no stage is running.
+  [[nodiscard]] Trajectory FrameTrajectory() const;
+  [[nodiscard]] Trajectory KeyFrameTrajectory() const;
+  // Direct map access when no stage is running.
+  [[nodiscard]] const Map& map() const { return map_; }
+  [[nodiscard]] int pending_keyframes() const { return pending_keyframes_; }
+
+ private:
+  struct FramePose {
+    int64_t t_ns = 0;
+    KeyFrameHandle reference;
+    Eigen::Isometry3d T_cam_ref = Eigen::Isometry3d::Identity();
+    Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();  // at tracking time
+  };
+
+  bool Initialize(TrackedFrame& frame);
+  bool TrackWithMotion(TrackedFrame& frame);
+  bool TrackReferenceKeyFrame(TrackedFrame& frame);
+  int OptimizeFramePose(TrackedFrame& frame);
+  bool TrackLocalMap(TrackedFrame& frame, int* matches);
+  bool NeedKeyFrame(const TrackedFrame& frame, int inliers) const;
+  // New keyframe from the frame; points from depth for close keypoints (all when asked).
+  KeyFrameHandle CreateKeyFrame(TrackedFrame& frame, bool all_depth_points = false);
+  void CullRecentPoints(KeyFrameHandle current);
+  void Triangulate(KeyFrameHandle current);
+  void Fuse(KeyFrameHandle current);
+  void LocalBundleAdjustment(KeyFrameHandle current);
+  void CullKeyFrames(KeyFrameHandle current);
+  [[nodiscard]] double CloseDepth() const;
+
+  Calibration calibration_;
+  SlamOptions options_;
+  OrbExtractor extractor_;
+  CameraGeometry geometry_;
+  MapScales map_scales_;
+
+  mutable std::mutex map_mutex_;  // guards map_ and the mapping bookkeeping below
+  Map map_;
+
+  // Tracking state (serial stage only).
+  TrackingState state_ = TrackingState::kNotInitialized;
+  std::optional<TrackedFrame> last_frame_;
+  std::optional<Eigen::Isometry3d> velocity_;  // T_cur_last of the previous step
+  KeyFrameHandle reference_keyframe_;
+  size_t last_keyframe_frame_ = 0;
+  std::vector<KeyFrameHandle> local_keyframes_;
+  std::vector<PointHandle> local_points_;
+  std::vector<FramePose> frame_poses_;
+  KeyFrameHandle first_keyframe_;
+
+  // Mapping bookkeeping (under map_mutex_).
+  std::vector<PointHandle> recent_points_;
+  std::atomic<int> pending_keyframes_{0};
+};
+
+}  // namespace flatslam

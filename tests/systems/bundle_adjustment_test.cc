@@ -1,0 +1,205 @@
+#include "systems/bundle_adjustment.h"
+
+#include <chrono>
+#include <cmath>
+#include <random>
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+
+namespace flatslam {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kDeg = kPi / 180.0;
+
+PinholeCamera TestCamera() {
+  PinholeCamera camera;
+  camera.fx = 500;
+  camera.fy = 500;
+  camera.cx = 320;
+  camera.cy = 240;
+  camera.width = 640;
+  camera.height = 480;
+  return camera;
+}
+
+Eigen::Vector3d RandomUnit(std::mt19937_64& rng) {
+  std::normal_distribution<double> n(0, 1);
+  return Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+}
+
+Eigen::Vector3d CameraCentre(const Eigen::Isometry3d& T_cam_world) { return T_cam_world.inverse().translation(); }
+
+struct BaScene {
+  BundleAdjustmentProblem truth;    // exact poses and points, noisy observations
+  std::vector<bool> is_outlier;     // per observation
+};
+
+// Keyframes 0.3 m apart along a gently turning path, looking at points 4..14 m ahead;
+// every point that projects into a keyframe is observed there with 1 px noise (per octave).
+BaScene MakeScene(int num_keyframes, int num_points, double outlier_fraction, bool stereo, uint64_t seed) {
+  BaScene s;
+  BundleAdjustmentProblem& p = s.truth;
+  p.camera = TestCamera();
+  p.baseline_m = 0.12;
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> unit(0, 1);
+  std::normal_distribution<double> noise(0, 1);
+  for (int k = 0; k < num_keyframes; ++k) {
+    Eigen::Isometry3d T_world_cam = Eigen::Isometry3d::Identity();
+    T_world_cam.linear() = (Eigen::AngleAxisd(0.02 * k, Eigen::Vector3d::UnitY()) *
+                            Eigen::AngleAxisd(0.01 * std::sin(k), Eigen::Vector3d::UnitX()))
+                               .toRotationMatrix();
+    T_world_cam.translation() = Eigen::Vector3d(0.3 * k, 0.05 * std::sin(0.7 * k), 0.1 * k);
+    p.poses.push_back({T_world_cam.inverse(), k == 0 || k == num_keyframes - 1});
+  }
+  for (int j = 0; j < num_points; ++j)
+    p.points.emplace_back(-3 + 8 * unit(rng), -2 + 4 * unit(rng), 3 + 5 * unit(rng));
+  const double bf = p.camera.fx * p.baseline_m;
+  for (int j = 0; j < num_points; ++j) {
+    for (int k = 0; k < num_keyframes; ++k) {
+      const Eigen::Vector3d x = p.poses[k].T_cam_world * p.points[j];
+      if (x.z() <= 0.5) continue;
+      const Eigen::Vector2d px(p.camera.fx * x.x() / x.z() + p.camera.cx, p.camera.fy * x.y() / x.z() + p.camera.cy);
+      if (px.x() < 0 || px.y() < 0 || px.x() >= p.camera.width || px.y() >= p.camera.height) continue;
+      BundleAdjustmentObservation obs;
+      obs.pose_index = static_cast<uint32_t>(k);
+      obs.point_index = static_cast<uint32_t>(j);
+      const int octave = static_cast<int>(unit(rng) * 3);
+      const double sigma = std::pow(1.2, octave);
+      obs.inv_sigma2 = static_cast<float>(1.0 / (sigma * sigma));
+      obs.uv = px + sigma * Eigen::Vector2d(noise(rng), noise(rng));
+      if (stereo && x.z() < 8) obs.right_u = px.x() - bf / x.z() + sigma * noise(rng);
+      const bool outlier = unit(rng) < outlier_fraction;
+      if (outlier) {
+        const double angle = 2 * kPi * unit(rng);
+        obs.uv += (20 + 40 * unit(rng)) * Eigen::Vector2d(std::cos(angle), std::sin(angle));
+        if (obs.right_u >= 0) obs.right_u = obs.uv.x() - bf / x.z();
+      }
+      p.observations.push_back(obs);
+      s.is_outlier.push_back(outlier);
+    }
+  }
+  return s;
+}
+
+// Perturbs free poses by 5 cm (and 0.5 degrees) and all points by 10 cm.
+BundleAdjustmentProblem Perturbed(const BundleAdjustmentProblem& truth, uint64_t seed) {
+  BundleAdjustmentProblem p = truth;
+  std::mt19937_64 rng(seed);
+  for (BundleAdjustmentPose& pose : p.poses) {
+    if (pose.fixed) continue;
+    Eigen::Isometry3d T_world_cam = pose.T_cam_world.inverse();
+    T_world_cam.translation() += 0.05 * RandomUnit(rng);
+    T_world_cam.linear() = Eigen::AngleAxisd(0.5 * kDeg, RandomUnit(rng)).toRotationMatrix() * T_world_cam.linear();
+    pose.T_cam_world = T_world_cam.inverse();
+  }
+  for (Eigen::Vector3d& X : p.points) X += 0.10 * RandomUnit(rng);
+  return p;
+}
+
+void CheckRecovers(bool stereo) {
+  const BaScene scene = MakeScene(10, 1000, 0.05, stereo, getenv("BA_SEED") ? atoi(getenv("BA_SEED")) : (stereo ? 31 : 30));
+  BundleAdjustmentProblem problem = Perturbed(scene.truth, 8);
+  const BundleAdjustmentProblem before = problem;
+
+  const auto start = std::chrono::steady_clock::now();
+  const BundleAdjustmentResult r = LocalBundleAdjustment(problem, BundleAdjustmentOptions{});
+  const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_TRUE(r.success);
+  ASSERT_EQ(r.outlier.size(), problem.observations.size());
+
+  double max_pose_err = 0;
+  for (size_t k = 0; k < problem.poses.size(); ++k) {
+    if (problem.poses[k].fixed) {
+      EXPECT_TRUE(problem.poses[k].T_cam_world.matrix() == before.poses[k].T_cam_world.matrix()) << "pose " << k;
+      continue;
+    }
+    if (getenv("BA_DEBUG")) printf("pose %zu err %.2f mm\n", k, 1e3 * (CameraCentre(problem.poses[k].T_cam_world) - CameraCentre(scene.truth.poses[k].T_cam_world)).norm());
+    max_pose_err = std::max(max_pose_err, (CameraCentre(problem.poses[k].T_cam_world) -
+                                           CameraCentre(scene.truth.poses[k].T_cam_world))
+                                              .norm());
+  }
+  int outliers = 0, flagged = 0, false_flags = 0;
+  for (size_t i = 0; i < r.outlier.size(); ++i) {
+    outliers += scene.is_outlier[i];
+    flagged += scene.is_outlier[i] && r.outlier[i];
+    false_flags += !scene.is_outlier[i] && r.outlier[i];
+  }
+  const int inliers = static_cast<int>(r.outlier.size()) - outliers;
+  printf("  %s BA, %zu keyframes (2 fixed), %zu points, %zu observations: %.1f ms, %d iterations\n",
+         stereo ? "stereo" : "mono", problem.poses.size(), problem.points.size(), problem.observations.size(), ms,
+         r.iterations);
+  printf("  RMSE %.3f -> %.3f px, mean error %.3f px, max free-pose error %.2f mm, outliers flagged %d/%d, "
+         "inliers flagged %d/%d\n",
+         r.initial_rmse_px, r.final_rmse_px, r.final_mean_error_px, max_pose_err * 1e3, flagged, outliers,
+         false_flags, inliers);
+  EXPECT_GT(r.initial_rmse_px, 5.0);
+  EXPECT_LT(r.final_rmse_px, 1.1);  // the noise is 1 px per coordinate at octave 0
+  EXPECT_LT(max_pose_err, 0.01);
+  EXPECT_GE(flagged, static_cast<int>(0.95 * outliers));
+  EXPECT_LT(false_flags, static_cast<int>(0.08 * inliers));
+  EXPECT_EQ(r.num_outliers, flagged + false_flags);
+}
+
+TEST(LocalBundleAdjustment, MonoRecoversPosesAndFlagsOutliers) { CheckRecovers(false); }
+
+TEST(LocalBundleAdjustment, StereoRecoversPosesAndFlagsOutliers) { CheckRecovers(true); }
+
+TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
+  const BaScene scene = MakeScene(6, 300, 0.0, false, 40);
+  BundleAdjustmentProblem dense = Perturbed(scene.truth, 9);
+  BundleAdjustmentProblem sparse = dense;
+  BundleAdjustmentOptions options;
+  options.linear_solver = BundleAdjustmentOptions::LinearSolver::kDenseSchur;
+  const BundleAdjustmentResult rd = LocalBundleAdjustment(dense, options);
+  options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+  const BundleAdjustmentResult rs = LocalBundleAdjustment(sparse, options);
+  ASSERT_TRUE(rd.success && rs.success);
+  EXPECT_NEAR(rd.final_rmse_px, rs.final_rmse_px, 1e-6);
+  for (size_t k = 0; k < dense.poses.size(); ++k)
+    EXPECT_LT((dense.poses[k].T_cam_world.matrix() - sparse.poses[k].T_cam_world.matrix()).norm(), 1e-6);
+}
+
+TEST(LocalBundleAdjustment, NoiseFreeIsExact) {
+  BaScene scene = MakeScene(5, 200, 0.0, true, 41);
+  // Re-project without noise.
+  const BundleAdjustmentProblem& t = scene.truth;
+  const double bf = t.camera.fx * t.baseline_m;
+  for (BundleAdjustmentObservation& obs : scene.truth.observations) {
+    const Eigen::Vector3d x = t.poses[obs.pose_index].T_cam_world * t.points[obs.point_index];
+    obs.uv = Eigen::Vector2d(t.camera.fx * x.x() / x.z() + t.camera.cx, t.camera.fy * x.y() / x.z() + t.camera.cy);
+    if (obs.right_u >= 0) obs.right_u = obs.uv.x() - bf / x.z();
+  }
+  BundleAdjustmentProblem problem = Perturbed(scene.truth, 10);
+  const BundleAdjustmentResult r = LocalBundleAdjustment(problem, BundleAdjustmentOptions{});
+  ASSERT_TRUE(r.success);
+  EXPECT_EQ(r.num_outliers, 0);
+  EXPECT_LT(r.final_rmse_px, 1e-4);
+  for (size_t k = 0; k < problem.poses.size(); ++k)
+    EXPECT_LT((CameraCentre(problem.poses[k].T_cam_world) - CameraCentre(t.poses[k].T_cam_world)).norm(), 1e-5);
+}
+
+TEST(LocalBundleAdjustment, RejectsMisuse) {
+  BaScene scene = MakeScene(3, 20, 0.0, false, 42);
+  BundleAdjustmentProblem p = scene.truth;
+  p.observations[0].point_index = 1000;
+  EXPECT_THROW((void)LocalBundleAdjustment(p, BundleAdjustmentOptions{}), Error);
+  p = scene.truth;
+  p.observations[0].pose_index = 7;
+  EXPECT_THROW((void)LocalBundleAdjustment(p, BundleAdjustmentOptions{}), Error);
+  p = scene.truth;
+  p.observations[0].right_u = 100;
+  p.baseline_m = 0;
+  EXPECT_THROW((void)LocalBundleAdjustment(p, BundleAdjustmentOptions{}), Error);
+  BundleAdjustmentOptions bad;
+  bad.num_threads = 0;
+  EXPECT_FALSE(bad.Check());
+  p = scene.truth;
+  EXPECT_THROW((void)LocalBundleAdjustment(p, bad), Error);
+}
+
+}  // namespace
+}  // namespace flatslam
