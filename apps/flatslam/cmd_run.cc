@@ -14,8 +14,7 @@
 #include "commands.h"
 #include "core/error.h"
 #include "io/dataset.h"
-#include "jobs/pipeline.h"
-#include "systems/slam.h"
+#include "jobs/slam_runner.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
 
@@ -34,12 +33,6 @@ const char* const kRunUsage =
     "Monocular input is not supported yet.\n";
 
 namespace {
-
-struct Item {
-  size_t index = 0;
-  TrackedFrame frame;
-  double read_ms = 0, extract_ms = 0;
-};
 
 double PeakRssMiB() {
   rusage usage{};
@@ -78,54 +71,25 @@ int RunRun(const std::vector<std::string>& argv) {
 
   SlamOptions options;
   options.orb.features = static_cast<int>(args.get_int("features", options.orb.features));
-  Slam slam(dataset->calibration(), options);
-  const bool deterministic = args.has("deterministic");
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);
-
-  std::vector<FrameReport> reports;
-  reports.reserve(frames);
-  FramePipeline<Item> pipeline;
-  auto mapping = pipeline.add_background_stage<KeyFrameHandle>(
-      "mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
-  pipeline.set_source([&](size_t seq) -> std::optional<Item> {
-    if (seq >= frames) return std::nullopt;
-    Item item;
-    item.index = seq;
-    return item;
-  });
-  pipeline.add_parallel_stage("extract", [&](Item& item) {
-    const auto t0 = std::chrono::steady_clock::now();
-    const Frame frame = dataset->read(item.index);
-    const auto t1 = std::chrono::steady_clock::now();
-    slam.Extract(frame, &item.frame);
-    item.read_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
-    item.extract_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count();
-  });
-  pipeline.add_serial_stage("track", [&](Item& item) {
-    std::optional<KeyFrameHandle> keyframe;
-    FrameReport report = slam.Track(std::move(item.frame), &keyframe);
-    report.extract_ms = item.extract_ms;
-    if (keyframe) {
-      if (deterministic) slam.MapKeyFrame(*keyframe);
-      else mapping.post(*keyframe);
-    }
-    reports.push_back(report);
-    if (!quiet && (reports.size() % 10 == 0 || reports.size() == frames))
-      std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes so far: %zu   ", reports.size(), frames,
-                   TrackingStateName(report.state), static_cast<size_t>(std::count_if(
-                       reports.begin(), reports.end(), [](const FrameReport& r) { return r.keyframe; })));
-  });
-  const auto start = std::chrono::steady_clock::now();
-  pipeline.run();
-  const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  SlamRunOptions run;
+  run.max_frames = frames;
+  run.deterministic = args.has("deterministic");
+  size_t done = 0, keyframes_so_far = 0;
+  run.on_frame = [&](const FrameReport& report) {
+    ++done;
+    keyframes_so_far += report.keyframe;
+    if (!quiet && (done % 10 == 0 || done == frames))
+      std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", done, frames,
+                   TrackingStateName(report.state), keyframes_so_far);
+  };
+  const SlamRunResult result = RunSlam(*dataset, options, run);
   if (!quiet) std::fprintf(stderr, "\n");
-
-  const Trajectory trajectory = slam.FrameTrajectory();
-  const Trajectory keyframes = slam.KeyFrameTrajectory();
+  const std::vector<FrameReport>& reports = result.reports;
+  const double wall_s = result.wall_s;
+  const Trajectory& trajectory = result.trajectory;
+  const Trajectory& keyframes = result.keyframes;
   if (out_dir) {
-    WriteTum(*out_dir / "trajectory.tum", trajectory);
-    WriteKitti(*out_dir / "trajectory.kitti", trajectory);
-    WriteTum(*out_dir / "keyframes.tum", keyframes);
     std::ofstream csv(*out_dir / "stats.csv");
     csv << "frame,t_ns,state,keyframe,reinitialized,features,stereo_points,matches,inliers,extract_ms,track_ms\n";
     for (const FrameReport& r : reports)
@@ -133,6 +97,11 @@ int RunRun(const std::vector<std::string>& argv) {
           << r.reinitialized << "," << r.features << "," << r.stereo_points << "," << r.matches << "," << r.inliers
           << "," << r.extract_ms << "," << r.track_ms << "\n";
     FLATSLAM_CHECK(csv.good(), "cannot write ", (*out_dir / "stats.csv"));
+    if (!trajectory.empty()) {
+      WriteTum(*out_dir / "trajectory.tum", trajectory);
+      WriteKitti(*out_dir / "trajectory.kitti", trajectory);
+      WriteTum(*out_dir / "keyframes.tum", keyframes);
+    }
   }
 
   size_t lost = 0, not_initialized = 0;
@@ -148,8 +117,7 @@ int RunRun(const std::vector<std::string>& argv) {
   std::printf("dataset       %s\n", dataset->name().c_str());
   std::printf("frames        %zu tracked, %zu lost (map re-initialized), %zu before initialization\n",
               trajectory.size(), lost, not_initialized);
-  std::printf("map           %zu keyframes, %zu map points\n", slam.map().keyframes().size(),
-              slam.map().points().size());
+  std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               Median(extract_ms), mean_extract, Median(track_ms), mean_track);
   std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", frames / wall_s, wall_s);
@@ -168,6 +136,10 @@ int RunRun(const std::vector<std::string>& argv) {
                 sim3.ate_m.rmse, sim3.alignment.scale);
     std::printf("RPE           %.4f m / %.3f deg per frame (RMSE)\n", se3.rpe_frames.translation_m.rmse,
                 se3.rpe_frames.rotation_deg.rmse);
+  }
+  if (trajectory.empty()) {
+    std::printf("result        no frame was tracked: the map never initialized (see stats.csv)\n");
+    return 1;
   }
   if (out_dir) std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv}\n", out_dir->c_str());
   return 0;

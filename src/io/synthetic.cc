@@ -186,6 +186,7 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
   if (options_.fx == 0) options_.fx = 0.75 * options_.width;
   if (options_.fy == 0) options_.fy = options_.fx;
   if (options_.duration_s == 0) options_.duration_s = description_.default_duration_s;
+  if (options_.baseline_m == 0) options_.baseline_m = description_.default_baseline_m;
 
   calibration_.sensor = options_.sensor;
   calibration_.camera = PinholeCamera{options_.fx, options_.fy, (options_.width - 1) * 0.5,

@@ -43,6 +43,7 @@ struct SceneDescription {
   std::vector<SceneQuad> quads;
   std::vector<CameraPath> agents;  // at least one
   double default_duration_s = 60;
+  double default_baseline_m = 0.12;  // stereo rig of the scene: a handheld rig indoors, a car rig outdoors
   uint64_t world_seed = 1;         // textures; fixed per scene so every agent sees one world
 };
 
@@ -58,7 +59,7 @@ struct SyntheticOptions {
   double fy = 0;                // 0 = fx
   double frame_rate_hz = 20;
   double duration_s = 0;        // 0 = the scene's default
-  double baseline_m = 0.12;     // stereo baseline
+  double baseline_m = 0;        // stereo baseline; 0 = the scene's default
   double pixel_noise_sigma = 1.5;  // grey levels, Gaussian
   double depth_noise_k = 0.0015;   // depth sigma = k * z^2 (metres), as a structured-light sensor
   double max_depth_m = 20;         // RGB-D: farther pixels read 0 (no measurement)

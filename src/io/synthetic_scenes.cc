@@ -78,29 +78,37 @@ void AddFacadeRect(const Vector2d& lo, const Vector2d& hi, double tpm, std::mt19
   AddFacadeRow(c3, lo, tpm, rng, quads);
 }
 
-// Control points of a rectangle with rounded corners at height z, counter-clockwise.
+// Control points of a rectangle with rounded corners at height z, counter-clockwise, evenly
+// spaced along the curve (about every 0.5 m) so the Catmull-Rom spline through them has no kinks.
 std::vector<Vector3d> RoundedRect(const Vector2d& lo, const Vector2d& hi, double radius, double z) {
-  std::vector<Vector3d> pts;
+  const double w = hi.x() - lo.x() - 2 * radius, h = hi.y() - lo.y() - 2 * radius;
+  const double arc = kPi / 2 * radius;
+  // Pieces in order: bottom side (+x), corner, right side (+y), corner, top (-x), corner, left (-y), corner.
+  const double piece[8] = {w, arc, h, arc, w, arc, h, arc};
+  double perimeter = 0;
+  for (double p : piece) perimeter += p;
+  const int n = std::max(16, static_cast<int>(perimeter / 0.5));
   const Vector2d centres[4] = {{hi.x() - radius, lo.y() + radius},
                                {hi.x() - radius, hi.y() - radius},
                                {lo.x() + radius, hi.y() - radius},
                                {lo.x() + radius, lo.y() + radius}};
-  const double start_angle[4] = {-kPi / 2, 0, kPi / 2, kPi};
-  for (int c = 0; c < 4; ++c) {
-    // Straight sides get intermediate points so the spline stays on the road.
-    for (int k = 0; k <= 4; ++k) {
-      const double a = start_angle[c] + (kPi / 2) * k / 4.0;
-      pts.emplace_back(centres[c].x() + radius * std::cos(a), centres[c].y() + radius * std::sin(a), z);
+  const Vector2d side_start[4] = {{lo.x() + radius, lo.y()}, {hi.x(), lo.y() + radius},
+                                  {hi.x() - radius, hi.y()}, {lo.x(), hi.y() - radius}};
+  const Vector2d side_dir[4] = {{1, 0}, {0, 1}, {-1, 0}, {0, -1}};
+  std::vector<Vector3d> pts;
+  for (int k = 0; k < n; ++k) {
+    double s = perimeter * k / n;
+    int i = 0;
+    while (i < 7 && s > piece[i]) s -= piece[i++];
+    const int side = i / 2;
+    Vector2d p;
+    if (i % 2 == 0) {
+      p = side_start[side] + s * side_dir[side];
+    } else {
+      const double a = -kPi / 2 + side * kPi / 2 + s / radius;
+      p = centres[side] + radius * Vector2d(std::cos(a), std::sin(a));
     }
-    const Vector2d from = centres[c] + radius * Vector2d(std::cos(start_angle[c] + kPi / 2),
-                                                         std::sin(start_angle[c] + kPi / 2));
-    const Vector2d to = centres[(c + 1) % 4] + radius * Vector2d(std::cos(start_angle[(c + 1) % 4]),
-                                                                 std::sin(start_angle[(c + 1) % 4]));
-    const int n = std::max(1, static_cast<int>((to - from).norm() / 3.0));
-    for (int k = 1; k < n; ++k) {
-      const Vector2d p = from + (to - from) * (static_cast<double>(k) / n);
-      pts.emplace_back(p.x(), p.y(), z);
-    }
+    pts.emplace_back(p.x(), p.y(), z);
   }
   return pts;
 }
@@ -187,6 +195,7 @@ SceneDescription Street() {
   AddFacadeRect({-6, -6}, {66, 46}, tpm, &rng, &s.quads);
   s.agents.push_back(StreetPath({0, 0}, {60, 40}, 0));
   s.default_duration_s = 60;
+  s.default_baseline_m = 0.5;
   return s;
 }
 
@@ -207,6 +216,7 @@ SceneDescription Town() {
   s.agents.push_back(StreetPath({50, 0}, {150, 40}, 60));   // blocks (1,0),(2,0)
   s.agents.push_back(StreetPath({0, 40}, {100, 80}, 120));  // blocks (0,1),(1,1)
   s.default_duration_s = 90;
+  s.default_baseline_m = 0.5;
   return s;
 }
 

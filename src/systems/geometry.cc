@@ -14,6 +14,7 @@
 #include <opencv2/core/eigen.hpp>
 
 #include "core/error.h"
+#include "systems/bundle_adjustment.h"
 
 namespace flatslam {
 namespace {
@@ -269,6 +270,114 @@ void SampleIndices(int k, std::vector<int>* pool, std::mt19937_64& rng, std::vec
   }
 }
 
+// A motion that won the candidate test, with its triangulated inliers (view-1 frame).
+struct Reconstruction {
+  Motion motion;
+  std::vector<Eigen::Vector3d> points;
+  std::vector<bool> triangulated;
+  int inliers = 0;
+  int good = 0;
+  double parallax_deg = 0;
+};
+
+// Refines a motion by two-view bundle adjustment with its triangulated points (view 1 fixed;
+// the scale gauge is left to the median-depth normalization). false when the solver fails.
+bool RefineTwoView(const std::vector<Eigen::Vector2d>& px1, const std::vector<Eigen::Vector2d>& px2,
+                   const PinholeCamera& camera, const TwoViewOptions& options, Reconstruction* rec) {
+  BundleAdjustmentProblem ba;
+  ba.camera = camera;
+  Eigen::Isometry3d T_2_1 = Eigen::Isometry3d::Identity();
+  T_2_1.linear() = rec->motion.R;
+  T_2_1.translation() = rec->motion.t;
+  ba.poses = {{Eigen::Isometry3d::Identity(), true}, {T_2_1, false}};
+  const float inv_sigma2 = static_cast<float>(1.0 / (options.sigma_px * options.sigma_px));
+  for (size_t i = 0; i < rec->triangulated.size(); ++i) {
+    if (!rec->triangulated[i]) continue;
+    const auto point = static_cast<uint32_t>(ba.points.size());
+    ba.points.push_back(rec->points[i]);
+    BundleAdjustmentObservation obs;
+    obs.point_index = point;
+    obs.inv_sigma2 = inv_sigma2;
+    obs.pose_index = 0;
+    obs.uv = px1[i];
+    ba.observations.push_back(obs);
+    obs.pose_index = 1;
+    obs.uv = px2[i];
+    ba.observations.push_back(obs);
+  }
+  if (ba.points.empty()) return false;
+  BundleAdjustmentOptions ba_options;
+  ba_options.first_pass_iterations = options.refine_iterations;
+  ba_options.second_pass_iterations = options.refine_iterations;
+  const BundleAdjustmentResult result = LocalBundleAdjustment(ba, ba_options);
+  if (!result.success || !ba.poses[1].T_cam_world.matrix().allFinite()) return false;
+  rec->motion.R = ba.poses[1].T_cam_world.linear();
+  rec->motion.t = ba.poses[1].T_cam_world.translation();
+  return rec->motion.t.norm() > 0;
+}
+
+// Picks the candidate motion with the most good points (nullopt without a clear winner),
+// optionally refines it by two-view BA and re-triangulates, then checks support and parallax.
+std::optional<Reconstruction> Reconstruct(const std::vector<Motion>& motions, const ModelScore& model,
+                                          const std::vector<Eigen::Vector2d>& px1,
+                                          const std::vector<Eigen::Vector2d>& px2, const PinholeCamera& camera,
+                                          const TwoViewOptions& options) {
+  if (motions.empty() || model.num_inliers < 8) return std::nullopt;
+  int best = -1, best_good = -1, second_good = 0;
+  std::vector<MotionCheck> checks;
+  checks.reserve(motions.size());
+  for (const Motion& m : motions) {
+    checks.push_back(CheckMotion(m, px1, px2, model.inlier, camera, options));
+    const int good = checks.back().good;
+    if (good > best_good) {
+      second_good = std::max(second_good, best_good);
+      best_good = good;
+      best = static_cast<int>(checks.size()) - 1;
+    } else {
+      second_good = std::max(second_good, good);
+    }
+  }
+  if (getenv("GEO_DEBUG")) {
+    fprintf(stderr, " model inliers %d\n", model.num_inliers);
+    for (size_t k = 0; k < checks.size(); ++k) fprintf(stderr, "  cand %zu good %d parallax %.2f t %.3f %.3f %.3f\n", k, checks[k].good, checks[k].parallax_deg, motions[k].t.x(), motions[k].t.y(), motions[k].t.z());
+  }
+  if (best_good < std::max(options.min_triangulated, 1)) return std::nullopt;
+  if (second_good >= options.clear_winner_ratio * best_good) return std::nullopt;
+  if (checks[best].parallax_deg < options.min_parallax_deg) return std::nullopt;
+  Reconstruction rec;
+  rec.motion = motions[best];
+  rec.inliers = model.num_inliers;
+  MotionCheck* final_check = &checks[best];
+  MotionCheck recheck;
+  if (options.refine_with_bundle_adjustment) {
+    rec.points = checks[best].points;
+    rec.triangulated = checks[best].triangulated;
+    if (RefineTwoView(px1, px2, camera, options, &rec)) {
+      // The refined motion decides inliers, support and parallax; the linear model only seeded it.
+      const Eigen::Matrix3d K_inv = camera.K().inverse();
+      Eigen::Matrix3d t_skew;
+      t_skew << 0, -rec.motion.t.z(), rec.motion.t.y(), rec.motion.t.z(), 0, -rec.motion.t.x(), -rec.motion.t.y(),
+          rec.motion.t.x(), 0;
+      const Eigen::Matrix3d F21 = K_inv.transpose() * t_skew * rec.motion.R * K_inv;
+      ModelScore refined;
+      ScoreFundamental(F21, px1, px2, 1.0 / (2.0 * options.sigma_px * options.sigma_px), options.chi2_one_dof,
+                       options.chi2_two_dof, &refined);
+      recheck = CheckMotion(rec.motion, px1, px2, refined.inlier, camera, options);
+      rec.inliers = std::max(rec.inliers, refined.num_inliers);
+      final_check = &recheck;
+    }
+  }
+  const double min_good = std::max<double>(options.min_good_fraction * rec.inliers, options.min_triangulated);
+  if (getenv("GEO_DEBUG")) fprintf(stderr, "  final good %d parallax %.2f t %.3f %.3f %.3f\n", final_check->good, final_check->parallax_deg, rec.motion.t.x(), rec.motion.t.y(), rec.motion.t.z());
+  if (final_check->good < min_good) return std::nullopt;
+  if (final_check->parallax_deg < options.min_parallax_deg) return std::nullopt;
+  rec.points = std::move(final_check->points);
+  rec.triangulated = std::move(final_check->triangulated);
+  rec.parallax_deg = final_check->parallax_deg;
+  rec.good = final_check->good;
+  return rec;
+}
+
 }  // namespace
 
 std::optional<Eigen::Vector3d> TriangulateDlt(const Matrix34d& P1, const Matrix34d& P2,
@@ -330,11 +439,12 @@ TriangulatedPoint TriangulatePoint(const PinholeCamera& camera, const Eigen::Iso
 }
 
 bool TwoViewOptions::Check() const {
-  return ransac_iterations > 0 && sigma_px > 0 && chi2_one_dof > 0 && chi2_two_dof > 0 &&
+  return ransac_iterations > 0 && local_optimization_passes >= 0 && sigma_px > 0 && chi2_one_dof > 0 && chi2_two_dof > 0 &&
          homography_ratio > 0 && homography_ratio < 1 && max_reprojection_error_px > 0 &&
          min_point_parallax_deg >= 0 && min_parallax_deg >= 0 && parallax_rank >= 0 &&
          min_triangulated >= 0 && min_good_fraction >= 0 && min_good_fraction <= 1 &&
-         clear_winner_ratio > 0 && clear_winner_ratio <= 1;
+         clear_winner_ratio > 0 && clear_winner_ratio <= 1 && homography_fallback_ratio >= 0 &&
+         homography_fallback_ratio <= 1 && refine_iterations >= 1;
 }
 
 std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d>& px1,
@@ -353,107 +463,98 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   const Eigen::Matrix3d T1 = Normalize(px1, &x1);
   const Eigen::Matrix3d T2 = Normalize(px2, &x2);
   const Eigen::Matrix3d T2_inv = T2.inverse();
-  const double inv_sigma2 = 1.0 / (options.sigma_px * options.sigma_px);
+  // Transfer and epipolar errors difference two noisy keypoints: variance 2 sigma^2.
+  const double inv_sigma2 = 1.0 / (2.0 * options.sigma_px * options.sigma_px);
+
+  auto score_h = [&](const Eigen::Matrix3d& H, ModelScore* out) {
+    ScoreHomography(H, px1, px2, inv_sigma2, options.chi2_two_dof, out);
+  };
+  auto score_f = [&](const Eigen::Matrix3d& F, ModelScore* out) {
+    ScoreFundamental(F, px1, px2, inv_sigma2, options.chi2_one_dof, options.chi2_two_dof, out);
+  };
+  auto fit_h = [&](const std::vector<int>& idx) -> Eigen::Matrix3d { return T2_inv * FitHomography(x1, x2, idx) * T1; };
+  auto fit_f = [&](const std::vector<int>& idx) -> Eigen::Matrix3d {
+    return T2.transpose() * FitFundamental(x1, x2, idx) * T1;
+  };
+  // Local optimization (LO-RANSAC): re-fit on the consensus set while the score improves.
+  ModelScore trial, refit;
+  auto local_optimize = [&](auto fit, auto score, Eigen::Matrix3d* model, ModelScore* best) {
+    for (int pass = 0; pass < options.local_optimization_passes && best->num_inliers >= kMinimalSet; ++pass) {
+      const Eigen::Matrix3d M = fit(InlierIndices(best->inlier));
+      score(M, &refit);
+      if (!(refit.score > best->score)) break;
+      std::swap(*best, refit);
+      *model = M;
+    }
+  };
 
   // Both hypotheses are scored on the same minimal sets (8 points fit H by least squares).
-  ModelScore best_h, best_f, trial;
+  ModelScore best_h, best_f;
   Eigen::Matrix3d H21 = Eigen::Matrix3d::Identity(), F21 = Eigen::Matrix3d::Zero();
   std::vector<int> pool(n), sample;
   std::iota(pool.begin(), pool.end(), 0);
   for (int it = 0; it < options.ransac_iterations; ++it) {
     SampleIndices(kMinimalSet, &pool, rng, &sample);
-    const Eigen::Matrix3d H = T2_inv * FitHomography(x1, x2, sample) * T1;
-    ScoreHomography(H, px1, px2, inv_sigma2, options.chi2_two_dof, &trial);
+    Eigen::Matrix3d H = fit_h(sample);
+    score_h(H, &trial);
     if (trial.score > best_h.score) {
       std::swap(best_h, trial);
       H21 = H;
+      local_optimize(fit_h, score_h, &H21, &best_h);
     }
-    const Eigen::Matrix3d F = T2.transpose() * FitFundamental(x1, x2, sample) * T1;
-    ScoreFundamental(F, px1, px2, inv_sigma2, options.chi2_one_dof, options.chi2_two_dof, &trial);
+    Eigen::Matrix3d F = fit_f(sample);
+    score_f(F, &trial);
     if (trial.score > best_f.score) {
       std::swap(best_f, trial);
       F21 = F;
-    }
-  }
-  if (options.refine_on_inliers) {
-    // Least-squares re-fit on the consensus set; kept only when it scores higher.
-    for (int pass = 0; pass < 2; ++pass) {
-      if (best_h.num_inliers >= kMinimalSet) {
-        const Eigen::Matrix3d H = T2_inv * FitHomography(x1, x2, InlierIndices(best_h.inlier)) * T1;
-        ScoreHomography(H, px1, px2, inv_sigma2, options.chi2_two_dof, &trial);
-        if (trial.score > best_h.score) {
-          std::swap(best_h, trial);
-          H21 = H;
-        }
-      }
-      if (best_f.num_inliers >= kMinimalSet) {
-        const Eigen::Matrix3d F = T2.transpose() * FitFundamental(x1, x2, InlierIndices(best_f.inlier)) * T1;
-        ScoreFundamental(F, px1, px2, inv_sigma2, options.chi2_one_dof, options.chi2_two_dof, &trial);
-        if (trial.score > best_f.score) {
-          std::swap(best_f, trial);
-          F21 = F;
-        }
-      }
+      local_optimize(fit_f, score_f, &F21, &best_f);
     }
   }
   const double total = best_h.score + best_f.score;
   if (!(total > 0)) return std::nullopt;
   const double ratio = best_h.score / total;
-  const bool use_h = ratio > options.homography_ratio;
-  const ModelScore& model = use_h ? best_h : best_f;
-  if (model.num_inliers < kMinimalSet) return std::nullopt;
-
+  const bool prefer_h = ratio > options.homography_ratio;
   const Eigen::Matrix3d K = camera.K();
-  const std::vector<Motion> motions =
-      use_h ? MotionsFromHomography(H21, K) : MotionsFromEssential(K.transpose() * F21 * K);
-  if (motions.empty()) return std::nullopt;
-
-  int best = -1, best_good = -1, second_good = 0;
-  std::vector<MotionCheck> checks;
-  checks.reserve(motions.size());
-  for (const Motion& m : motions) {
-    checks.push_back(CheckMotion(m, px1, px2, model.inlier, camera, options));
-    const int good = checks.back().good;
-    if (good > best_good) {
-      second_good = std::max(second_good, best_good);
-      best_good = good;
-      best = static_cast<int>(checks.size()) - 1;
-    } else {
-      second_good = std::max(second_good, good);
+  auto reconstruct = [&](bool use_h) {
+    return use_h ? Reconstruct(MotionsFromHomography(H21, K), best_h, px1, px2, camera, options)
+                 : Reconstruct(MotionsFromEssential(K.transpose() * F21 * K), best_f, px1, px2, camera, options);
+  };
+  if (getenv("GEO_DEBUG")) fprintf(stderr, "RH %.3f H inl %d F inl %d\n", ratio, best_h.num_inliers, best_f.num_inliers);
+  // Between the fallback ratio and the selection threshold the scores alone do not separate a
+  // noisy plane (where F is degenerate) from a 3D scene: reconstruct both, keep the better supported.
+  bool used_h = prefer_h;
+  std::optional<Reconstruction> rec = reconstruct(prefer_h);
+  if (!prefer_h && options.homography_fallback && ratio > options.homography_fallback_ratio) {
+    std::optional<Reconstruction> rec_h = reconstruct(true);
+    if (rec_h && (!rec || rec_h->good > rec->good)) {
+      rec = std::move(rec_h);
+      used_h = true;
     }
   }
-  if (getenv("GEO_DEBUG")) {
-    fprintf(stderr, "use_h %d ratio %.3f inliersH %d inliersF %d\n", use_h, ratio, best_h.num_inliers, best_f.num_inliers);
-    for (size_t k = 0; k < checks.size(); ++k) fprintf(stderr, "  cand %zu good %d parallax %.2f t %.3f %.3f %.3f\n", k, checks[k].good, checks[k].parallax_deg, motions[k].t.x(), motions[k].t.y(), motions[k].t.z());
-  }
-  const MotionCheck& winner = checks[best];
-  const double min_good = std::max<double>(options.min_good_fraction * model.num_inliers, options.min_triangulated);
-  if (best_good < min_good) return std::nullopt;
-  if (second_good >= options.clear_winner_ratio * best_good) return std::nullopt;
-  if (winner.parallax_deg < options.min_parallax_deg) return std::nullopt;
+  if (!rec) return std::nullopt;
 
   std::vector<double> depths;
   for (int i = 0; i < n; ++i)
-    if (winner.triangulated[i]) depths.push_back(winner.points[i].z());
-  if (depths.empty()) return std::nullopt;
+    if (rec->triangulated[i]) depths.push_back(rec->points[i].z());
+  if (static_cast<int>(depths.size()) < std::max(options.min_triangulated, 1)) return std::nullopt;
   std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
   const double median_depth = depths[depths.size() / 2];
   if (!(median_depth > 0)) return std::nullopt;
 
   TwoViewResult result;
   const double scale = 1.0 / median_depth;
-  result.T_2_1.linear() = motions[best].R;
-  result.T_2_1.translation() = motions[best].t * scale;
+  result.T_2_1.linear() = rec->motion.R;
+  result.T_2_1.translation() = rec->motion.t * scale;
   result.points.assign(n, Eigen::Vector3d::Zero());
-  result.triangulated = winner.triangulated;
+  result.triangulated = rec->triangulated;
   for (int i = 0; i < n; ++i) {
-    if (!winner.triangulated[i]) continue;
-    result.points[i] = winner.points[i] * scale;
+    if (!rec->triangulated[i]) continue;
+    result.points[i] = rec->points[i] * scale;
     ++result.num_triangulated;
   }
-  result.inliers = model.num_inliers;
-  result.used_homography = use_h;
-  result.parallax_deg = winner.parallax_deg;
+  result.inliers = rec->inliers;
+  result.used_homography = used_h;
+  result.parallax_deg = rec->parallax_deg;
   result.homography_ratio = ratio;
   return result;
 }

@@ -58,11 +58,15 @@ struct TriangulatedPoint {
 
 struct TwoViewOptions {
   int ransac_iterations = 200;          // minimal sets, shared by the F and H hypotheses
-  double sigma_px = 1.0;                // measurement noise of a keypoint at octave 0
+  double sigma_px = 1.0;                // keypoint noise per image (octave 0); model errors use 2 sigma^2
   double chi2_one_dof = 3.841;          // F inlier gate (point-to-epipolar-line, 1 DoF, 95%)
   double chi2_two_dof = 5.991;          // H inlier gate and score ceiling (2 DoF, 95%)
   double homography_ratio = 0.45;       // select H when SH / (SH + SF) exceeds this
-  bool refine_on_inliers = true;        // re-fit the winning model on all its inliers
+  int local_optimization_passes = 4;    // LO-RANSAC: least-squares re-fits of each new best model
+  bool homography_fallback = true;      // when F is selected but SH / (SH + SF) is above ...
+  double homography_fallback_ratio = 0.35;  // ... this, also try H and keep the better supported
+  bool refine_with_bundle_adjustment = true;  // two-view BA of the winning motion and points
+  int refine_iterations = 10;           // per BA pass (robust pass, then inliers only)
   double max_reprojection_error_px = 2.0;  // triangulation gate per view (2 sigma)
   double min_point_parallax_deg = 0.36;    // a point is triangulated above this parallax
   double min_parallax_deg = 1.0;        // the scene parallax (see parallax_rank) must exceed this

@@ -205,15 +205,37 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
   std::vector<int> matched_in_2(kf2.size(), -1);
   std::vector<int> best_distance_2(kf2.size(), 257);
   RotationHistogram histogram;
+  FeatureGrid grid2;
+  grid2.Build(kf2.uv, g.camera.width, g.camera.height);
+  std::vector<uint32_t> candidates, all2(kf2.size());
+  for (uint32_t i = 0; i < kf2.size(); ++i) all2[i] = i;
+  const Eigen::Isometry3d T_2_1 = kf2.T_cam_world * kf1.T_cam_world.inverse();
   for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
     if (!kf1.points[i1].is_null()) continue;
     const bool stereo1 = kf1.right_u[i1] >= 0;
     const Eigen::Vector3d line = F_2_1 * Eigen::Vector3d(kf1.uv[i1].x(), kf1.uv[i1].y(), 1.0);
     const double line_norm2 = line.x() * line.x() + line.y() * line.y();
     if (line_norm2 <= 0) continue;
+    // With a depth, the match must lie near the projection of the measured point; without
+    // one, anywhere on the epipolar line.
+    const std::vector<uint32_t>* pool = &all2;
+    if (stereo1 && kf1.depth[i1] > 0) {
+      const float z = kf1.depth[i1];
+      const Eigen::Vector3d X1((kf1.uv[i1].x() - g.camera.cx) / g.camera.fx * z,
+                               (kf1.uv[i1].y() - g.camera.cy) / g.camera.fy * z, z);
+      const Eigen::Vector3d X2 = T_2_1 * X1;
+      if (X2.z() <= 0) continue;
+      const double u = g.camera.fx * X2.x() / X2.z() + g.camera.cx, v = g.camera.fy * X2.y() / X2.z() + g.camera.cy;
+      if (!g.InImage(u, v)) continue;
+      candidates.clear();
+      // Stereo depth is uncertain far away: search a radius that grows with disparity error.
+      const float radius = 10.0f * g.pyramid.scale[kf1.octave[i1]];
+      grid2.Query(static_cast<float>(u), static_cast<float>(v), radius, kf2.uv, &candidates);
+      pool = &candidates;
+    }
     int best = options.max_distance_strict + 1;
     int best_index = -1;
-    for (uint32_t i2 = 0; i2 < kf2.size(); ++i2) {
+    for (uint32_t i2 : *pool) {
       if (!kf2.points[i2].is_null()) continue;
       const int d = Hamming(kf1.descriptor[i1], kf2.descriptor[i2]);
       if (d >= best) continue;

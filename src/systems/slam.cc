@@ -341,6 +341,8 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
 }
 
 void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
+  std::vector<KeyFrame> snapshot;  // [0] = the new keyframe, then its neighbours
+  std::vector<KeyFrameHandle> neighbours;
   struct Done {
     std::atomic<int>& pending;
     ~Done() { --pending; }
@@ -352,7 +354,18 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
       if (map_.points().contains(p)) map_.UpdatePointStats(p, map_scales_);
     map_.UpdateCovisibility(keyframe);
     CullRecentPoints(keyframe);
-    Triangulate(keyframe);
+    // Copies of the keyframes to triangulate against, so matching runs without the lock.
+    snapshot.push_back(map_.keyframe(keyframe));
+    for (KeyFrameHandle n : map_.BestCovisible(keyframe, options_.local_keyframes)) {
+      neighbours.push_back(n);
+      snapshot.push_back(map_.keyframe(n));
+    }
+  }
+  const std::vector<NewPoint> candidates = FindNewPoints(snapshot, neighbours);
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (!map_.keyframes().contains(keyframe)) return;
+    AddNewPoints(keyframe, candidates);
     Fuse(keyframe);
     map_.UpdateCovisibility(keyframe);
   }
@@ -378,51 +391,66 @@ void Slam::CullRecentPoints(KeyFrameHandle current) {
   recent_points_ = std::move(keep);
 }
 
-void Slam::Triangulate(KeyFrameHandle current) {
-  const std::vector<KeyFrameHandle> neighbours = map_.BestCovisible(current, options_.local_keyframes);
+std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& snapshot,
+                                                const std::vector<KeyFrameHandle>& neighbours) const {
+  std::vector<NewPoint> out;
   const double baseline = geometry_.bf / geometry_.camera.fx;
+  const double close = CloseDepth();
   TriangulationOptions tri;
   tri.max_reprojection_error_px = 2.0;
   tri.min_parallax_deg = 0.0;
-  for (KeyFrameHandle n : neighbours) {
-    const KeyFrame& kf1 = map_.keyframe(current);
-    const KeyFrame& kf2 = map_.keyframe(n);
-    if ((kf1.camera_center() - kf2.camera_center()).norm() < baseline) continue;
-    const Eigen::Matrix3d F = FundamentalBetween(kf1, kf2, geometry_.camera);
-    const auto pairs = MatchForTriangulation(kf1, kf2, F, geometry_, options_.matcher);
-    for (const auto& [i1, i2] : pairs) {
-      const KeyFrame& a = map_.keyframe(current);
-      const KeyFrame& b = map_.keyframe(n);
-      if (!a.points[i1].is_null() || !b.points[i2].is_null()) continue;
+  const KeyFrame& a = snapshot[0];
+  for (size_t k = 0; k < neighbours.size(); ++k) {
+    const KeyFrame& b = snapshot[k + 1];
+    if ((a.camera_center() - b.camera_center()).norm() < baseline) continue;
+    const Eigen::Matrix3d F = FundamentalBetween(a, b, geometry_.camera);
+    for (const auto& [i1, i2] : MatchForTriangulation(a, b, F, geometry_, options_.matcher)) {
       const TriangulatedPoint t = TriangulatePoint(geometry_.camera, a.T_cam_world, b.T_cam_world,
                                                    a.uv[i1].cast<double>(), b.uv[i2].cast<double>(), tri);
       Eigen::Vector3d X;
-      // Low parallax: a stereo depth is more reliable than a triangulated one.
+      // Low parallax: a close stereo depth is more reliable than a triangulated one.
       const double ray_cos = std::cos(t.parallax_deg * M_PI / 180.0);
-      if (t.status != TriangulationStatus::kDegenerate && t.status != TriangulationStatus::kBehindCamera &&
-          ray_cos < 0.9998 && t.ok()) {
+      if (t.ok() && ray_cos < 0.9998) {
         X = t.X_world;
-      } else if (a.depth[i1] > 0 && a.depth[i1] < CloseDepth()) {
+      } else if (a.depth[i1] > 0 && a.depth[i1] < close) {
         X = Unproject(geometry_.camera, a.T_cam_world, a.uv[i1], a.depth[i1]);
+      } else if (b.depth[i2] > 0 && b.depth[i2] < close) {
+        X = Unproject(geometry_.camera, b.T_cam_world, b.uv[i2], b.depth[i2]);
       } else {
         continue;
       }
-      // Stereo measurements must agree too.
-      auto stereo_ok = [&](const KeyFrame& kf, uint32_t i) {
-        if (kf.right_u[i] < 0) return true;
+      // Every measurement must agree: both projections, and the right image where there is one.
+      auto agrees = [&](const KeyFrame& kf, uint32_t i) {
         const Eigen::Vector3d Xc = kf.T_cam_world * X;
         if (Xc.z() <= 0) return false;
-        const double ur = geometry_.camera.fx * Xc.x() / Xc.z() + geometry_.camera.cx - geometry_.bf / Xc.z();
-        const double e = ur - kf.right_u[i];
-        return e * e * geometry_.pyramid.inv_sigma2[kf.octave[i]] < 3.84;
+        const double u = geometry_.camera.fx * Xc.x() / Xc.z() + geometry_.camera.cx;
+        const double v = geometry_.camera.fy * Xc.y() / Xc.z() + geometry_.camera.cy;
+        const double eu = u - kf.uv[i].x(), ev = v - kf.uv[i].y();
+        double e2 = eu * eu + ev * ev, gate = 5.991;
+        if (kf.right_u[i] >= 0) {
+          const double er = u - geometry_.bf / Xc.z() - kf.right_u[i];
+          e2 += er * er;
+          gate = 7.8;
+        }
+        return e2 * geometry_.pyramid.inv_sigma2[kf.octave[i]] < gate;
       };
-      if (!stereo_ok(a, i1) || !stereo_ok(b, i2)) continue;
-      const PointHandle p = map_.AddPoint(X, current);
-      map_.AddObservation(p, current, i1);
-      map_.AddObservation(p, n, i2);
-      map_.UpdatePointStats(p, map_scales_);
-      recent_points_.push_back(p);
+      if (!agrees(a, i1) || !agrees(b, i2)) continue;
+      out.push_back({neighbours[k], i1, i2, X});
     }
+  }
+  return out;
+}
+
+void Slam::AddNewPoints(KeyFrameHandle current, const std::vector<NewPoint>& candidates) {
+  for (const NewPoint& c : candidates) {
+    // The map moved on while matching ran: skip anything erased or bound since.
+    const KeyFrame* b = map_.keyframes().try_get(c.neighbour);
+    if (!b || !b->points[c.i2].is_null() || !map_.keyframe(current).points[c.i1].is_null()) continue;
+    const PointHandle p = map_.AddPoint(c.X_world, current);
+    map_.AddObservation(p, current, c.i1);
+    map_.AddObservation(p, c.neighbour, c.i2);
+    map_.UpdatePointStats(p, map_scales_);
+    recent_points_.push_back(p);
   }
 }
 

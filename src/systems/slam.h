@@ -32,7 +32,7 @@ struct SlamOptions {
   BundleAdjustmentOptions bundle_adjustment;
   double rgbd_virtual_baseline_m = 0.08;  // RGB-D depth becomes a stereo measurement with this baseline
   double close_depth_baselines = 40;    // "close" points (reliable stereo depth) are nearer than this x baseline
-  int min_init_points = 500;            // keypoints with depth needed to start a map
+  int min_init_points = 150;            // keypoints with depth needed to start a map
   int min_motion_inliers = 10;          // after frame-to-frame tracking
   int min_local_map_inliers = 30;       // after tracking the local map
   float motion_search_radius = 7;       // pixels (x level scale) around the predicted position
@@ -100,7 +100,15 @@ class Slam {
   // New keyframe from the frame; points from depth for close keypoints (all when asked).
   KeyFrameHandle CreateKeyFrame(TrackedFrame& frame, bool all_depth_points = false);
   void CullRecentPoints(KeyFrameHandle current);
-  void Triangulate(KeyFrameHandle current);
+  struct NewPoint {
+    KeyFrameHandle neighbour;
+    uint32_t i1 = 0, i2 = 0;  // keypoints in the new keyframe and in the neighbour
+    Eigen::Vector3d X_world;
+  };
+  // Matches and triangulates against copies of the neighbours (no lock needed).
+  [[nodiscard]] std::vector<NewPoint> FindNewPoints(const std::vector<KeyFrame>& snapshot,
+                                                    const std::vector<KeyFrameHandle>& neighbours) const;
+  void AddNewPoints(KeyFrameHandle current, const std::vector<NewPoint>& candidates);
   void Fuse(KeyFrameHandle current);
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);

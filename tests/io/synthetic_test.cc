@@ -92,7 +92,7 @@ TEST(SyntheticScene, DepthAndPosesAreExactAcrossStereoAndTime) {
     SyntheticScene scene(MakeScene(name), o);
     const size_t i = 101;
     const Eigen::Isometry3d T_left = scene.PoseAt(scene.timestamp_ns(i) * 1e-9);
-    const Eigen::Isometry3d T_right = T_left * Eigen::Translation3d(o.baseline_m, 0, 0);
+    const Eigen::Isometry3d T_right = T_left * Eigen::Translation3d(scene.calibration().baseline_m, 0, 0);
     cv::Mat left, depth, right, later;
     scene.RenderView(T_left, 0, &left, &depth);
     scene.RenderView(T_right, 0, &right, nullptr);
@@ -156,6 +156,25 @@ TEST(SyntheticScene, TrajectoryLoopsAtConstantSpeed) {
   const size_t lap = static_cast<size_t>(lap_s * scene.options().frame_rate_hz);
   ASSERT_LT(lap, gt.size());
   EXPECT_LT((gt[lap].T_world_cam.translation() - gt[0].T_world_cam.translation()).head<2>().norm(), 0.1);
+}
+
+TEST(SyntheticScene, EveryPathIsSmooth) {
+  // No kinks: the camera turns at most a few degrees between frames in every scene and agent.
+  for (const std::string& name : SyntheticSceneNames()) {
+    const SceneDescription description = MakeScene(name);
+    for (int agent = 0; agent < static_cast<int>(description.agents.size()); ++agent) {
+      SyntheticOptions o = SmallOptions(Sensor::kMonocular);
+      o.agent = agent;
+      o.duration_s = description.default_duration_s;
+      const Trajectory gt = SyntheticScene(description, o).GroundTruth();
+      double worst = 0;
+      for (size_t i = 1; i < gt.size(); ++i) {
+        const Eigen::AngleAxisd step(gt[i - 1].T_world_cam.linear().transpose() * gt[i].T_world_cam.linear());
+        worst = std::max(worst, step.angle() * 180 / M_PI);
+      }
+      EXPECT_LT(worst, 4.0) << name << " agent " << agent;
+    }
+  }
 }
 
 TEST(SyntheticScene, TownAgentsOverlapOnlyInPart) {

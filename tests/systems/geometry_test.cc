@@ -179,8 +179,8 @@ TEST(InitializeTwoView, GeneralSceneSelectsFundamental) {
   std::mt19937_64 rng(11);
   std::uniform_real_distribution<double> u(-1, 1);
   std::vector<Eigen::Vector3d> points;
-  for (int i = 0; i < 400; ++i) points.emplace_back(4 * u(rng), 3 * u(rng), 7 + 3 * u(rng));
-  const Eigen::Isometry3d T_2_1 = Pose(Rot(4 * kDeg, {0.2, 1, 0.1}), {-0.6, 0.05, 0.1});
+  for (int i = 0; i < 400; ++i) points.emplace_back(3 * u(rng), 2 * u(rng), 5 + 2.5 * u(rng));
+  const Eigen::Isometry3d T_2_1 = Pose(Rot(4 * kDeg, {0.2, 1, 0.1}), {-0.5, 0.05, 0.1});
   const Correspondences c = MakeCorrespondences(camera, T_2_1, points, 1.0, 0.2, rng);
   ASSERT_GT(c.px1.size(), 200u);
   std::mt19937_64 ransac_rng(3);
@@ -195,10 +195,10 @@ TEST(InitializeTwoView, PlanarSceneSelectsHomography) {
   std::mt19937_64 rng(12);
   std::uniform_real_distribution<double> u(-1, 1);
   std::vector<Eigen::Vector3d> points;
-  // A tilted plane 5..7 m ahead.
+  // A tilted plane 2.5..5.5 m ahead.
   for (int i = 0; i < 400; ++i) {
-    const double x = 4 * u(rng), y = 3 * u(rng);
-    points.emplace_back(x, y, 6 + 0.25 * x - 0.1 * y);
+    const double x = 3 * u(rng), y = 2 * u(rng);
+    points.emplace_back(x, y, 4 + 0.3 * x - 0.2 * y);
   }
   const Eigen::Isometry3d T_2_1 = Pose(Rot(3 * kDeg, {-0.3, 1, 0.2}), {-0.5, 0.1, 0.05});
   const Correspondences c = MakeCorrespondences(camera, T_2_1, points, 1.0, 0.2, rng);
@@ -228,8 +228,8 @@ TEST(InitializeTwoView, IsDeterministicGivenTheSeed) {
   std::mt19937_64 rng(14);
   std::uniform_real_distribution<double> u(-1, 1);
   std::vector<Eigen::Vector3d> points;
-  for (int i = 0; i < 300; ++i) points.emplace_back(4 * u(rng), 3 * u(rng), 7 + 3 * u(rng));
-  const Eigen::Isometry3d T_2_1 = Pose(Rot(4 * kDeg, {0.2, 1, 0.1}), {-0.6, 0.05, 0.1});
+  for (int i = 0; i < 300; ++i) points.emplace_back(3 * u(rng), 2 * u(rng), 5 + 2.5 * u(rng));
+  const Eigen::Isometry3d T_2_1 = Pose(Rot(4 * kDeg, {0.2, 1, 0.1}), {-0.5, 0.05, 0.1});
   const Correspondences c = MakeCorrespondences(camera, T_2_1, points, 1.0, 0.2, rng);
   std::mt19937_64 a(99), b(99);
   const auto ra = InitializeTwoView(c.px1, c.px2, camera, TwoViewOptions{}, a);
@@ -254,3 +254,41 @@ TEST(InitializeTwoView, RejectsMisuseAndTooFewPoints) {
 
 }  // namespace
 }  // namespace flatslam
+namespace flatslam { namespace {
+TEST(SweepTmp, Seeds) {
+  if (!getenv("SWEEP")) GTEST_SKIP();
+  const PinholeCamera camera = TestCamera();
+  int fails[3] = {0, 0, 0};
+  double worst_rot[2] = {0, 0}, worst_dir[2] = {0, 0};
+  int h_direct = 0;
+  for (int seed = 100; seed < 150; ++seed) {
+    std::mt19937_64 rng(seed);
+    std::uniform_real_distribution<double> u(-1, 1);
+    for (int kind = 0; kind < 3; ++kind) {
+      std::vector<Eigen::Vector3d> points;
+      for (int i = 0; i < 400; ++i) {
+        static const int cfg = getenv("PLANE") ? atoi(getenv("PLANE")) : 0;
+        if (kind == 1 && cfg == 0) { const double x = 3 * u(rng), y = 2 * u(rng); points.emplace_back(x, y, 4 + 0.3 * x - 0.2 * y); }
+        else if (kind == 1 && cfg == 1) { const double x = 3 * u(rng), y = 1.5 * u(rng); points.emplace_back(x, y, 4 + 1.0 * y); }
+        else if (kind == 1 && cfg == 2) { const double x = 3 * u(rng), y = 1.5 * u(rng); points.emplace_back(x, y, 4 + 0.8 * x + 0.3 * y); }
+        else if (kind == 1 && cfg == 3) { const double x = 2 * u(rng), y = 1.5 * u(rng); points.emplace_back(x, y, 3 + 0.3 * x + 0.3 * y); }
+        else points.emplace_back(3 * u(rng), 2 * u(rng), 5 + 2.5 * u(rng));
+      }
+      Eigen::Isometry3d T = kind == 2 ? Pose(Rot(5 * kDeg, {0.1, 1, 0.1}), Eigen::Vector3d::Zero())
+                                      : Pose(Rot(4 * kDeg, {u(rng), 1, u(rng)}), Eigen::Vector3d(-0.5, 0.1 * u(rng), 0.1 * u(rng)));
+      const Correspondences c = MakeCorrespondences(camera, T, points, 1.0, 0.2, rng);
+      std::mt19937_64 r2(seed);
+      if (getenv("GEO_DEBUG")) fprintf(stderr, "seed %d kind %d n %zu\n", seed, kind, c.px1.size());
+      TwoViewOptions sweep_options; if (getenv("RITER")) sweep_options.refine_iterations = atoi(getenv("RITER"));
+      const auto r = InitializeTwoView(c.px1, c.px2, camera, sweep_options, r2);
+      if (kind == 2) { fails[2] += r.has_value(); continue; }
+      if (!r) { fails[kind]++; if (getenv("PER")) printf("seed %d kind %d FAIL %d\n", seed, kind, r.has_value()); continue; }
+      if (kind == 1 && r->homography_ratio > 0.45) h_direct++;
+      if (getenv("PER")) printf("seed %d kind %d rot %.3f dir %.3f par %.2f RH %.3f tri %d\n", seed, kind, RotationErrorDeg(r->T_2_1.linear(), T.linear()), DirectionErrorDeg(r->T_2_1.translation(), T.translation()), r->parallax_deg, r->homography_ratio, r->num_triangulated);
+      worst_rot[kind] = std::max(worst_rot[kind], RotationErrorDeg(r->T_2_1.linear(), T.linear()));
+      worst_dir[kind] = std::max(worst_dir[kind], DirectionErrorDeg(r->T_2_1.translation(), T.translation()));
+    }
+  }
+  printf("fails general %d planar %d rotation-succeeded %d; worst rot %.3f %.3f dir %.3f %.3f; H direct %d\n", fails[0], fails[1], fails[2], worst_rot[0], worst_rot[1], worst_dir[0], worst_dir[1], h_direct);
+}
+}}

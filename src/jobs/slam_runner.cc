@@ -1,0 +1,70 @@
+#include "jobs/slam_runner.h"
+
+#include <algorithm>
+#include <chrono>
+#include <thread>
+
+#include <tbb/task_arena.h>
+
+#include "jobs/pipeline.h"
+
+namespace flatslam {
+namespace {
+
+struct Item {
+  size_t index = 0;
+  TrackedFrame frame;
+  double extract_ms = 0;
+};
+
+}  // namespace
+
+SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
+  Slam slam(dataset.calibration(), options);
+  const size_t frames = run.max_frames == 0 ? dataset.size() : std::min(run.max_frames, dataset.size());
+  SlamRunResult result;
+  result.reports.reserve(frames);
+
+  PipelineOptions pipeline_options;
+  if (run.max_in_flight > 0) pipeline_options.max_in_flight = run.max_in_flight;
+  FramePipeline<Item> pipeline(pipeline_options);
+  auto mapping =
+      pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
+  pipeline.set_source([&](size_t seq) -> std::optional<Item> {
+    if (seq >= frames) return std::nullopt;
+    Item item;
+    item.index = seq;
+    return item;
+  });
+  pipeline.add_parallel_stage("extract", [&](Item& item) {
+    const Frame frame = dataset.read(item.index);
+    const auto start = std::chrono::steady_clock::now();
+    slam.Extract(frame, &item.frame);
+    item.extract_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  });
+  // One worker cannot both wait in the track stage and run mapping: map inline then.
+  const bool inline_mapping = run.deterministic || tbb::this_task_arena::max_concurrency() < 2;
+  pipeline.add_serial_stage("track", [&](Item& item) {
+    while (!inline_mapping && slam.pending_keyframes() > run.max_mapping_lag)
+      std::this_thread::sleep_for(std::chrono::microseconds(200));
+    std::optional<KeyFrameHandle> keyframe;
+    FrameReport report = slam.Track(std::move(item.frame), &keyframe);
+    report.extract_ms = item.extract_ms;
+    if (keyframe) {
+      if (inline_mapping) slam.MapKeyFrame(*keyframe);
+      else mapping.post(*keyframe);
+    }
+    if (run.on_frame) run.on_frame(report);
+    result.reports.push_back(report);
+  });
+  const auto start = std::chrono::steady_clock::now();
+  pipeline.run();
+  result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  result.trajectory = slam.FrameTrajectory();
+  result.keyframes = slam.KeyFrameTrajectory();
+  result.keyframe_count = slam.map().keyframes().size();
+  result.point_count = slam.map().points().size();
+  return result;
+}
+
+}  // namespace flatslam

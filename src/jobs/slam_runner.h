@@ -1,0 +1,37 @@
+// Runs the SLAM systems over a dataset on the frame pipeline: read + extract in parallel across
+// frames, track in frame order, local mapping as a background queue.
+// Concurrency: RunSlam blocks the calling thread; it uses TBB workers for the stages.
+#pragma once
+
+#include <cstddef>
+#include <functional>
+#include <vector>
+
+#include "io/dataset.h"
+#include "systems/slam.h"
+
+namespace flatslam {
+
+struct SlamRunOptions {
+  size_t max_frames = 0;        // 0 = every frame of the dataset
+  bool deterministic = false;   // map each keyframe inline in the track stage: same input, same output
+  size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = the pipeline default
+  // Tracking waits while more keyframes than this await local mapping, so a batch run, which
+  // reads faster than real time, never tracks against a map that mapping has fallen behind on.
+  int max_mapping_lag = 1;
+  // Called from the track stage after every frame (progress display); may be empty.
+  std::function<void(const FrameReport&)> on_frame;
+};
+
+struct SlamRunResult {
+  std::vector<FrameReport> reports;  // one per input frame, in order
+  Trajectory trajectory;             // tracked frames, T_world_cam, refined through keyframes
+  Trajectory keyframes;
+  size_t keyframe_count = 0, point_count = 0;
+  double wall_s = 0;
+};
+
+// Runs SLAM; the Slam object is created from the dataset's calibration and options.
+[[nodiscard]] SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run);
+
+}  // namespace flatslam

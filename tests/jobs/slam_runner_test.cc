@@ -1,0 +1,91 @@
+// End-to-end SLAM runs on synthetic scenes (exact ground truth) and the real KITTI 06 stereo
+// snippet. Thresholds are the bars where they are met, else the measured level plus a
+// margin; the closing notes and docs/STATUS.md give the measured figures.
+#include "jobs/slam_runner.h"
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+#include "test_data.h"
+#include "trajectory/metrics.h"
+
+namespace flatslam {
+namespace {
+
+struct Outcome {
+  SlamRunResult run;
+  EvalResult se3;
+  EvalResult sim3;
+  double path_m = 0;
+  size_t lost = 0;
+};
+
+Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 1000) {
+  const auto dataset = OpenDataset(spec);
+  SlamOptions options;
+  options.orb.features = features;
+  SlamRunOptions run;
+  run.deterministic = deterministic;
+  Outcome out;
+  out.run = RunSlam(*dataset, options, run);
+  const Trajectory gt = *dataset->ground_truth();
+  EvalOptions eval;
+  eval.alignment = Alignment::kSE3;
+  out.se3 = Evaluate(gt, out.run.trajectory, eval);
+  eval.alignment = Alignment::kSim3;
+  out.sim3 = Evaluate(gt, out.run.trajectory, eval);
+  for (size_t i = 1; i < gt.size(); ++i)
+    out.path_m += (gt[i].T_world_cam.translation() - gt[i - 1].T_world_cam.translation()).norm();
+  for (const FrameReport& r : out.run.reports) out.lost += r.state != TrackingState::kOk;
+  std::printf("%s: %zu frames, %zu lost, %zu keyframes, %zu points, ATE %.4f m (%.3f%% of %.1f m), scale %.4f\n",
+              spec.c_str(), out.run.trajectory.size(), out.lost, out.run.keyframe_count, out.run.point_count,
+              out.se3.ate_m.rmse, 100 * out.se3.ate_m.rmse / out.path_m, out.path_m, out.sim3.alignment.scale);
+  return out;
+}
+
+TEST(SlamRun, StereoRoomTracksEveryFrameBelowOnePercent) {
+  const Outcome o = RunAndScore("synth:room:duration=15,width=480,height=360", false);
+  EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size());
+  EXPECT_EQ(o.lost, 0u);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
+  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
+  EXPECT_GT(o.run.keyframe_count, 3u);
+}
+
+TEST(SlamRun, RgbdRoomTracksEveryFrameBelowOnePercent) {
+  const Outcome o = RunAndScore("synth:room:duration=15,width=480,height=360,sensor=rgbd", false);
+  EXPECT_EQ(o.lost, 0u);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
+}
+
+TEST(SlamRun, DeterministicModeRepeatsExactly) {
+  const Outcome a = RunAndScore("synth:corridor:duration=4,width=480,height=360", true);
+  const Outcome b = RunAndScore("synth:corridor:duration=4,width=480,height=360", true);
+  ASSERT_EQ(a.run.trajectory.size(), b.run.trajectory.size());
+  for (size_t i = 0; i < a.run.trajectory.size(); ++i)
+    ASSERT_TRUE(a.run.trajectory[i].T_world_cam.isApprox(b.run.trajectory[i].T_world_cam, 0.0)) << "frame " << i;
+  EXPECT_EQ(a.run.point_count, b.run.point_count);
+}
+
+TEST(SlamRun, KittiStereoSnippet) {
+  const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "06";
+  const Outcome o = RunAndScore(seq.string(), false, 2000);
+  EXPECT_EQ(o.lost, 0u);
+  EXPECT_EQ(o.run.trajectory.size(), 51u);
+  // The bar (ORB-SLAM2: 0.059 m) is not reached yet; this guards the level measured now.
+  EXPECT_LT(o.se3.ate_m.rmse, 0.2);
+  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.015);
+}
+
+TEST(SlamRun, MonocularIsRefusedWithAClearError) {
+  const auto dataset = OpenDataset("synth:room:duration=1,sensor=mono");
+  try {
+    (void)RunSlam(*dataset, SlamOptions{}, SlamRunOptions{});
+    FAIL() << "monocular input accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("monocular"), std::string::npos) << e.what();
+  }
+}
+
+}  // namespace
+}  // namespace flatslam
