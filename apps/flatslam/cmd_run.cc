@@ -21,7 +21,7 @@
 namespace flatslam::app {
 
 const char* const kRunUsage =
-    "usage: flatslam run DATASET [--sensor stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
+    "usage: flatslam run DATASET [--sensor mono|stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
     "                    [--features N] [--deterministic] [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
@@ -30,7 +30,7 @@ const char* const kRunUsage =
     "  --features N     ORB features per image (default 1000; 2000 suits KITTI)\n"
     "  --deterministic  run local mapping inline after each keyframe: same input, same output\n"
     "  --max-frames N   stop after N frames\n"
-    "Monocular input is not supported yet.\n";
+    "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
 namespace {
 
@@ -38,6 +38,14 @@ double PeakRssMiB() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return usage.ru_maxrss / 1024.0;
+}
+
+// Resident set size now, from /proc/self/statm (0 where unavailable).
+double CurrentRssMiB() {
+  std::ifstream statm("/proc/self/statm");
+  double size = 0, resident = 0;
+  if (!(statm >> size >> resident)) return 0;
+  return resident * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
 }
 
 double Median(std::vector<double> v) {
@@ -76,8 +84,11 @@ int RunRun(const std::vector<std::string>& argv) {
   run.max_frames = frames;
   run.deterministic = args.has("deterministic");
   size_t done = 0, keyframes_so_far = 0;
+  std::vector<double> rss_mib;  // sampled every frame: long sessions show whether memory stays flat
+  rss_mib.reserve(frames);
   run.on_frame = [&](const FrameReport& report) {
     ++done;
+    rss_mib.push_back(CurrentRssMiB());
     keyframes_so_far += report.keyframe;
     if (!quiet && (done % 10 == 0 || done == frames))
       std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", done, frames,
@@ -91,11 +102,13 @@ int RunRun(const std::vector<std::string>& argv) {
   const Trajectory& keyframes = result.keyframes;
   if (out_dir) {
     std::ofstream csv(*out_dir / "stats.csv");
-    csv << "frame,t_ns,state,keyframe,reinitialized,features,stereo_points,matches,inliers,extract_ms,track_ms\n";
-    for (const FrameReport& r : reports)
+    csv << "frame,t_ns,state,keyframe,reinitialized,features,stereo_points,matches,inliers,extract_ms,track_ms,rss_mib\n";
+    for (size_t k = 0; k < reports.size(); ++k) {
+      const FrameReport& r = reports[k];
       csv << r.index << "," << r.t_ns << "," << TrackingStateName(r.state) << "," << r.keyframe << ","
           << r.reinitialized << "," << r.features << "," << r.stereo_points << "," << r.matches << "," << r.inliers
-          << "," << r.extract_ms << "," << r.track_ms << "\n";
+          << "," << r.extract_ms << "," << r.track_ms << "," << rss_mib[k] << "\n";
+    }
     FLATSLAM_CHECK(csv.good(), "cannot write ", (*out_dir / "stats.csv"));
     if (!trajectory.empty()) {
       WriteTum(*out_dir / "trajectory.tum", trajectory);

@@ -18,7 +18,7 @@ struct SlamRunOptions {
   size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = the pipeline default
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which
   // reads faster than real time, never tracks against a map that mapping has fallen behind on.
-  int max_mapping_lag = 1;
+  int max_mapping_lag = 0;
   // Called from the track stage after every frame (progress display); may be empty.
   std::function<void(const FrameReport&)> on_frame;
 };

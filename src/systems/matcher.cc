@@ -184,6 +184,43 @@ int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const Poin
   return matches;
 }
 
+std::vector<std::pair<uint32_t, uint32_t>> MatchForInitialization(const TrackedFrame& first, const TrackedFrame& second,
+                                                                  float window, const MatcherOptions& options) {
+  std::vector<int> matched_in_2(second.size(), -1), distance_2(second.size(), 257);
+  std::vector<uint32_t> candidates;
+  for (uint32_t i1 = 0; i1 < first.size(); ++i1) {
+    if (first.keypoints.octave[i1] > 0) continue;  // ORB-SLAM2 initializes on the finest level only
+    candidates.clear();
+    second.grid.Query(first.keypoints.uv[i1].x(), first.keypoints.uv[i1].y(), window, second.keypoints.uv, &candidates);
+    int best = 257, second_best = 257, best_index = -1;
+    for (uint32_t i2 : candidates) {
+      if (second.keypoints.octave[i2] != 0) continue;
+      const int d = Hamming(first.keypoints.descriptor[i1], second.keypoints.descriptor[i2]);
+      if (distance_2[i2] <= d) continue;
+      if (d < best) {
+        second_best = best;
+        best = d;
+        best_index = static_cast<int>(i2);
+      } else if (d < second_best) {
+        second_best = d;
+      }
+    }
+    if (best_index < 0 || best > options.max_distance_strict || best >= 0.9 * second_best) continue;
+    if (matched_in_2[best_index] >= 0) matched_in_2[best_index] = -1;  // contested: drop the old one
+    matched_in_2[best_index] = static_cast<int>(i1);
+    distance_2[best_index] = best;
+  }
+  RotationHistogram histogram;
+  for (uint32_t i2 = 0; i2 < second.size(); ++i2)
+    if (matched_in_2[i2] >= 0) histogram.Add(first.keypoints.angle[matched_in_2[i2]] - second.keypoints.angle[i2], i2);
+  if (options.check_orientation)
+    for (uint32_t i2 : histogram.Rejected()) matched_in_2[i2] = -1;
+  std::vector<std::pair<uint32_t, uint32_t>> out;
+  for (uint32_t i2 = 0; i2 < second.size(); ++i2)
+    if (matched_in_2[i2] >= 0) out.emplace_back(static_cast<uint32_t>(matched_in_2[i2]), i2);
+  return out;
+}
+
 Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, const PinholeCamera& camera) {
   const Eigen::Isometry3d T_2_1 = kf2.T_cam_world * kf1.T_cam_world.inverse();
   const Eigen::Vector3d t = T_2_1.translation();

@@ -64,6 +64,12 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
 int FusePoints(Map& map, KeyFrameHandle kf, std::span<const PointHandle> points, const CameraGeometry& geometry,
                const MatcherOptions& options);
 
+// Monocular initialization: for each keypoint of `first`, the best keypoint of `second` within
+// `window` pixels of the same position at the same level (ratio and orientation checked).
+// Returns pairs (index in first, index in second).
+std::vector<std::pair<uint32_t, uint32_t>> MatchForInitialization(const TrackedFrame& first, const TrackedFrame& second,
+                                                                  float window, const MatcherOptions& options);
+
 // Fundamental matrix mapping pixels of kf1 to epipolar lines in kf2.
 [[nodiscard]] Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, const PinholeCamera& camera);
 

@@ -44,26 +44,28 @@ bool SlamOptions::Check() const {
 }
 
 Slam::Slam(const Calibration& calibration, const SlamOptions& options)
-    : calibration_(calibration), options_(options), extractor_(options.orb) {
+    : calibration_(calibration), options_(options), extractor_(options.orb), rng_(options.seed) {
   FLATSLAM_CHECK(options_.Check(), "invalid SLAM options");
   FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
-  FLATSLAM_CHECK(calibration_.sensor != Sensor::kMonocular,
-                 "monocular tracking is not implemented yet: use a stereo or RGB-D sequence");
   FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
                  "stereo calibration without a baseline");
   if (options_.max_frames_between_keyframes == 0)
     options_.max_frames_between_keyframes =
         calibration_.frame_rate_hz > 0 ? static_cast<int>(std::lround(calibration_.frame_rate_hz)) : 10;
   geometry_.camera = calibration_.camera;
-  const double baseline =
-      calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m : options_.rgbd_virtual_baseline_m;
+  const double baseline = calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m
+                          : calibration_.sensor == Sensor::kRgbd ? options_.rgbd_virtual_baseline_m
+                                                                 : 0.0;
   geometry_.bf = baseline * calibration_.camera.fx;
+  if (monocular()) options_.motion_search_radius = options_.mono_search_radius;
   geometry_.pyramid = extractor_.scales();
   map_scales_.scale_factor = geometry_.pyramid.scale_factor;
   map_scales_.levels = geometry_.pyramid.levels;
 }
 
-double Slam::CloseDepth() const { return options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx; }
+double Slam::CloseDepth() const {
+  return monocular() ? 0.0 : options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx;
+}
 
 void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
   const auto start = std::chrono::steady_clock::now();
@@ -80,6 +82,8 @@ void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
                          [&] { extractor_.Extract(frame.right, &right, &right_pyramid); });
     MatchStereo(right, left_pyramid, right_pyramid, extractor_.scales(), cam.fx, calibration_.baseline_m,
                 options_.stereo, &out->keypoints);
+  } else if (calibration_.sensor == Sensor::kMonocular) {
+    extractor_.Extract(frame.left, &out->keypoints);
   } else {
     FLATSLAM_CHECK(!frame.depth.empty(), "frame ", frame.index, " has no depth image");
     extractor_.Extract(frame.left, &out->keypoints);
@@ -102,12 +106,19 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   bool ok = false;
   int matches = 0;
   if (state_ == TrackingState::kNotInitialized) {
-    ok = Initialize(frame);
+    ok = monocular() ? InitializeMonocular(frame) : Initialize(frame);
     if (ok) *new_keyframe = reference_keyframe_;
   } else {
     ok = TrackWithMotion(frame) || TrackReferenceKeyFrame(frame);
     if (ok) ok = TrackLocalMap(frame, &matches);
-    if (!ok) {
+    if (!ok && monocular()) {
+      // Lost without depth: a new two-view initialization starts a new map segment.
+      report.reinitialized = true;
+      state_ = TrackingState::kNotInitialized;
+      velocity_.reset();
+      init_frame_.reset();
+      last_frame_.reset();
+    } else if (!ok) {
       // Lost: start a new map segment at the predicted pose so the trajectory continues.
       report.reinitialized = true;
       frame.T_cam_world = velocity_ ? (*velocity_ * last_frame_->T_cam_world) : last_frame_->T_cam_world;
@@ -128,7 +139,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
 
   report.matches = matches;
   if (state_ == TrackingState::kNotInitialized && !ok) {
-    report.state = TrackingState::kNotInitialized;
+    report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kNotInitialized;
   } else {
     report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kOk;
     state_ = TrackingState::kOk;
@@ -159,6 +170,56 @@ bool Slam::Initialize(TrackedFrame& frame) {
   if (first_keyframe_.is_null()) first_keyframe_ = kf;
   local_keyframes_ = {kf};
   return true;
+}
+
+bool Slam::InitializeMonocular(TrackedFrame& frame) {
+  if (!init_frame_ || static_cast<int>(frame.size()) <= options_.min_init_matches) {
+    if (static_cast<int>(frame.size()) > options_.min_init_matches) init_frame_ = frame;
+    return false;
+  }
+  const auto pairs = MatchForInitialization(*init_frame_, frame, 100.0f, options_.matcher);
+  if (static_cast<int>(pairs.size()) < options_.min_init_matches) {
+    init_frame_ = frame;  // too little overlap left: start again from this frame
+    return false;
+  }
+  std::vector<Eigen::Vector2d> px1, px2;
+  for (const auto& [i1, i2] : pairs) {
+    px1.push_back(init_frame_->keypoints.uv[i1].cast<double>());
+    px2.push_back(frame.keypoints.uv[i2].cast<double>());
+  }
+  const std::optional<TwoViewResult> two_view = InitializeTwoView(px1, px2, geometry_.camera, TwoViewOptions{}, rng_);
+  if (!two_view) return false;
+
+  // Two keyframes: the first frame at the origin (or the last pose of a previous segment), the
+  // current one at the recovered motion; points are in first-frame coordinates.
+  const Eigen::Isometry3d T_first_world =
+      first_keyframe_.is_null() ? Eigen::Isometry3d::Identity() : init_frame_->T_cam_world;
+  TrackedFrame& first = *init_frame_;
+  first.T_cam_world = T_first_world;
+  std::fill(first.points.begin(), first.points.end(), PointHandle::null());
+  std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  frame.T_cam_world = two_view->T_2_1 * T_first_world;
+  const KeyFrameHandle kf1 = CreateKeyFrame(first);
+  const KeyFrameHandle kf2 = CreateKeyFrame(frame);
+  const Eigen::Isometry3d T_world_first = T_first_world.inverse();
+  int created = 0;
+  for (size_t k = 0; k < pairs.size(); ++k) {
+    if (!two_view->triangulated[k]) continue;
+    const PointHandle p = map_.AddPoint(T_world_first * two_view->points[k], kf1);
+    map_.AddObservation(p, kf1, pairs[k].first);
+    map_.AddObservation(p, kf2, pairs[k].second);
+    map_.UpdatePointStats(p, map_scales_);
+    frame.points[pairs[k].second] = p;
+    ++created;
+  }
+  map_.UpdateCovisibility(kf1);
+  map_.UpdateCovisibility(kf2);
+  if (first_keyframe_.is_null()) first_keyframe_ = kf1;
+  reference_keyframe_ = kf2;
+  local_keyframes_ = {kf1, kf2};
+  velocity_.reset();
+  init_frame_.reset();
+  return created >= options_.min_init_matches / 2;
 }
 
 int Slam::OptimizeFramePose(TrackedFrame& frame) {
@@ -289,8 +350,9 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   const size_t since = frame.index - last_keyframe_frame_;
   const bool idle = pending_keyframes_ == 0;
   const bool timeout = since >= static_cast<size_t>(options_.max_frames_between_keyframes);
-  const bool weak = inliers < 0.25 * reference_points || need_close;
-  const bool thin = (inliers < 0.75 * reference_points || need_close) && inliers > 15;
+  const bool weak = !monocular() && (inliers < 0.25 * reference_points || need_close);
+  const double ratio = monocular() ? 0.9 : 0.75;
+  const bool thin = (inliers < ratio * reference_points || need_close) && inliers > 15;
   if (!((timeout || idle || weak) && thin)) return false;
   return idle || pending_keyframes_ < 3;
 }
@@ -376,7 +438,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
 
 void Slam::CullRecentPoints(KeyFrameHandle current) {
   const uint64_t current_id = map_.keyframe(current).id;
-  const size_t min_observations = 3;  // stereo / RGB-D
+  const size_t min_observations = monocular() ? 2 : 3;
   std::vector<PointHandle> keep;
   for (PointHandle p : recent_points_) {
     MapPoint* point = map_.points().try_get(p);
@@ -402,6 +464,7 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
   const KeyFrame& a = snapshot[0];
   for (size_t k = 0; k < neighbours.size(); ++k) {
     const KeyFrame& b = snapshot[k + 1];
+    // Monocular pairs need parallax, which the triangulation test below checks per point.
     if ((a.camera_center() - b.camera_center()).norm() < baseline) continue;
     const Eigen::Matrix3d F = FundamentalBetween(a, b, geometry_.camera);
     for (const auto& [i1, i2] : MatchForTriangulation(a, b, F, geometry_, options_.matcher)) {
@@ -549,7 +612,8 @@ void Slam::CullKeyFrames(KeyFrameHandle current) {
     for (uint32_t i = 0; i < kf.size(); ++i) {
       const MapPoint* point = map_.points().try_get(kf.points[i]);
       if (!point) continue;
-      if (kf.depth[i] <= 0 || kf.depth[i] > CloseDepth()) continue;  // only reliable close points count
+      // With depth, only reliable close points count.
+      if (!monocular() && (kf.depth[i] <= 0 || kf.depth[i] > CloseDepth())) continue;
       ++considered;
       if (point->observations.size() <= 3) continue;
       int others = 0;

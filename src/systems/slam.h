@@ -1,4 +1,4 @@
-// The SLAM core for stereo and RGB-D input: feature extraction (parallel across frames),
+// The SLAM core for monocular, stereo and RGB-D input: feature extraction (parallel across frames),
 // tracking (serial, in frame order) and local mapping (a background job per keyframe).
 // Concurrency: Extract() is const and runs on many frames at once; Track() is called from one
 // serial stage; MapKeyFrame() from one background queue. Track and MapKeyFrame share the map
@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <mutex>
 #include <optional>
+#include <random>
 #include <vector>
 
 #include "ecs/map.h"
@@ -32,7 +33,10 @@ struct SlamOptions {
   BundleAdjustmentOptions bundle_adjustment;
   double rgbd_virtual_baseline_m = 0.08;  // RGB-D depth becomes a stereo measurement with this baseline
   double close_depth_baselines = 40;    // "close" points (reliable stereo depth) are nearer than this x baseline
-  int min_init_points = 150;            // keypoints with depth needed to start a map
+  int min_init_points = 150;            // keypoints with depth needed to start a map (stereo/RGB-D)
+  int min_init_matches = 100;           // monocular: matches between the two initial frames
+  float mono_search_radius = 15;        // monocular: projection search radius, pixels x level scale
+  uint64_t seed = 1;                    // RANSAC of the monocular initialization
   int min_motion_inliers = 10;          // after frame-to-frame tracking
   int min_local_map_inliers = 30;       // after tracking the local map
   float motion_search_radius = 7;       // pixels (x level scale) around the predicted position
@@ -65,7 +69,7 @@ struct FrameReport {
 
 class Slam {
  public:
-  // Throws flatslam::Error for monocular input (not supported yet) or invalid options.
+  // Throws flatslam::Error on invalid options or calibration.
   Slam(const Calibration& calibration, const SlamOptions& options);
 
   // Extracts features (left and right in parallel) and stereo/RGB-D depth into *out.
@@ -92,6 +96,8 @@ class Slam {
   };
 
   bool Initialize(TrackedFrame& frame);
+  bool InitializeMonocular(TrackedFrame& frame);
+  [[nodiscard]] bool monocular() const { return calibration_.sensor == Sensor::kMonocular; }
   bool TrackWithMotion(TrackedFrame& frame);
   bool TrackReferenceKeyFrame(TrackedFrame& frame);
   int OptimizeFramePose(TrackedFrame& frame);
@@ -133,6 +139,8 @@ class Slam {
   std::vector<PointHandle> local_points_;
   std::vector<FramePose> frame_poses_;
   KeyFrameHandle first_keyframe_;
+  std::optional<TrackedFrame> init_frame_;  // monocular: first frame of the two-view initialization
+  std::mt19937_64 rng_;
 
   // Mapping bookkeeping (under map_mutex_).
   std::vector<PointHandle> recent_points_;

@@ -77,15 +77,5 @@ TEST(SlamRun, KittiStereoSnippet) {
   EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.015);
 }
 
-TEST(SlamRun, MonocularIsRefusedWithAClearError) {
-  const auto dataset = OpenDataset("synth:room:duration=1,sensor=mono");
-  try {
-    (void)RunSlam(*dataset, SlamOptions{}, SlamRunOptions{});
-    FAIL() << "monocular input accepted";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("monocular"), std::string::npos) << e.what();
-  }
-}
-
 }  // namespace
 }  // namespace flatslam

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# End-to-end SLAM benchmark: runs `flatslam run` on the real KITTI stereo snippet and on
+# synthetic stereo / RGB-D scenes, as fast as frames can be read, and prints one table row each
+# (frames/s, median ms per stage, keyframes, ATE, scale, peak RSS).
+# usage: bench/slam_bench.sh [BUILD_DIR] [DATASETS_DIR]
+set -euo pipefail
+here="$(cd "$(dirname "$0")/.." && pwd)"
+build="${1:-$here/build}"
+datasets="${2:-$here/../shared/datasets}"
+app="$build/apps/flatslam"
+
+runs=(
+  "kitti06-stereo|$datasets/kitti/sequences/06|--features 2000"
+  "room-stereo-60s|synth:room|"
+  "room-rgbd-60s|synth:room:sensor=rgbd|"
+  "corridor-stereo-70s|synth:corridor|"
+  "street-stereo-60s|synth:street|"
+)
+
+printf "%-20s %7s %9s %9s %8s %6s %9s %8s %8s %8s\n" run frames frames/s extract_ms track_ms lost keyframes ATE_m ATE_% scale
+for entry in "${runs[@]}"; do
+  IFS='|' read -r name spec extra <<<"$entry"
+  out=$(mktemp -d)
+  # shellcheck disable=SC2086
+  summary=$("$app" run "$spec" $extra --quiet --out "$out")
+  frames=$(awk '/^frames/{print $2}' <<<"$summary")
+  lost=$(awk '/^frames/{print $4}' <<<"$summary")
+  kfs=$(awk '/^map/{print $2}' <<<"$summary")
+  fps=$(awk '/^throughput/{print $2}' <<<"$summary")
+  extract=$(awk '/^time/{print $4}' <<<"$summary")
+  track=$(awk '/^time/{print $9}' <<<"$summary")
+  rss=$(awk '/^peak RSS/{print $3}' <<<"$summary")
+  ate=$(awk '/^ATE/{print $2}' <<<"$summary")
+  pct=$(awk '/^ATE/{gsub(/\(/,"",$0); for(i=1;i<=NF;i++) if($i ~ /%$/) {print $i; exit}}' <<<"$summary")
+  scale=$(awk '/^ATE/{print $NF}' <<<"$summary")
+  printf "%-20s %7s %9s %9s %8s %6s %9s %8s %8s %8s  (peak RSS %s MiB)\n" "$name" "$frames" "$fps" "$extract" \
+    "$track" "$lost" "$kfs" "$ate" "$pct" "$scale" "$rss"
+  rm -rf "$out"
+done
