@@ -60,7 +60,6 @@ template <class GetPoint, class GetOctave, class GetAngle>
 int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOctave get_octave, GetAngle get_angle,
                     const Map& map, const CameraGeometry& g, float radius, const MatcherOptions& options) {
   std::unordered_set<PointHandle> taken = MatchedPoints(current);
-  const PinholeCamera& cam = g.camera;
   RotationHistogram histogram;
   std::vector<uint32_t> candidates;
   int matches = 0;
@@ -70,10 +69,9 @@ int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOcta
     const MapPoint* point = map.points().try_get(p);
     if (!point) continue;
     const Eigen::Vector3d Xc = current.T_cam_world * point->position;
-    if (Xc.z() <= 0) continue;
+    double u, v;
+    if (!g.Project(Xc, &u, &v)) continue;
     const double inv_z = 1.0 / Xc.z();
-    const double u = cam.fx * Xc.x() * inv_z + cam.cx, v = cam.fy * Xc.y() * inv_z + cam.cy;
-    if (!g.InImage(u, v)) continue;
     const int octave = get_octave(i);
     const float r = radius * g.pyramid.scale[octave];
     candidates.clear();
@@ -109,6 +107,67 @@ int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOcta
   return matches;
 }
 
+// Appends the keypoints within kStep pixels of the image segment from p to q (the epipolar
+// line of a depth range); stamp deduplicates across overlapping queries.
+void SegmentBand(Eigen::Vector2d p, Eigen::Vector2d q, const FeatureGrid& grid, const std::vector<Eigen::Vector2f>& uv,
+                 std::vector<uint32_t>* out, std::vector<uint32_t>* stamp, uint32_t stamp_value) {
+  constexpr float kStep = 12.0f;
+  const double length = (q - p).norm();
+  const int steps = std::max(1, static_cast<int>(std::ceil(length / kStep)));
+  std::vector<uint32_t> found;
+  for (int k = 0; k <= steps; ++k) {
+    const Eigen::Vector2d x = p + (q - p) * (static_cast<double>(k) / steps);
+    found.clear();
+    grid.Query(static_cast<float>(x.x()), static_cast<float>(x.y()), kStep, uv, &found);
+    for (uint32_t i : found) {
+      if ((*stamp)[i] == stamp_value) continue;
+      (*stamp)[i] = stamp_value;
+      out->push_back(i);
+    }
+  }
+}
+
+// Pixel segment in view 2 where a view-1 ray (normalized direction ray1) lands for depths in
+// [near, far], clipped to points in front of camera 2 and to the image; false when empty.
+bool EpipolarSegment(const Eigen::Vector3d& ray1, double near, double far, const Eigen::Isometry3d& T_2_1,
+                     const CameraGeometry& g, Eigen::Vector2d* p, Eigen::Vector2d* q) {
+  constexpr double kMinZ = 0.01;
+  const Eigen::Vector3d a = T_2_1 * (near * ray1), b = T_2_1 * (far * ray1);
+  Eigen::Vector3d from = a, to = b;
+  if (from.z() < kMinZ && to.z() < kMinZ) return false;
+  if (from.z() < kMinZ) from = a + (b - a) * ((kMinZ - a.z()) / (b.z() - a.z()));
+  if (to.z() < kMinZ) to = a + (b - a) * ((kMinZ - a.z()) / (b.z() - a.z()));
+  auto pixel = [&](const Eigen::Vector3d& X) {
+    return Eigen::Vector2d(g.camera.fx * X.x() / X.z() + g.camera.cx, g.camera.fy * X.y() / X.z() + g.camera.cy);
+  };
+  *p = pixel(from);
+  *q = pixel(to);
+  // Clip to the image (Liang-Barsky on the segment p + s (q - p)).
+  double s0 = 0, s1 = 1;
+  const Eigen::Vector2d d = *q - *p;
+  const double lo[2] = {0, 0}, hi[2] = {static_cast<double>(g.camera.width), static_cast<double>(g.camera.height)};
+  for (int axis = 0; axis < 2; ++axis) {
+    for (int side = 0; side < 2; ++side) {
+      const double edge = side == 0 ? lo[axis] : hi[axis];
+      // Inside this edge where num + s * rate >= 0.
+      const double num = side == 0 ? (*p)(axis) - edge : edge - (*p)(axis);
+      const double rate = side == 0 ? d(axis) : -d(axis);
+      if (rate == 0) {
+        if (num < 0) return false;
+        continue;
+      }
+      const double t = -num / rate;
+      if (rate > 0) s0 = std::max(s0, t);
+      else s1 = std::min(s1, t);
+    }
+  }
+  if (s0 > s1) return false;
+  const Eigen::Vector2d start = *p + s0 * d, end = *p + s1 * d;
+  *p = start;
+  *q = end;
+  return true;
+}
+
 }  // namespace
 
 int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map,
@@ -132,7 +191,6 @@ int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const Poin
                      const CameraGeometry& g, float radius_scale, const MatcherOptions& options,
                      std::vector<PointHandle>* seen) {
   const std::unordered_set<PointHandle> taken = MatchedPoints(current);
-  const PinholeCamera& cam = g.camera;
   const Eigen::Vector3d center = current.T_cam_world.inverse().translation();
   std::vector<uint32_t> candidates;
   int matches = 0;
@@ -141,10 +199,9 @@ int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const Poin
     const MapPoint* point = map.points().try_get(p);
     if (!point) continue;
     const Eigen::Vector3d Xc = current.T_cam_world * point->position;
-    if (Xc.z() <= 0) continue;
+    double u, v;
+    if (!g.Project(Xc, &u, &v)) continue;
     const double inv_z = 1.0 / Xc.z();
-    const double u = cam.fx * Xc.x() * inv_z + cam.cx, v = cam.fy * Xc.y() * inv_z + cam.cy;
-    if (!g.InImage(u, v)) continue;
     const Eigen::Vector3d ray = point->position - center;
     const double distance = ray.norm();
     if (distance < 0.8 * point->min_distance || distance > 1.2 * point->max_distance) continue;
@@ -189,12 +246,11 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForInitialization(const TrackedF
   std::vector<int> matched_in_2(second.size(), -1), distance_2(second.size(), 257);
   std::vector<uint32_t> candidates;
   for (uint32_t i1 = 0; i1 < first.size(); ++i1) {
-    if (first.keypoints.octave[i1] > 0) continue;  // ORB-SLAM2 initializes on the finest level only
     candidates.clear();
     second.grid.Query(first.keypoints.uv[i1].x(), first.keypoints.uv[i1].y(), window, second.keypoints.uv, &candidates);
     int best = 257, second_best = 257, best_index = -1;
     for (uint32_t i2 : candidates) {
-      if (second.keypoints.octave[i2] != 0) continue;
+      if (second.keypoints.octave[i2] != first.keypoints.octave[i1]) continue;
       const int d = Hamming(first.keypoints.descriptor[i1], second.keypoints.descriptor[i2]);
       if (distance_2[i2] <= d) continue;
       if (d < best) {
@@ -233,6 +289,7 @@ Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, con
 
 std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame& kf1, const KeyFrame& kf2,
                                                                  const Eigen::Matrix3d& F_2_1,
+                                                                 std::pair<double, double> depth_range,
                                                                  const CameraGeometry& g,
                                                                  const MatcherOptions& options) {
   // Epipole: the centre of kf1 seen from kf2; mono matches next to it have no parallax.
@@ -244,8 +301,8 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
   RotationHistogram histogram;
   FeatureGrid grid2;
   grid2.Build(kf2.uv, g.camera.width, g.camera.height);
-  std::vector<uint32_t> candidates, all2(kf2.size());
-  for (uint32_t i = 0; i < kf2.size(); ++i) all2[i] = i;
+  std::vector<uint32_t> candidates, stamp(kf2.size(), 0);
+  uint32_t stamp_value = 0;
   const Eigen::Isometry3d T_2_1 = kf2.T_cam_world * kf1.T_cam_world.inverse();
   for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
     if (!kf1.points[i1].is_null()) continue;
@@ -255,16 +312,22 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
     if (line_norm2 <= 0) continue;
     // With a depth, the match must lie near the projection of the measured point; without
     // one, anywhere on the epipolar line.
-    const std::vector<uint32_t>* pool = &all2;
-    if (stereo1 && kf1.depth[i1] > 0) {
+    const std::vector<uint32_t>* pool = &candidates;
+    candidates.clear();
+    if (!(stereo1 && kf1.depth[i1] > 0)) {
+      // Only keypoints near the epipolar segment of the plausible depth range.
+      const Eigen::Vector3d ray1((kf1.uv[i1].x() - g.camera.cx) / g.camera.fx,
+                                 (kf1.uv[i1].y() - g.camera.cy) / g.camera.fy, 1.0);
+      Eigen::Vector2d p, q;
+      if (!EpipolarSegment(ray1, depth_range.first, depth_range.second, T_2_1, g, &p, &q)) continue;
+      SegmentBand(p, q, grid2, kf2.uv, &candidates, &stamp, ++stamp_value);
+      pool = &candidates;
+    } else {
       const float z = kf1.depth[i1];
       const Eigen::Vector3d X1((kf1.uv[i1].x() - g.camera.cx) / g.camera.fx * z,
                                (kf1.uv[i1].y() - g.camera.cy) / g.camera.fy * z, z);
-      const Eigen::Vector3d X2 = T_2_1 * X1;
-      if (X2.z() <= 0) continue;
-      const double u = g.camera.fx * X2.x() / X2.z() + g.camera.cx, v = g.camera.fy * X2.y() / X2.z() + g.camera.cy;
-      if (!g.InImage(u, v)) continue;
-      candidates.clear();
+      double u, v;
+      if (!g.Project(T_2_1 * X1, &u, &v)) continue;
       // Stereo depth is uncertain far away: search a radius that grows with disparity error.
       const float radius = 10.0f * g.pyramid.scale[kf1.octave[i1]];
       grid2.Query(static_cast<float>(u), static_cast<float>(v), radius, kf2.uv, &candidates);
@@ -323,10 +386,9 @@ int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> 
                     [&](const Observation& o) { return o.keyframe == kf_handle; }))
       continue;
     const Eigen::Vector3d Xc = kf.T_cam_world * point->position;
-    if (Xc.z() <= 0) continue;
+    double u, v;
+    if (!g.Project(Xc, &u, &v)) continue;
     const double inv_z = 1.0 / Xc.z();
-    const double u = g.camera.fx * Xc.x() * inv_z + g.camera.cx, v = g.camera.fy * Xc.y() * inv_z + g.camera.cy;
-    if (!g.InImage(u, v)) continue;
     const Eigen::Vector3d ray = point->position - kf.camera_center();
     const double distance = ray.norm();
     if (distance < 0.8 * point->min_distance || distance > 1.2 * point->max_distance) continue;

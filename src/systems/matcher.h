@@ -36,6 +36,13 @@ struct CameraGeometry {
   [[nodiscard]] bool InImage(double u, double v) const {
     return u >= 0 && v >= 0 && u < camera.width && v < camera.height;
   }
+  // Pixel of a camera-frame point; false when it is behind the camera or outside the image.
+  [[nodiscard]] bool Project(const Eigen::Vector3d& Xc, double* u, double* v) const {
+    if (Xc.z() <= 0) return false;
+    *u = camera.fx * Xc.x() / Xc.z() + camera.cx;
+    *v = camera.fy * Xc.y() / Xc.z() + camera.cy;
+    return InImage(*u, *v);
+  }
 };
 
 // Matches the map points seen by `source` (a previous frame) into `current`, whose pose is set.
@@ -54,8 +61,11 @@ int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const Poin
 
 // Pairs of keypoints of kf1 and kf2 that have no map point, agree in descriptor, satisfy the
 // epipolar constraint of F_2_1 (x2^T F x1 = 0) and, stereo aside, lie away from the epipole.
+// Candidates come from near the projection of a measured depth, else from the epipolar
+// segment of depth_range (metres along the optical axis of kf1).
 std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame& kf1, const KeyFrame& kf2,
                                                                  const Eigen::Matrix3d& F_2_1,
+                                                                 std::pair<double, double> depth_range,
                                                                  const CameraGeometry& geometry,
                                                                  const MatcherOptions& options);
 

@@ -405,6 +405,7 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
 void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
   std::vector<KeyFrame> snapshot;  // [0] = the new keyframe, then its neighbours
   std::vector<KeyFrameHandle> neighbours;
+  std::pair<double, double> depth_range;
   struct Done {
     std::atomic<int>& pending;
     ~Done() { --pending; }
@@ -416,6 +417,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
       if (map_.points().contains(p)) map_.UpdatePointStats(p, map_scales_);
     map_.UpdateCovisibility(keyframe);
     CullRecentPoints(keyframe);
+    depth_range = SceneDepthRange(keyframe);
     // Copies of the keyframes to triangulate against, so matching runs without the lock.
     snapshot.push_back(map_.keyframe(keyframe));
     for (KeyFrameHandle n : map_.BestCovisible(keyframe, options_.local_keyframes)) {
@@ -423,7 +425,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
       snapshot.push_back(map_.keyframe(n));
     }
   }
-  const std::vector<NewPoint> candidates = FindNewPoints(snapshot, neighbours);
+  const std::vector<NewPoint> candidates = FindNewPoints(snapshot, neighbours, depth_range);
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(keyframe)) return;
@@ -454,7 +456,8 @@ void Slam::CullRecentPoints(KeyFrameHandle current) {
 }
 
 std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& snapshot,
-                                                const std::vector<KeyFrameHandle>& neighbours) const {
+                                                const std::vector<KeyFrameHandle>& neighbours,
+                                                std::pair<double, double> depth_range) const {
   std::vector<NewPoint> out;
   const double baseline = geometry_.bf / geometry_.camera.fx;
   const double close = CloseDepth();
@@ -467,7 +470,7 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
     // Monocular pairs need parallax, which the triangulation test below checks per point.
     if ((a.camera_center() - b.camera_center()).norm() < baseline) continue;
     const Eigen::Matrix3d F = FundamentalBetween(a, b, geometry_.camera);
-    for (const auto& [i1, i2] : MatchForTriangulation(a, b, F, geometry_, options_.matcher)) {
+    for (const auto& [i1, i2] : MatchForTriangulation(a, b, F, depth_range, geometry_, options_.matcher)) {
       const TriangulatedPoint t = TriangulatePoint(geometry_.camera, a.T_cam_world, b.T_cam_world,
                                                    a.uv[i1].cast<double>(), b.uv[i2].cast<double>(), tri);
       Eigen::Vector3d X;
@@ -502,6 +505,18 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
     }
   }
   return out;
+}
+
+std::pair<double, double> Slam::SceneDepthRange(KeyFrameHandle h) const {
+  const KeyFrame& kf = map_.keyframe(h);
+  std::vector<double> depths;
+  for (PointHandle p : kf.points)
+    if (const MapPoint* point = map_.points().try_get(p)) depths.push_back((kf.T_cam_world * point->position).z());
+  if (depths.size() < 10) return {0.05, 1e4};
+  std::sort(depths.begin(), depths.end());
+  // Well beyond the depths seen so far, both ways: new points lie in the same scene.
+  const double near = depths[depths.size() / 20], far = depths[depths.size() - 1 - depths.size() / 20];
+  return {std::max(0.01, 0.25 * near), 4.0 * far};
 }
 
 void Slam::AddNewPoints(KeyFrameHandle current, const std::vector<NewPoint>& candidates) {

@@ -113,7 +113,10 @@ class Slam {
   };
   // Matches and triangulates against copies of the neighbours (no lock needed).
   [[nodiscard]] std::vector<NewPoint> FindNewPoints(const std::vector<KeyFrame>& snapshot,
-                                                    const std::vector<KeyFrameHandle>& neighbours) const;
+                                                    const std::vector<KeyFrameHandle>& neighbours,
+                                                    std::pair<double, double> depth_range) const;
+  // Depths (metres) where new points of a keyframe may lie, from the points it already sees.
+  [[nodiscard]] std::pair<double, double> SceneDepthRange(KeyFrameHandle keyframe) const;
   void AddNewPoints(KeyFrameHandle current, const std::vector<NewPoint>& candidates);
   void Fuse(KeyFrameHandle current);
   void LocalBundleAdjustment(KeyFrameHandle current);
