@@ -23,8 +23,14 @@ template <int kResiduals>
 class BaCost final : public ceres::SizedCostFunction<kResiduals, detail::kPoseParameterSize, 3> {
  public:
   BaCost(const PinholeCamera& camera, double bf, const BundleAdjustmentObservation& obs)
-      : fx_(camera.fx), fy_(camera.fy), cx_(camera.cx), cy_(camera.cy), bf_(bf), uv_(obs.uv),
-        right_u_(obs.right_u), sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))) {}
+      : fx_(camera.fx),
+        fy_(camera.fy),
+        cx_(camera.cx),
+        cy_(camera.cy),
+        bf_(bf),
+        uv_(obs.uv),
+        right_u_(obs.right_u),
+        sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))) {}
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
     const Eigen::Map<const Eigen::Quaterniond> q(parameters[0]);
@@ -77,8 +83,7 @@ struct ObservationError {
 };
 
 std::optional<ObservationError> EvaluateObservation(const PinholeCamera& camera, double bf, const PoseBlock& pose,
-                                                    const Eigen::Vector3d& X,
-                                                    const BundleAdjustmentObservation& obs) {
+                                                    const Eigen::Vector3d& X, const BundleAdjustmentObservation& obs) {
   const Eigen::Map<const Eigen::Quaterniond> q(pose.data());
   const Eigen::Map<const Eigen::Vector3d> t(pose.data() + 4);
   const Eigen::Vector3d xc = q * X + t;
@@ -149,13 +154,11 @@ bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptio
   solver_options.linear_solver_type = dense ? ceres::DENSE_SCHUR : ceres::SPARSE_SCHUR;
   solver_options.linear_solver_ordering = ordering;
   solver_options.max_num_iterations = iterations;
-  if (getenv("BA_TOL")) { solver_options.function_tolerance = 1e-12; solver_options.parameter_tolerance=1e-12; solver_options.gradient_tolerance=1e-14; solver_options.max_num_iterations = iterations*5; }
   solver_options.num_threads = options.num_threads;
   solver_options.logging_type = ceres::SILENT;
   solver_options.minimizer_progress_to_stdout = false;
   ceres::Solver::Summary summary;
   ceres::Solve(solver_options, &problem, &summary);
-    if (getenv("CERES_DEBUG")) fprintf(stderr, "%s\n", summary.FullReport().c_str());
   *iterations_done += static_cast<int>(summary.iterations.size());
   return summary.IsSolutionUsable();
 }
@@ -167,15 +170,14 @@ bool BundleAdjustmentOptions::Check() const {
          huber_mono > 0 && huber_stereo > 0 && dense_schur_max_poses >= 0 && num_threads >= 1;
 }
 
-BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem,
-                                             const BundleAdjustmentOptions& options) {
+BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, const BundleAdjustmentOptions& options) {
   FLATSLAM_CHECK(options.Check(), "LocalBundleAdjustment: invalid BundleAdjustmentOptions");
   FLATSLAM_CHECK(problem.camera.fx > 0 && problem.camera.fy > 0, "LocalBundleAdjustment: camera has no focal length");
   const size_t num_obs = problem.observations.size();
   for (size_t i = 0; i < num_obs; ++i) {
     const BundleAdjustmentObservation& obs = problem.observations[i];
-    FLATSLAM_CHECK(obs.pose_index < problem.poses.size(), "LocalBundleAdjustment: observation ", i,
-                   " has pose_index ", obs.pose_index, " of ", problem.poses.size());
+    FLATSLAM_CHECK(obs.pose_index < problem.poses.size(), "LocalBundleAdjustment: observation ", i, " has pose_index ",
+                   obs.pose_index, " of ", problem.poses.size());
     FLATSLAM_CHECK(obs.point_index < problem.points.size(), "LocalBundleAdjustment: observation ", i,
                    " has point_index ", obs.point_index, " of ", problem.points.size());
     FLATSLAM_CHECK(obs.inv_sigma2 > 0, "LocalBundleAdjustment: observation ", i, " has inv_sigma2 <= 0");
@@ -215,12 +217,12 @@ BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem,
     }
   };
 
-  bool usable = SolvePass(problem, options, active, /*robust=*/true, options.first_pass_iterations, &poses,
-                          &points, &result.iterations);
+  bool usable = SolvePass(problem, options, active, /*robust=*/true, options.first_pass_iterations, &poses, &points,
+                          &result.iterations);
   if (usable && options.second_pass_iterations > 0) {
     classify();
-    usable = SolvePass(problem, options, active, options.robust_second_pass, options.second_pass_iterations,
-                       &poses, &points, &result.iterations);
+    usable = SolvePass(problem, options, active, options.robust_second_pass, options.second_pass_iterations, &poses,
+                       &points, &result.iterations);
   }
   classify();
 

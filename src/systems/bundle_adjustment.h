@@ -20,11 +20,11 @@ struct BundleAdjustmentPose {
 };
 
 struct BundleAdjustmentObservation {
-  uint32_t pose_index = 0;   // into BundleAdjustmentProblem::poses
-  uint32_t point_index = 0;  // into BundleAdjustmentProblem::points
+  uint32_t pose_index = 0;                       // into BundleAdjustmentProblem::poses
+  uint32_t point_index = 0;                      // into BundleAdjustmentProblem::points
   Eigen::Vector2d uv = Eigen::Vector2d::Zero();  // left-image pixel, undistorted
-  double right_u = -1;       // rectified right-image x; < 0 = mono observation
-  float inv_sigma2 = 1.0f;   // 1 / scale_factor^(2 octave)
+  double right_u = -1;                           // rectified right-image x; < 0 = mono observation
+  float inv_sigma2 = 1.0f;                       // 1 / scale_factor^(2 octave)
 };
 
 // Input and output: poses and points are overwritten with the optimized values.
@@ -39,28 +39,28 @@ struct BundleAdjustmentProblem {
 struct BundleAdjustmentOptions {
   enum class LinearSolver { kAuto, kDenseSchur, kSparseSchur };
 
-  int first_pass_iterations = 5;     // robust pass before outlier classification (ORB-SLAM2: 5)
-  int second_pass_iterations = 10;   // pass on inliers only (ORB-SLAM2: 10); 0 skips it
-  double chi2_mono = 5.991;          // outlier gate, 2 DoF at 95%
-  double chi2_stereo = 7.815;        // outlier gate, 3 DoF at 95%
-  double huber_mono = std::sqrt(5.991);    // Huber delta on the whitened residual
+  int first_pass_iterations = 5;         // robust pass before outlier classification (ORB-SLAM2: 5)
+  int second_pass_iterations = 10;       // pass on inliers only (ORB-SLAM2: 10); 0 skips it
+  double chi2_mono = 5.991;              // outlier gate, 2 DoF at 95%
+  double chi2_stereo = 7.815;            // outlier gate, 3 DoF at 95%
+  double huber_mono = std::sqrt(5.991);  // Huber delta on the whitened residual
   double huber_stereo = std::sqrt(7.815);
-  bool robust_second_pass = false;   // ORB-SLAM2 drops the robust kernel in the second pass
+  bool robust_second_pass = false;  // ORB-SLAM2 drops the robust kernel in the second pass
   LinearSolver linear_solver = LinearSolver::kAuto;
-  int dense_schur_max_poses = 40;    // kAuto: dense Schur up to this many free poses, else sparse
-  int num_threads = 1;               // Ceres threads; 1 keeps the call single-threaded
+  int dense_schur_max_poses = 40;  // kAuto: dense Schur up to this many free poses, else sparse
+  int num_threads = 1;             // Ceres threads; 1 keeps the call single-threaded
 
   [[nodiscard]] bool Check() const;
 };
 
 struct BundleAdjustmentResult {
-  bool success = false;             // false: the solver failed (problem left at its last usable state)
-  std::vector<bool> outlier;        // per observation: failed the chi2 / depth test after the last pass
+  bool success = false;       // false: the solver failed (problem left at its last usable state)
+  std::vector<bool> outlier;  // per observation: failed the chi2 / depth test after the last pass
   int num_outliers = 0;
-  double initial_rmse_px = 0;       // per-coordinate RMSE of left-image errors, all observations in front
-  double final_rmse_px = 0;         // per-coordinate RMSE of left-image errors, inliers
-  double final_mean_error_px = 0;   // mean left-image reprojection error (norm), inliers
-  int iterations = 0;               // solver iterations over both passes
+  double initial_rmse_px = 0;      // per-coordinate RMSE of left-image errors, all observations in front
+  double final_rmse_px = 0;        // per-coordinate RMSE of left-image errors, inliers
+  double final_mean_error_px = 0;  // mean left-image reprojection error (norm), inliers
+  int iterations = 0;              // solver iterations over both passes
 };
 
 // Optimizes the free poses and all observed points of `problem` in place.

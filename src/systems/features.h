@@ -18,21 +18,36 @@ namespace flatslam {
 // A 256-bit binary descriptor (steered BRIEF), bit i of the test sequence at word i/64, bit i%64.
 using Descriptor = std::array<uint64_t, 4>;
 
-// Number of differing bits (0..256).
+// Number of differing bits (0..256). std::popcount is one instruction where the build targets
+// POPCNT; on the x86-64 baseline it is a library call, so count bits in parallel instead.
 [[nodiscard]] inline int Hamming(const Descriptor& a, const Descriptor& b) {
+#if defined(__POPCNT__) || !(defined(__x86_64__) || defined(__i386__))
   return std::popcount(a[0] ^ b[0]) + std::popcount(a[1] ^ b[1]) + std::popcount(a[2] ^ b[2]) +
          std::popcount(a[3] ^ b[3]);
+#else
+  constexpr uint64_t k1 = 0x5555555555555555ull, k2 = 0x3333333333333333ull, k4 = 0x0f0f0f0f0f0f0f0full;
+  uint64_t bytes = 0;  // per-byte counts of the four words: at most 32 each, no carries
+  for (int i = 0; i < 4; ++i) {
+    uint64_t x = a[i] ^ b[i];
+    x -= (x >> 1) & k1;
+    x = (x & k2) + ((x >> 2) & k2);
+    bytes += (x + (x >> 4)) & k4;
+  }
+  // Pairs of bytes into 16-bit lanes (the total, up to 256, does not fit a byte), then add them.
+  const uint64_t halves = (bytes & 0x00ff00ff00ff00ffull) + ((bytes >> 8) & 0x00ff00ff00ff00ffull);
+  return static_cast<int>((halves * 0x0001000100010001ull) >> 48);
+#endif
 }
 
 // Keypoints of one image, struct-of-arrays: element i of every column describes keypoint i.
 struct Keypoints {
-  std::vector<Eigen::Vector2f> uv;       // pixels, level-0 coordinates of the rectified image
-  std::vector<float> angle;              // radians, direction of the intensity centroid
-  std::vector<uint8_t> octave;           // pyramid level the keypoint was detected on
-  std::vector<float> response;           // FAST score, larger is stronger
+  std::vector<Eigen::Vector2f> uv;  // pixels, level-0 coordinates of the rectified image
+  std::vector<float> angle;         // radians, direction of the intensity centroid
+  std::vector<uint8_t> octave;      // pyramid level the keypoint was detected on
+  std::vector<float> response;      // FAST score, larger is stronger
   std::vector<Descriptor> descriptor;
-  std::vector<float> right_u;            // stereo / RGB-D: x in the right image, -1 = none
-  std::vector<float> depth;              // metres, -1 = none
+  std::vector<float> right_u;  // stereo / RGB-D: x in the right image, -1 = none
+  std::vector<float> depth;    // metres, -1 = none
 
   [[nodiscard]] size_t size() const { return uv.size(); }
   [[nodiscard]] bool empty() const { return uv.empty(); }
@@ -76,8 +91,7 @@ struct ScalePyramid {
   // Throws flatslam::Error unless levels >= 1 and scale_factor > 1 (or levels == 1).
   [[nodiscard]] static ScalePyramid Make(int levels, float scale_factor) {
     FLATSLAM_CHECK(levels >= 1 && levels <= 32, "ScalePyramid: levels must be in [1, 32], got ", levels);
-    FLATSLAM_CHECK(scale_factor > 1.f || levels == 1, "ScalePyramid: scale_factor must be > 1, got ",
-                   scale_factor);
+    FLATSLAM_CHECK(scale_factor > 1.f || levels == 1, "ScalePyramid: scale_factor must be > 1, got ", scale_factor);
     ScalePyramid p;
     p.levels = levels;
     p.scale_factor = scale_factor;

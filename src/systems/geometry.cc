@@ -1,7 +1,6 @@
 #include "systems/geometry.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <functional>
 #include <limits>
@@ -9,6 +8,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/LU>
+#include <Eigen/QR>
 #include <Eigen/SVD>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/eigen.hpp>
@@ -34,8 +34,7 @@ double ParallaxDeg(const Eigen::Vector3d& X, const Eigen::Vector3d& c1, const Ei
 }
 
 // Squared pixel error of projecting camera-frame point x_cam; infinite behind the image plane.
-double ReprojectionError2(const Eigen::Matrix3d& K, const Eigen::Vector3d& x_cam,
-                          const Eigen::Vector2d& px) {
+double ReprojectionError2(const Eigen::Matrix3d& K, const Eigen::Vector3d& x_cam, const Eigen::Vector2d& px) {
   if (x_cam.z() == 0) return std::numeric_limits<double>::infinity();
   const double inv_z = 1.0 / x_cam.z();
   const double u = K(0, 0) * x_cam.x() * inv_z + K(0, 2);
@@ -59,46 +58,52 @@ Eigen::Matrix3d Normalize(const std::vector<Eigen::Vector2d>& px, std::vector<Ei
   return T;
 }
 
-// Eigenvector of the smallest eigenvalue of A^T A, reshaped row-major into 3x3.
-Eigen::Matrix3d SmallestNullVector(const Eigen::Matrix<double, 9, 9>& AtA) {
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 9, 9>> solver(AtA);
-  const Eigen::Matrix<double, 9, 1> h = solver.eigenvectors().col(0);
+using DltRows = Eigen::Matrix<double, Eigen::Dynamic, 9>;
+
+// Unit vector h minimizing |A h|, reshaped row-major into 3x3. Fewer than 9 rows (a minimal
+// set): the null space from a QR of A^T, which is exact and cheap; otherwise the eigenvector of
+// the smallest eigenvalue of A^T A (least squares over a consensus set).
+Eigen::Matrix3d SmallestNullVector(const DltRows& A) {
+  Eigen::Matrix<double, 9, 1> h;
+  if (A.rows() < 9) {
+    const Eigen::HouseholderQR<Eigen::Matrix<double, 9, Eigen::Dynamic>> qr(A.transpose());
+    h = qr.householderQ() * Eigen::Matrix<double, 9, 1>::Unit(8);
+  } else {
+    const Eigen::Matrix<double, 9, 9> AtA = A.transpose() * A;
+    h = Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 9, 9>>(AtA).eigenvectors().col(0);
+  }
   Eigen::Matrix3d M;
   M << h(0), h(1), h(2), h(3), h(4), h(5), h(6), h(7), h(8);
   return M;
 }
 
-// Homography x2 ~ H x1 from normalized points via DLT over the given indices.
-Eigen::Matrix3d FitHomography(const std::vector<Eigen::Vector2d>& x1,
-                              const std::vector<Eigen::Vector2d>& x2,
-                              const std::vector<int>& idx) {
-  Eigen::Matrix<double, 9, 9> AtA = Eigen::Matrix<double, 9, 9>::Zero();
-  Eigen::Matrix<double, 2, 9> rows;
-  for (int i : idx) {
+// Homography x2 ~ H x1 from normalized points via DLT over the given indices (4 = minimal).
+Eigen::Matrix3d FitHomography(const std::vector<Eigen::Vector2d>& x1, const std::vector<Eigen::Vector2d>& x2,
+                              const int* idx, int count) {
+  DltRows A(2 * count, 9);
+  for (int k = 0; k < count; ++k) {
+    const int i = idx[k];
     const double u1 = x1[i].x(), v1 = x1[i].y(), u2 = x2[i].x(), v2 = x2[i].y();
-    rows << 0, 0, 0, -u1, -v1, -1, v2 * u1, v2 * v1, v2,  //
-        u1, v1, 1, 0, 0, 0, -u2 * u1, -u2 * v1, -u2;
-    AtA.noalias() += rows.transpose() * rows;
+    A.row(2 * k) << 0, 0, 0, -u1, -v1, -1, v2 * u1, v2 * v1, v2;
+    A.row(2 * k + 1) << u1, v1, 1, 0, 0, 0, -u2 * u1, -u2 * v1, -u2;
   }
-  return SmallestNullVector(AtA);
+  return SmallestNullVector(A);
 }
 
-// Fundamental matrix x2^T F x1 = 0 from normalized points (8-point), rank 2 enforced.
-Eigen::Matrix3d FitFundamental(const std::vector<Eigen::Vector2d>& x1,
-                               const std::vector<Eigen::Vector2d>& x2,
-                               const std::vector<int>& idx) {
-  Eigen::Matrix<double, 9, 9> AtA = Eigen::Matrix<double, 9, 9>::Zero();
-  Eigen::Matrix<double, 1, 9> row;
-  for (int i : idx) {
+// Fundamental matrix x2^T F x1 = 0 from normalized points (8 = minimal), rank 2 enforced.
+Eigen::Matrix3d FitFundamental(const std::vector<Eigen::Vector2d>& x1, const std::vector<Eigen::Vector2d>& x2,
+                               const int* idx, int count) {
+  DltRows A(count, 9);
+  for (int k = 0; k < count; ++k) {
+    const int i = idx[k];
     const double u1 = x1[i].x(), v1 = x1[i].y(), u2 = x2[i].x(), v2 = x2[i].y();
-    row << u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, 1;
-    AtA.noalias() += row.transpose() * row;
+    A.row(k) << u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, 1;
   }
-  const Eigen::Matrix3d F = SmallestNullVector(AtA);
+  const Eigen::Matrix3d F = SmallestNullVector(A);
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Vector3d s = svd.singularValues();
-  s(2) = 0;
-  return svd.matrixU() * s.asDiagonal() * svd.matrixV().transpose();
+  Eigen::Vector3d sv = svd.singularValues();
+  sv(2) = 0;
+  return svd.matrixU() * sv.asDiagonal() * svd.matrixV().transpose();
 }
 
 struct ModelScore {
@@ -109,8 +114,7 @@ struct ModelScore {
 
 // Symmetric transfer score of H (pixels): each direction adds (gate - chi2) when under the gate.
 void ScoreHomography(const Eigen::Matrix3d& H21, const std::vector<Eigen::Vector2d>& px1,
-                     const std::vector<Eigen::Vector2d>& px2, double inv_sigma2, double gate,
-                     ModelScore* out) {
+                     const std::vector<Eigen::Vector2d>& px2, double inv_sigma2, double gate, ModelScore* out) {
   const size_t n = px1.size();
   out->score = 0;
   out->num_inliers = 0;
@@ -118,13 +122,21 @@ void ScoreHomography(const Eigen::Matrix3d& H21, const std::vector<Eigen::Vector
   const Eigen::FullPivLU<Eigen::Matrix3d> lu(H21);
   if (!lu.isInvertible()) return;
   const Eigen::Matrix3d H12 = lu.inverse();
+  const Eigen::Matrix3d& H = H21;
   for (size_t i = 0; i < n; ++i) {
-    const Eigen::Vector3d p2 = H21 * px1[i].homogeneous();
-    const Eigen::Vector3d p1 = H12 * px2[i].homogeneous();
-    if (p2.z() == 0 || p1.z() == 0) continue;
-    const double chi2_in2 = (p2.hnormalized() - px2[i]).squaredNorm() * inv_sigma2;
-    const double chi2_in1 = (p1.hnormalized() - px1[i]).squaredNorm() * inv_sigma2;
-    if (!(chi2_in2 <= gate) || !(chi2_in1 <= gate)) continue;
+    const double u1 = px1[i].x(), v1 = px1[i].y(), u2 = px2[i].x(), v2 = px2[i].y();
+    const double w2 = H(2, 0) * u1 + H(2, 1) * v1 + H(2, 2);
+    if (w2 == 0) continue;
+    const double du2 = (H(0, 0) * u1 + H(0, 1) * v1 + H(0, 2)) / w2 - u2;
+    const double dv2 = (H(1, 0) * u1 + H(1, 1) * v1 + H(1, 2)) / w2 - v2;
+    const double chi2_in2 = (du2 * du2 + dv2 * dv2) * inv_sigma2;
+    if (!(chi2_in2 <= gate)) continue;
+    const double w1 = H12(2, 0) * u2 + H12(2, 1) * v2 + H12(2, 2);
+    if (w1 == 0) continue;
+    const double du1 = (H12(0, 0) * u2 + H12(0, 1) * v2 + H12(0, 2)) / w1 - u1;
+    const double dv1 = (H12(1, 0) * u2 + H12(1, 1) * v2 + H12(1, 2)) / w1 - v1;
+    const double chi2_in1 = (du1 * du1 + dv1 * dv1) * inv_sigma2;
+    if (!(chi2_in1 <= gate)) continue;
     out->score += (gate - chi2_in2) + (gate - chi2_in1);
     out->inlier[i] = true;
     ++out->num_inliers;
@@ -134,8 +146,8 @@ void ScoreHomography(const Eigen::Matrix3d& H21, const std::vector<Eigen::Vector
 // Symmetric epipolar score of F (pixels): distance to the epipolar line in both images,
 // gated at 1 DoF and scored against the 2 DoF ceiling so H and F scores are comparable.
 void ScoreFundamental(const Eigen::Matrix3d& F21, const std::vector<Eigen::Vector2d>& px1,
-                      const std::vector<Eigen::Vector2d>& px2, double inv_sigma2, double gate,
-                      double score_ceiling, ModelScore* out) {
+                      const std::vector<Eigen::Vector2d>& px2, double inv_sigma2, double gate, double score_ceiling,
+                      ModelScore* out) {
   const size_t n = px1.size();
   out->score = 0;
   out->num_inliers = 0;
@@ -173,8 +185,8 @@ struct Motion {
 
 // Outcome of triangulating the model inliers under one candidate motion.
 struct MotionCheck {
-  int good = 0;                       // in front (where measurable) and reprojecting well
-  double parallax_deg = 0;            // scene parallax at the configured rank
+  int good = 0;             // in front (where measurable) and reprojecting well
+  double parallax_deg = 0;  // scene parallax at the configured rank
   std::vector<Eigen::Vector3d> points;
   std::vector<bool> triangulated;
 };
@@ -259,6 +271,9 @@ std::vector<Motion> MotionsFromHomography(const Eigen::Matrix3d& H21, const Eige
   return motions;
 }
 
+// Transfer and epipolar errors difference two noisy keypoints: their variance is 2 sigma^2.
+double ModelInvSigma2(const TwoViewOptions& options) { return 1.0 / (2.0 * options.sigma_px * options.sigma_px); }
+
 // Picks k distinct indices of [0, n) with a partial Fisher-Yates shuffle of *pool.
 void SampleIndices(int k, std::vector<int>* pool, std::mt19937_64& rng, std::vector<int>* out) {
   const int n = static_cast<int>(pool->size());
@@ -280,21 +295,31 @@ struct Reconstruction {
   double parallax_deg = 0;
 };
 
-// Refines a motion by two-view bundle adjustment with its triangulated points (view 1 fixed;
-// the scale gauge is left to the median-depth normalization). false when the solver fails.
+// Refines a motion by two-view bundle adjustment over every correspondence in `use` that the
+// current motion places in front of both cameras (the robust loss and chi2 test, not a pixel
+// gate, sort them). View 1 is fixed; the scale gauge is left to the median-depth normalization.
+// false when the solver fails.
 bool RefineTwoView(const std::vector<Eigen::Vector2d>& px1, const std::vector<Eigen::Vector2d>& px2,
-                   const PinholeCamera& camera, const TwoViewOptions& options, Reconstruction* rec) {
+                   const std::vector<bool>& use, const PinholeCamera& camera, const TwoViewOptions& options,
+                   Motion* motion) {
   BundleAdjustmentProblem ba;
   ba.camera = camera;
   Eigen::Isometry3d T_2_1 = Eigen::Isometry3d::Identity();
-  T_2_1.linear() = rec->motion.R;
-  T_2_1.translation() = rec->motion.t;
+  T_2_1.linear() = motion->R;
+  T_2_1.translation() = motion->t;
   ba.poses = {{Eigen::Isometry3d::Identity(), true}, {T_2_1, false}};
+  Matrix34d P1 = Matrix34d::Zero();
+  P1.leftCols<3>().setIdentity();
+  const Matrix34d P2 = T_2_1.matrix().topRows<3>();
   const float inv_sigma2 = static_cast<float>(1.0 / (options.sigma_px * options.sigma_px));
-  for (size_t i = 0; i < rec->triangulated.size(); ++i) {
-    if (!rec->triangulated[i]) continue;
+  for (size_t i = 0; i < use.size(); ++i) {
+    if (!use[i]) continue;
+    const Eigen::Vector2d x1((px1[i].x() - camera.cx) / camera.fx, (px1[i].y() - camera.cy) / camera.fy);
+    const Eigen::Vector2d x2((px2[i].x() - camera.cx) / camera.fx, (px2[i].y() - camera.cy) / camera.fy);
+    const std::optional<Eigen::Vector3d> X = TriangulateDlt(P1, P2, x1, x2);
+    if (!X || X->z() <= 0 || (T_2_1 * *X).z() <= 0) continue;
     const auto point = static_cast<uint32_t>(ba.points.size());
-    ba.points.push_back(rec->points[i]);
+    ba.points.push_back(*X);
     BundleAdjustmentObservation obs;
     obs.point_index = point;
     obs.inv_sigma2 = inv_sigma2;
@@ -311,9 +336,9 @@ bool RefineTwoView(const std::vector<Eigen::Vector2d>& px1, const std::vector<Ei
   ba_options.second_pass_iterations = options.refine_iterations;
   const BundleAdjustmentResult result = LocalBundleAdjustment(ba, ba_options);
   if (!result.success || !ba.poses[1].T_cam_world.matrix().allFinite()) return false;
-  rec->motion.R = ba.poses[1].T_cam_world.linear();
-  rec->motion.t = ba.poses[1].T_cam_world.translation();
-  return rec->motion.t.norm() > 0;
+  motion->R = ba.poses[1].T_cam_world.linear();
+  motion->t = ba.poses[1].T_cam_world.translation();
+  return motion->t.norm() > 0;
 }
 
 // Picks the candidate motion with the most good points (nullopt without a clear winner),
@@ -337,10 +362,6 @@ std::optional<Reconstruction> Reconstruct(const std::vector<Motion>& motions, co
       second_good = std::max(second_good, good);
     }
   }
-  if (getenv("GEO_DEBUG")) {
-    fprintf(stderr, " model inliers %d\n", model.num_inliers);
-    for (size_t k = 0; k < checks.size(); ++k) fprintf(stderr, "  cand %zu good %d parallax %.2f t %.3f %.3f %.3f\n", k, checks[k].good, checks[k].parallax_deg, motions[k].t.x(), motions[k].t.y(), motions[k].t.z());
-  }
   if (best_good < std::max(options.min_triangulated, 1)) return std::nullopt;
   if (second_good >= options.clear_winner_ratio * best_good) return std::nullopt;
   if (checks[best].parallax_deg < options.min_parallax_deg) return std::nullopt;
@@ -350,25 +371,27 @@ std::optional<Reconstruction> Reconstruct(const std::vector<Motion>& motions, co
   MotionCheck* final_check = &checks[best];
   MotionCheck recheck;
   if (options.refine_with_bundle_adjustment) {
-    rec.points = checks[best].points;
-    rec.triangulated = checks[best].triangulated;
-    if (RefineTwoView(px1, px2, camera, options, &rec)) {
+    const Eigen::Matrix3d K_inv = camera.K().inverse();
+    std::vector<bool> use = model.inlier;
+    int previous_inliers = -1;
+    for (int round = 0; round < options.refine_rounds; ++round) {
+      if (!RefineTwoView(px1, px2, use, camera, options, &rec.motion)) break;
       // The refined motion decides inliers, support and parallax; the linear model only seeded it.
-      const Eigen::Matrix3d K_inv = camera.K().inverse();
       Eigen::Matrix3d t_skew;
       t_skew << 0, -rec.motion.t.z(), rec.motion.t.y(), rec.motion.t.z(), 0, -rec.motion.t.x(), -rec.motion.t.y(),
           rec.motion.t.x(), 0;
       const Eigen::Matrix3d F21 = K_inv.transpose() * t_skew * rec.motion.R * K_inv;
       ModelScore refined;
-      ScoreFundamental(F21, px1, px2, 1.0 / (2.0 * options.sigma_px * options.sigma_px), options.chi2_one_dof,
-                       options.chi2_two_dof, &refined);
+      ScoreFundamental(F21, px1, px2, ModelInvSigma2(options), options.chi2_one_dof, options.chi2_two_dof, &refined);
       recheck = CheckMotion(rec.motion, px1, px2, refined.inlier, camera, options);
-      rec.inliers = std::max(rec.inliers, refined.num_inliers);
       final_check = &recheck;
+      rec.inliers = std::max(model.num_inliers, refined.num_inliers);
+      if (refined.num_inliers <= previous_inliers) break;  // the consensus stopped growing
+      previous_inliers = refined.num_inliers;
+      use = std::move(refined.inlier);
     }
   }
   const double min_good = std::max<double>(options.min_good_fraction * rec.inliers, options.min_triangulated);
-  if (getenv("GEO_DEBUG")) fprintf(stderr, "  final good %d parallax %.2f t %.3f %.3f %.3f\n", final_check->good, final_check->parallax_deg, rec.motion.t.x(), rec.motion.t.y(), rec.motion.t.z());
   if (final_check->good < min_good) return std::nullopt;
   if (final_check->parallax_deg < options.min_parallax_deg) return std::nullopt;
   rec.points = std::move(final_check->points);
@@ -380,8 +403,9 @@ std::optional<Reconstruction> Reconstruct(const std::vector<Motion>& motions, co
 
 }  // namespace
 
-std::optional<Eigen::Vector3d> TriangulateDlt(const Matrix34d& P1, const Matrix34d& P2,
-                                              const Eigen::Vector2d& x1, const Eigen::Vector2d& x2) {
+std::optional<Eigen::Vector3d> TriangulateDlt(const Matrix34d& P1, const Matrix34d& P2, const Eigen::Vector2d& x1,
+                                              const Eigen::Vector2d& x2) {
+  // Rows of A [X; 1] = 0, each scaled to unit length; solved for X by column-pivoting QR.
   Eigen::Matrix4d A;
   A.row(0) = x1.x() * P1.row(2) - P1.row(0);
   A.row(1) = x1.y() * P1.row(2) - P1.row(1);
@@ -391,15 +415,16 @@ std::optional<Eigen::Vector3d> TriangulateDlt(const Matrix34d& P1, const Matrix3
     const double norm = A.row(r).norm();
     if (norm > 0) A.row(r) /= norm;
   }
-  Eigen::JacobiSVD<Eigen::Matrix4d> svd(A, Eigen::ComputeFullV);
-  const Eigen::Vector4d X = svd.matrixV().col(3);
-  if (!X.allFinite() || std::abs(X(3)) <= 1e-12 * X.head<3>().norm() || X(3) == 0) return std::nullopt;
-  return Eigen::Vector3d(X.head<3>() / X(3));
+  Eigen::ColPivHouseholderQR<Eigen::Matrix<double, 4, 3>> qr(A.leftCols<3>());
+  qr.setThreshold(1e-10);
+  if (qr.rank() < 3) return std::nullopt;  // rays parallel: the point is at infinity
+  const Eigen::Vector3d X = qr.solve(-A.col(3));
+  if (!X.allFinite()) return std::nullopt;
+  return X;
 }
 
 bool TriangulationOptions::Check() const {
-  return max_reprojection_error_px > 0 && min_parallax_deg >= 0 && min_parallax_deg < 180 &&
-         std::isfinite(min_depth);
+  return max_reprojection_error_px > 0 && min_parallax_deg >= 0 && min_parallax_deg < 180 && std::isfinite(min_depth);
 }
 
 TriangulatedPoint TriangulatePoint(const PinholeCamera& camera, const Eigen::Isometry3d& T_cam1_world,
@@ -439,23 +464,23 @@ TriangulatedPoint TriangulatePoint(const PinholeCamera& camera, const Eigen::Iso
 }
 
 bool TwoViewOptions::Check() const {
-  return ransac_iterations > 0 && local_optimization_passes >= 0 && sigma_px > 0 && chi2_one_dof > 0 && chi2_two_dof > 0 &&
-         homography_ratio > 0 && homography_ratio < 1 && max_reprojection_error_px > 0 &&
-         min_point_parallax_deg >= 0 && min_parallax_deg >= 0 && parallax_rank >= 0 &&
-         min_triangulated >= 0 && min_good_fraction >= 0 && min_good_fraction <= 1 &&
-         clear_winner_ratio > 0 && clear_winner_ratio <= 1 && homography_fallback_ratio >= 0 &&
-         homography_fallback_ratio <= 1 && refine_iterations >= 1;
+  return ransac_iterations > 0 && local_optimization_passes >= 0 && refine_rounds >= 1 && sigma_px > 0 &&
+         chi2_one_dof > 0 && chi2_two_dof > 0 && homography_ratio > 0 && homography_ratio < 1 &&
+         max_reprojection_error_px > 0 && min_point_parallax_deg >= 0 && min_parallax_deg >= 0 && parallax_rank >= 0 &&
+         min_triangulated >= 0 && min_good_fraction >= 0 && min_good_fraction <= 1 && clear_winner_ratio > 0 &&
+         clear_winner_ratio <= 1 && homography_fallback_ratio >= 0 && homography_fallback_ratio <= 1 &&
+         refine_iterations >= 1;
 }
 
 std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d>& px1,
-                                               const std::vector<Eigen::Vector2d>& px2,
-                                               const PinholeCamera& camera, const TwoViewOptions& options,
-                                               std::mt19937_64& rng) {
-  FLATSLAM_CHECK(px1.size() == px2.size(), "InitializeTwoView: ", px1.size(), " points in view 1 but ",
-                 px2.size(), " in view 2");
+                                               const std::vector<Eigen::Vector2d>& px2, const PinholeCamera& camera,
+                                               const TwoViewOptions& options, std::mt19937_64& rng) {
+  FLATSLAM_CHECK(px1.size() == px2.size(), "InitializeTwoView: ", px1.size(), " points in view 1 but ", px2.size(),
+                 " in view 2");
   FLATSLAM_CHECK(options.Check(), "InitializeTwoView: invalid TwoViewOptions");
   FLATSLAM_CHECK(camera.fx > 0 && camera.fy > 0, "InitializeTwoView: camera has no focal length");
   constexpr int kMinimalSet = 8;
+  constexpr int kMinimalHomography = 4;
   const int n = static_cast<int>(px1.size());
   if (n < kMinimalSet) return std::nullopt;
 
@@ -463,8 +488,7 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   const Eigen::Matrix3d T1 = Normalize(px1, &x1);
   const Eigen::Matrix3d T2 = Normalize(px2, &x2);
   const Eigen::Matrix3d T2_inv = T2.inverse();
-  // Transfer and epipolar errors difference two noisy keypoints: variance 2 sigma^2.
-  const double inv_sigma2 = 1.0 / (2.0 * options.sigma_px * options.sigma_px);
+  const double inv_sigma2 = ModelInvSigma2(options);
 
   auto score_h = [&](const Eigen::Matrix3d& H, ModelScore* out) {
     ScoreHomography(H, px1, px2, inv_sigma2, options.chi2_two_dof, out);
@@ -472,15 +496,25 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   auto score_f = [&](const Eigen::Matrix3d& F, ModelScore* out) {
     ScoreFundamental(F, px1, px2, inv_sigma2, options.chi2_one_dof, options.chi2_two_dof, out);
   };
-  auto fit_h = [&](const std::vector<int>& idx) -> Eigen::Matrix3d { return T2_inv * FitHomography(x1, x2, idx) * T1; };
-  auto fit_f = [&](const std::vector<int>& idx) -> Eigen::Matrix3d {
-    return T2.transpose() * FitFundamental(x1, x2, idx) * T1;
+  auto fit_h = [&](const int* idx, int count) -> Eigen::Matrix3d {
+    return T2_inv * FitHomography(x1, x2, idx, count) * T1;
+  };
+  // The camera is calibrated: each 8-point F is projected onto the essential manifold (singular
+  // values 1, 1, 0 of K^T F K), so hypotheses cannot absorb noise into non-rigid motion.
+  const Eigen::Matrix3d K = camera.K();
+  const Eigen::Matrix3d K_inv = K.inverse();
+  auto fit_f = [&](const int* idx, int count) -> Eigen::Matrix3d {
+    const Eigen::Matrix3d F = T2.transpose() * FitFundamental(x1, x2, idx, count) * T1;
+    Eigen::JacobiSVD<Eigen::Matrix3d> svd(K.transpose() * F * K, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    const Eigen::Matrix3d E = svd.matrixU() * Eigen::Vector3d(1, 1, 0).asDiagonal() * svd.matrixV().transpose();
+    return K_inv.transpose() * E * K_inv;
   };
   // Local optimization (LO-RANSAC): re-fit on the consensus set while the score improves.
   ModelScore trial, refit;
   auto local_optimize = [&](auto fit, auto score, Eigen::Matrix3d* model, ModelScore* best) {
     for (int pass = 0; pass < options.local_optimization_passes && best->num_inliers >= kMinimalSet; ++pass) {
-      const Eigen::Matrix3d M = fit(InlierIndices(best->inlier));
+      const std::vector<int> inliers = InlierIndices(best->inlier);
+      const Eigen::Matrix3d M = fit(inliers.data(), static_cast<int>(inliers.size()));
       score(M, &refit);
       if (!(refit.score > best->score)) break;
       std::swap(*best, refit);
@@ -488,21 +522,21 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
     }
   };
 
-  // Both hypotheses are scored on the same minimal sets (8 points fit H by least squares).
+  // Both hypotheses come from the same minimal sets: F from all 8 points, H from the first 4.
   ModelScore best_h, best_f;
   Eigen::Matrix3d H21 = Eigen::Matrix3d::Identity(), F21 = Eigen::Matrix3d::Zero();
   std::vector<int> pool(n), sample;
   std::iota(pool.begin(), pool.end(), 0);
   for (int it = 0; it < options.ransac_iterations; ++it) {
     SampleIndices(kMinimalSet, &pool, rng, &sample);
-    Eigen::Matrix3d H = fit_h(sample);
+    Eigen::Matrix3d H = fit_h(sample.data(), kMinimalHomography);
     score_h(H, &trial);
     if (trial.score > best_h.score) {
       std::swap(best_h, trial);
       H21 = H;
       local_optimize(fit_h, score_h, &H21, &best_h);
     }
-    Eigen::Matrix3d F = fit_f(sample);
+    Eigen::Matrix3d F = fit_f(sample.data(), kMinimalSet);
     score_f(F, &trial);
     if (trial.score > best_f.score) {
       std::swap(best_f, trial);
@@ -514,12 +548,10 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   if (!(total > 0)) return std::nullopt;
   const double ratio = best_h.score / total;
   const bool prefer_h = ratio > options.homography_ratio;
-  const Eigen::Matrix3d K = camera.K();
   auto reconstruct = [&](bool use_h) {
     return use_h ? Reconstruct(MotionsFromHomography(H21, K), best_h, px1, px2, camera, options)
                  : Reconstruct(MotionsFromEssential(K.transpose() * F21 * K), best_f, px1, px2, camera, options);
   };
-  if (getenv("GEO_DEBUG")) fprintf(stderr, "RH %.3f H inl %d F inl %d\n", ratio, best_h.num_inliers, best_f.num_inliers);
   // Between the fallback ratio and the selection threshold the scores alone do not separate a
   // noisy plane (where F is degenerate) from a 3D scene: reconstruct both, keep the better supported.
   bool used_h = prefer_h;

@@ -1,6 +1,7 @@
 #include "systems/orb_extractor.h"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <numeric>
@@ -9,6 +10,9 @@
 #include <opencv2/imgproc.hpp>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 
 #include "core/error.h"
 
@@ -24,10 +28,15 @@ constexpr int kDescriptorBits = 256;
 // A FAST corner on one level, level coordinates.
 struct Candidate {
   int16_t x, y;
-  float response;
+  uint16_t score;  // FAST score
+  uint16_t unused = 0;
+  // Orders by score, then earlier position: larger key = preferred (a branch-free comparison).
+  [[nodiscard]] uint64_t key() const {
+    return (uint64_t{score} << 32) | (uint64_t{static_cast<uint16_t>(~y)} << 16) | static_cast<uint16_t>(~x);
+  }
 };
 
-// A quadtree cell: region [x0,x1) x [y0,y1) and its candidates idx[begin, end).
+// A quadtree cell: region [x0,x1) x [y0,y1) and its candidates [begin, end) of the level array.
 struct Node {
   float x0, y0, x1, y1;
   uint32_t begin, end;
@@ -66,17 +75,22 @@ std::vector<int> Apportion(int total, const std::vector<double>& weights) {
   return shares;
 }
 
-// ---- FAST scores -------------------------------------------------------------------------
-// A pixel's score is the largest, over the 16 arcs of 9 contiguous pixels of the radius-3
+// ---- Pixel kernels ------------------------------------------------------------------------
+// A pixel's FAST score is the largest, over the 16 arcs of 9 contiguous pixels of the radius-3
 // circle, of the smallest difference to the centre along the arc, on the brighter or the darker
 // side. So the pixel is a FAST-9 corner at threshold t (all 9 brighter than centre + t or all
 // darker than centre - t) exactly when score > t: one pass serves every threshold.
+//
+// Kernels exist for the x86-64 baseline (SSE2) and for AVX2, picked at run time: FAST scores and
+// suppression are written once with GCC/Clang vector extensions (32 pixels per step: two SSE2
+// registers or one AVX2 register) and compiled twice; blur, orientation and BRIEF have AVX2
+// intrinsics versions. All give identical results (the same integer and float operations), as
+// OrbExtractor.VectorAndBaselineKernelsAgree checks.
 
 // The radius-3 Bresenham circle, clockwise from the top.
-constexpr int kCircle[16][2] = {{0, -3}, {1, -3}, {2, -2}, {3, -1}, {3, 0},  {3, 1},  {2, 2},   {1, 3},
+constexpr int kCircle[16][2] = {{0, -3}, {1, -3}, {2, -2}, {3, -1}, {3, 0},  {3, 1},   {2, 2},   {1, 3},
                                 {0, 3},  {-1, 3}, {-2, 2}, {-3, 1}, {-3, 0}, {-3, -1}, {-2, -2}, {-1, -3}};
 
-// 32 pixels per vector (GCC/Clang vector extension: two SSE2 registers, or one AVX2 register).
 using Bytes32 = uint8_t __attribute__((vector_size(32)));
 
 [[gnu::always_inline]] inline Bytes32 Load32(const uint8_t* p) {
@@ -86,18 +100,43 @@ using Bytes32 = uint8_t __attribute__((vector_size(32)));
 }
 [[gnu::always_inline]] inline Bytes32 Min32(Bytes32 a, Bytes32 b) { return a < b ? a : b; }
 [[gnu::always_inline]] inline Bytes32 Max32(Bytes32 a, Bytes32 b) { return a > b ? a : b; }
+// Lanes of a > b (unsigned) as 0xff / 0, from min and equality: cheap without unsigned compares.
+[[gnu::always_inline]] inline Bytes32 Greater32(Bytes32 a, Bytes32 b) {
+  return reinterpret_cast<Bytes32>(Min32(a, b) != a);
+}
+[[gnu::always_inline]] inline bool Any32(Bytes32 v) {
+  uint64_t w[4];
+  std::memcpy(w, &v, sizeof(w));
+  return (w[0] | w[1] | w[2] | w[3]) != 0;
+}
+// Bit i set when byte i of a 0xff / 0 mask is set.
+[[gnu::always_inline]] inline uint32_t MoveMask32(Bytes32 v) {
+  uint64_t w[4];
+  std::memcpy(w, &v, sizeof(w));
+  uint32_t bits = 0;
+  for (int i = 0; i < 4; ++i) {
+    // Gathers the top bit of each byte into the top byte (no carries: one bit per byte).
+    bits |= static_cast<uint32_t>(((w[i] & 0x8080808080808080ull) * 0x0002040810204081ull) >> 56) << (8 * i);
+  }
+  return bits;
+}
 
-// max over k of min(d[k], ..., d[k+8]) (indices mod 16), by doubling windows: 2, 4, 8, then 9.
+// max over k of min(d[k], ..., d[k+8]) (indices mod 16). For even k, M = min(d[k+1..k+8]) serves
+// the arcs starting at k and k+1: max(min(d[k], M), min(M, d[k+9])) = min(M, max(d[k], d[k+9])).
+// M comes from minima of pairs and quadruples at odd starts: 48 vector operations in all.
 [[gnu::always_inline]] inline Bytes32 BestArc(const Bytes32 (&d)[16]) {
   Bytes32 m2[16], m4[16];
-  for (int k = 0; k < 16; ++k) m2[k] = Min32(d[k], d[(k + 1) & 15]);
-  for (int k = 0; k < 16; ++k) m4[k] = Min32(m2[k], m2[(k + 2) & 15]);
+  for (int j = 1; j < 16; j += 2) m2[j] = Min32(d[j], d[(j + 1) & 15]);
+  for (int j = 1; j < 16; j += 2) m4[j] = Min32(m2[j], m2[(j + 2) & 15]);
   Bytes32 best = {};
-  for (int k = 0; k < 16; ++k) best = Max32(best, Min32(Min32(m4[k], m4[(k + 4) & 15]), d[(k + 8) & 15]));
+  for (int k = 0; k < 16; k += 2) {
+    const Bytes32 m8 = Min32(m4[k + 1], m4[(k + 5) & 15]);
+    best = Max32(best, Min32(m8, Max32(d[k], d[(k + 9) & 15])));
+  }
   return best;
 }
 
-// Scalar reference of the same score (narrow images and tests).
+// Scalar version of the same score (narrow images).
 uint8_t FastScoreAt(const uint8_t* p, const ptrdiff_t* offsets) {
   const int c = p[0];
   int best = 0;
@@ -114,12 +153,16 @@ uint8_t FastScoreAt(const uint8_t* p, const ptrdiff_t* offsets) {
 }
 
 // Scores of the pixels [x0, x1) x [y0, y1) of img (all at least 3 px inside) into out, whose
-// row stride is out_step and whose first element is pixel (x0, y0).
-[[gnu::always_inline]] inline void FastScoresBody(const cv::Mat& img, int x0, int y0, int x1, int y1, uint8_t* out,
-                                                  size_t out_step) {
+// row stride is out_step and whose first element is pixel (x0, y0). Scores <= floor may be
+// written as 0: a block of 32 is skipped when no pixel can exceed floor, i.e. when no two
+// neighbouring compass points (circle 0, 4, 8, 12) both differ by more than floor on one side,
+// which any 9-arc above floor would need.
+[[gnu::always_inline]] inline void FastScoresBody(const cv::Mat& img, int x0, int y0, int x1, int y1, int floor,
+                                                  uint8_t* out, size_t out_step) {
   const ptrdiff_t step = static_cast<ptrdiff_t>(img.step1());
   ptrdiff_t offsets[16];
   for (int k = 0; k < 16; ++k) offsets[k] = kCircle[k][1] * step + kCircle[k][0];
+  const Bytes32 floor32 = Bytes32{} + static_cast<uint8_t>(floor);
   const int count = x1 - x0;
   for (int y = y0; y < y1; ++y) {
     const uint8_t* row = img.ptr<uint8_t>(y) + x0;
@@ -132,6 +175,23 @@ uint8_t FastScoreAt(const uint8_t* p, const ptrdiff_t* offsets) {
       if (x + 32 > count) x = count - 32;  // last block overlaps the previous one
       const uint8_t* p = row + x;
       const Bytes32 c = Load32(p);
+      if (floor > 0) {
+        Bytes32 bright[4], dark[4];
+        for (int q = 0; q < 4; ++q) {
+          const Bytes32 v = Load32(p + offsets[4 * q]);
+          const Bytes32 lo = Min32(v, c);
+          bright[q] = Greater32(v - lo, floor32);
+          dark[q] = Greater32(c - lo, floor32);
+        }
+        const Bytes32 possible = (bright[0] & bright[1]) | (bright[1] & bright[2]) | (bright[2] & bright[3]) |
+                                 (bright[3] & bright[0]) | (dark[0] & dark[1]) | (dark[1] & dark[2]) |
+                                 (dark[2] & dark[3]) | (dark[3] & dark[0]);
+        if (!Any32(possible)) {
+          std::memset(dst + x, 0, 32);
+          if (x + 32 >= count) break;
+          continue;
+        }
+      }
       Bytes32 d[16];
       for (int k = 0; k < 16; ++k) {
         const Bytes32 v = Load32(p + offsets[k]);
@@ -149,77 +209,182 @@ uint8_t FastScoreAt(const uint8_t* p, const ptrdiff_t* offsets) {
   }
 }
 
-// Separable blur with integer taps summing to 256 and reflect-101 borders; loops over columns
-// vectorise. row is scratch of cols + taps - 1 bytes, acc of cols values.
-[[gnu::always_inline]] inline void BlurBody(const cv::Mat& src, const std::vector<uint16_t>& taps, cv::Mat* dst,
-                                            std::vector<uint8_t>* row, std::vector<uint16_t>* acc) {
+using Bytes8 = uint8_t __attribute__((vector_size(8)));
+using Words8 = uint16_t __attribute__((vector_size(16)));
+
+// dst[x] = (128 + sum_k taps[k] * src[k][x]) / 256 for x in [0, count): one output row of a
+// separable pass, 8 pixels per step in 16-bit lanes (one SSE2 register; the plain loop is not
+// vectorised by the compiler).
+void BlurLine(const uint8_t* const* src, const uint16_t* taps, int size, int count, uint8_t* dst) {
+  if (count < 8) {
+    for (int x = 0; x < count; ++x) {
+      int acc = 128;
+      for (int k = 0; k < size; ++k) acc += taps[k] * src[k][x];
+      dst[x] = static_cast<uint8_t>(acc >> 8);
+    }
+    return;
+  }
+  for (int x = 0;; x += 8) {
+    if (x + 8 > count) x = count - 8;  // last block overlaps the previous one
+    Words8 acc = Words8{} + 128;
+    for (int k = 0; k < size; ++k) {
+      Bytes8 v;
+      std::memcpy(&v, src[k] + x, sizeof(v));
+      acc += taps[k] * __builtin_convertvector(v, Words8);
+    }
+    const Bytes8 out = __builtin_convertvector(acc >> 8, Bytes8);
+    std::memcpy(dst + x, &out, sizeof(out));
+    if (x + 8 >= count) break;
+  }
+}
+
+using BlurLineFn = void (*)(const uint8_t* const*, const uint16_t*, int, int, uint8_t*);
+
+// Separable blur with integer taps summing to 256 (so sums fit 16 bits) and reflect-101
+// borders. row is scratch for one padded intermediate row.
+void BlurRows(const cv::Mat& src, const std::vector<uint16_t>& taps, BlurLineFn line, cv::Mat* dst,
+              std::vector<uint8_t>* row) {
   const int cols = src.cols, rows = src.rows, size = static_cast<int>(taps.size()), r = size / 2;
   dst->create(rows, cols, CV_8UC1);
   row->resize(cols + 2 * r);
-  acc->resize(cols);
-  uint16_t* a = acc->data();
   uint8_t* padded = row->data();
   const auto reflect = [](int i, int n) {
     while (i < 0 || i >= n) i = i < 0 ? -i : 2 * (n - 1) - i;
     return i;
   };
+  const uint8_t* lines[32];
   for (int y = 0; y < rows; ++y) {
-    // Vertical pass into the middle of the padded row.
-    std::fill(a, a + cols, uint16_t{128});
-    for (int k = 0; k < size; ++k) {
-      const uint8_t* s = src.ptr<uint8_t>(reflect(y + k - r, rows));
-      const uint16_t w = taps[k];
-      for (int x = 0; x < cols; ++x) a[x] = static_cast<uint16_t>(a[x] + w * s[x]);
-    }
-    for (int x = 0; x < cols; ++x) padded[x + r] = static_cast<uint8_t>(a[x] >> 8);
+    for (int k = 0; k < size; ++k) lines[k] = src.ptr<uint8_t>(reflect(y + k - r, rows));
+    line(lines, taps.data(), size, cols, padded + r);
     for (int j = 1; j <= r; ++j) {
       padded[r - j] = padded[r + reflect(j, cols)];
       padded[r + cols - 1 + j] = padded[r + reflect(cols - 1 - j, cols)];
     }
-    // Horizontal pass.
-    std::fill(a, a + cols, uint16_t{128});
-    for (int k = 0; k < size; ++k) {
-      const uint8_t* s = padded + k;
-      const uint16_t w = taps[k];
-      for (int x = 0; x < cols; ++x) a[x] = static_cast<uint16_t>(a[x] + w * s[x]);
-    }
-    uint8_t* d = dst->ptr<uint8_t>(y);
-    for (int x = 0; x < cols; ++x) d[x] = static_cast<uint8_t>(a[x] >> 8);
+    for (int k = 0; k < size; ++k) lines[k] = padded + k;
+    line(lines, taps.data(), size, cols, dst->ptr<uint8_t>(y));
   }
 }
 
-// Runtime dispatch: the same bodies compiled for AVX2 where the CPU has it (identical results).
+// Appends the local maxima above `threshold` among score rows [y0, y1) x columns [x0, x1) (a
+// one-pixel ring of scores around them exists; the row stride is `stride`, at least 34).
+// Earlier neighbours in raster order must be strictly weaker, later ones not stronger, so a
+// plateau keeps its first pixel. Candidates get (x + x_offset, y + y_offset), raster order.
+[[gnu::always_inline]] inline void SuppressBody(const uint8_t* scores, int stride, int x0, int y0, int x1, int y1,
+                                                int threshold, int x_offset, int y_offset,
+                                                std::vector<Candidate>* out) {
+  const Bytes32 threshold32 = Bytes32{} + static_cast<uint8_t>(threshold);
+  // Blocks of 32 columns; the last one is moved left (inside the ring) and earlier columns
+  // dropped, so a narrow range still reads whole blocks.
+  const int last_start = std::max(1, std::min(x1, stride - 1) - 32);
+  for (int y = y0; y < y1; ++y) {
+    const uint8_t* above = scores + (y - 1) * stride;
+    const uint8_t* row = scores + y * stride;
+    const uint8_t* below = scores + (y + 1) * stride;
+    for (int start = x0; start < x1; start += 32) {
+      const int x = std::min(start, last_start);
+      // Vector test against the largest neighbour; ties (rare) are resolved one by one.
+      const Bytes32 s = Load32(row + x);
+      const Bytes32 neighbours = Max32(
+          Max32(Max32(Load32(above + x - 1), Load32(above + x)), Max32(Load32(above + x + 1), Load32(row + x - 1))),
+          Max32(Max32(Load32(row + x + 1), Load32(below + x - 1)), Max32(Load32(below + x), Load32(below + x + 1))));
+      uint32_t bits = MoveMask32(Greater32(s, threshold32) & ~Greater32(neighbours, s));
+      while (bits != 0) {
+        const int cx = x + std::countr_zero(bits);
+        bits &= bits - 1;
+        if (cx < start || cx >= x1 || cx >= start + 32) continue;
+        const uint8_t v = row[cx];
+        if (v == above[cx - 1] || v == above[cx] || v == above[cx + 1] || v == row[cx - 1]) continue;
+        out->push_back({static_cast<int16_t>(cx + x_offset), static_cast<int16_t>(y + y_offset), v});
+      }
+    }
+  }
+}
+
+// Runtime dispatch: the same bodies compiled for AVX2 where the CPU has it.
 #if defined(__x86_64__) || defined(__i386__)
-__attribute__((target("avx2"))) void FastScoresAvx2(const cv::Mat& img, int x0, int y0, int x1, int y1, uint8_t* out,
-                                                   size_t out_step) {
-  FastScoresBody(img, x0, y0, x1, y1, out, out_step);
+__attribute__((target("avx2"))) void FastScoresAvx2(const cv::Mat& img, int x0, int y0, int x1, int y1, int floor,
+                                                    uint8_t* out, size_t out_step) {
+  FastScoresBody(img, x0, y0, x1, y1, floor, out, out_step);
 }
-__attribute__((target("avx2"))) void BlurAvx2(const cv::Mat& src, const std::vector<uint16_t>& taps, cv::Mat* dst,
-                                             std::vector<uint8_t>* row, std::vector<uint16_t>* acc) {
-  BlurBody(src, taps, dst, row, acc);
+// Same arithmetic as BlurLine, 32 pixels per step. With taps below 128, pmaddubsw weighs two
+// taps per instruction (a pair sums to at most 255 * 254, no saturation); 16-bit totals wrap
+// but stay below 65536, so the final logical shift is exact.
+__attribute__((target("avx2"))) void BlurLineAvx2(const uint8_t* const* src, const uint16_t* taps, int size, int count,
+                                                  uint8_t* dst) {
+  if (count < 32) return BlurLine(src, taps, size, count, dst);
+  const bool small_taps = std::all_of(taps, taps + size, [](uint16_t t) { return t < 128; });
+  const __m256i zero = _mm256_setzero_si256(), half = _mm256_set1_epi16(128);
+  __m256i weights[32];
+  const int pairs = (size + 1) / 2;
+  for (int k = 0; k < size; ++k) weights[k] = _mm256_set1_epi16(static_cast<int16_t>(taps[k]));
+  for (int p = 0; p < pairs && small_taps; ++p) {
+    const int second = 2 * p + 1 < size ? taps[2 * p + 1] : 0;
+    weights[p] = _mm256_set1_epi16(static_cast<int16_t>(taps[2 * p] | (second << 8)));  // bytes: w0, w1
+  }
+  for (int x = 0;; x += 32) {
+    if (x + 32 > count) x = count - 32;  // last block overlaps the previous one
+    __m256i lo = half, hi = half;        // pixels 0-7 and 16-23, 8-15 and 24-31 (in-lane unpack)
+    if (small_taps) {
+      for (int p = 0; p < pairs; ++p) {
+        const __m256i a = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(src[2 * p] + x));
+        const __m256i b =
+            2 * p + 1 < size ? _mm256_loadu_si256(reinterpret_cast<const __m256i*>(src[2 * p + 1] + x)) : zero;
+        lo = _mm256_add_epi16(lo, _mm256_maddubs_epi16(_mm256_unpacklo_epi8(a, b), weights[p]));
+        hi = _mm256_add_epi16(hi, _mm256_maddubs_epi16(_mm256_unpackhi_epi8(a, b), weights[p]));
+      }
+    } else {
+      for (int k = 0; k < size; ++k) {
+        const __m256i v = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(src[k] + x));
+        lo = _mm256_add_epi16(lo, _mm256_mullo_epi16(_mm256_unpacklo_epi8(v, zero), weights[k]));
+        hi = _mm256_add_epi16(hi, _mm256_mullo_epi16(_mm256_unpackhi_epi8(v, zero), weights[k]));
+      }
+    }
+    // The in-lane pack undoes the in-lane unpack: pixels come back in order.
+    const __m256i out = _mm256_packus_epi16(_mm256_srli_epi16(lo, 8), _mm256_srli_epi16(hi, 8));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst + x), out);
+    if (x + 32 >= count) break;
+  }
 }
+__attribute__((target("avx2"))) void SuppressAvx2(const uint8_t* scores, int stride, int x0, int y0, int x1, int y1,
+                                                  int threshold, int x_offset, int y_offset,
+                                                  std::vector<Candidate>* out) {
+  SuppressBody(scores, stride, x0, y0, x1, y1, threshold, x_offset, y_offset, out);
+}
+#endif
+
 bool HasAvx2() {
+#if defined(__x86_64__) || defined(__i386__)
   __builtin_cpu_init();
   return __builtin_cpu_supports("avx2");
-}
+#else
+  return false;
 #endif
+}
 
-void ComputeFastScores(const cv::Mat& img, int x0, int y0, int x1, int y1, uint8_t* out, size_t out_step) {
+void ComputeFastScores(bool avx2, const cv::Mat& img, int x0, int y0, int x1, int y1, int floor, uint8_t* out,
+                       size_t out_step) {
 #if defined(__x86_64__) || defined(__i386__)
-  if (HasAvx2()) return FastScoresAvx2(img, x0, y0, x1, y1, out, out_step);
+  if (avx2) return FastScoresAvx2(img, x0, y0, x1, y1, floor, out, out_step);
 #endif
-  FastScoresBody(img, x0, y0, x1, y1, out, out_step);
+  FastScoresBody(img, x0, y0, x1, y1, floor, out, out_step);
 }
 
-void Blur(const cv::Mat& src, const std::vector<uint16_t>& taps, cv::Mat* dst, std::vector<uint8_t>* row,
-          std::vector<uint16_t>* acc) {
+void Blur(bool avx2, const cv::Mat& src, const std::vector<uint16_t>& taps, cv::Mat* dst, std::vector<uint8_t>* row) {
 #if defined(__x86_64__) || defined(__i386__)
-  if (HasAvx2()) return BlurAvx2(src, taps, dst, row, acc);
+  if (avx2) return BlurRows(src, taps, BlurLineAvx2, dst, row);
 #endif
-  BlurBody(src, taps, dst, row, acc);
+  BlurRows(src, taps, BlurLine, dst, row);
 }
 
-// Integer Gaussian taps summing to exactly 256 (largest remainders go to the centre).
+void Suppress(bool avx2, const uint8_t* scores, int stride, int x0, int y0, int x1, int y1, int threshold, int x_offset,
+              int y_offset, std::vector<Candidate>* out) {
+#if defined(__x86_64__) || defined(__i386__)
+  if (avx2) return SuppressAvx2(scores, stride, x0, y0, x1, y1, threshold, x_offset, y_offset, out);
+#endif
+  SuppressBody(scores, stride, x0, y0, x1, y1, threshold, x_offset, y_offset, out);
+}
+
+// Integer Gaussian taps summing to exactly 256 (rounding remainder to the centre tap).
 std::vector<uint16_t> GaussianTaps(int size, double sigma) {
   if (sigma <= 0 || size <= 1) return {256};
   std::vector<double> g(size);
@@ -238,79 +403,68 @@ struct Scratch {
   std::vector<uint8_t> scores;
   std::vector<uint8_t> cell_has_strong;
   std::vector<Candidate> kept;
+  std::vector<Node> nodes, next_nodes;
+  std::vector<Candidate> sort_buffer;
   cv::Mat blurred;
   std::vector<uint8_t> blur_row;
-  std::vector<uint16_t> blur_acc;
 };
 
 // FAST corners in [m, cols-m) x [m, rows-m) of a level, after 3x3 non-maximum suppression
-// (ties go to the first in raster order): those above the high threshold, plus those above the
-// low one in grid cells without any (textureless areas still get corners). Raster order.
-void DetectCorners(const cv::Mat& img, const OrbOptions& o, Scratch* scratch, std::vector<Candidate>* out) {
+// (ties go to the first in raster order): those above the high threshold, then, cell by cell,
+// those above the low one in grid cells without any (textureless areas still get corners).
+void DetectCorners(bool avx2, const cv::Mat& img, const OrbOptions& o, Scratch* scratch, std::vector<Candidate>* out) {
   out->clear();
   const int m = o.edge_margin;
   const int width = img.cols - 2 * m, height = img.rows - 2 * m;
-  if (width < 8 || height < 8) return;
+  if (width < 32 || height < 8) return;  // a level this small holds no useful keypoint
 
   // Scores over the region and a one-pixel ring around it (the suppression neighbourhood).
   const int sw = width + 2, sh = height + 2;
+  const int low = o.min_fast_threshold, high = o.fast_threshold;
   scratch->scores.resize(static_cast<size_t>(sw) * sh);
   uint8_t* scores = scratch->scores.data();
-  ComputeFastScores(img, m - 1, m - 1, m - 1 + sw, m - 1 + sh, scores, sw);
+  ComputeFastScores(avx2, img, m - 1, m - 1, m - 1 + sw, m - 1 + sh, low, scores, sw);
 
+  // Score-buffer coordinates: region pixel (x, y) is at (x + 1, y + 1); image = buffer + m - 1.
+  Suppress(avx2, scores, sw, 1, 1, width + 1, height + 1, high, m - 1, m - 1, out);
+  if (low >= high) return;
   const int cells_x = std::max(1, width / o.cell_size), cells_y = std::max(1, height / o.cell_size);
   const int cell_w = (width + cells_x - 1) / cells_x, cell_h = (height + cells_y - 1) / cells_y;
   std::vector<uint8_t>& strong = scratch->cell_has_strong;
   strong.assign(static_cast<size_t>(cells_x) * cells_y, 0);
-  const int low = o.min_fast_threshold, high = o.fast_threshold;
-  for (int y = 1; y <= height; ++y) {
-    const uint8_t* above = scores + (y - 1) * sw;
-    const uint8_t* row = scores + y * sw;
-    const uint8_t* below = scores + (y + 1) * sw;
-    const int cy = std::min((y - 1) / cell_h, cells_y - 1);
-    for (int x = 1; x <= width; ++x) {
-      // Skip 8 weak pixels at once.
-      if (x + 8 <= width + 1) {
-        uint64_t block;
-        std::memcpy(&block, row + x, 8);
-        // A byte exceeds `low` (< 128) when adding 127 - low sets its top bit (or it already has it).
-        const uint64_t lanes = 0x0101010101010101ull;
-        if (!((((block & (0x7f * lanes)) + (127 - low) * lanes) | block) & (0x80 * lanes))) {
-          x += 7;
-          continue;
-        }
-      }
-      const int s = row[x];
-      if (s <= low) continue;
-      // Earlier neighbours (raster order) must be strictly weaker, later ones not stronger.
-      if (s <= above[x - 1] || s <= above[x] || s <= above[x + 1] || s <= row[x - 1]) continue;
-      if (s < row[x + 1] || s < below[x - 1] || s < below[x] || s < below[x + 1]) continue;
-      out->push_back({static_cast<int16_t>(x - 1 + m), static_cast<int16_t>(y - 1 + m), static_cast<float>(s)});
-      if (s > high) strong[static_cast<size_t>(cy) * cells_x + std::min((x - 1) / cell_w, cells_x - 1)] = 1;
-    }
-  }
-  // Keep strong corners everywhere and weak ones only where a cell has no strong corner.
-  size_t kept = 0;
   for (const Candidate& c : *out) {
     const int cx = std::min((c.x - m) / cell_w, cells_x - 1), cy = std::min((c.y - m) / cell_h, cells_y - 1);
-    if (c.response > high || !strong[static_cast<size_t>(cy) * cells_x + cx]) (*out)[kept++] = c;
+    strong[static_cast<size_t>(cy) * cells_x + cx] = 1;
   }
-  out->resize(kept);
+  for (int cy = 0; cy < cells_y; ++cy) {
+    for (int cx = 0; cx < cells_x; ++cx) {
+      if (strong[static_cast<size_t>(cy) * cells_x + cx]) continue;
+      const int x0 = cx * cell_w, y0 = cy * cell_h;
+      const int x1 = std::min(x0 + cell_w, width), y1 = std::min(y0 + cell_h, height);
+      if (x0 < x1 && y0 < y1) Suppress(avx2, scores, sw, x0 + 1, y0 + 1, x1 + 1, y1 + 1, low, m - 1, m - 1, out);
+    }
+  }
 }
 
-// Splits a node into its non-empty quarters, partitioning idx in place.
-void SplitNode(const Node& n, const std::vector<Candidate>& cands, std::vector<uint32_t>* idx,
-               std::vector<Node>* children) {
+// Splits a node into its non-empty quarters: a branch-free, stable counting sort of its
+// candidates by quarter (through tmp), so unpredictable comparisons cost nothing.
+void SplitNode(const Node& n, std::vector<Candidate>* pts, std::vector<Candidate>* tmp, std::vector<Node>* children) {
   const float xm = 0.5f * (n.x0 + n.x1), ym = 0.5f * (n.y0 + n.y1);
-  auto first = idx->begin() + n.begin, last = idx->begin() + n.end;
-  auto mid_y = std::partition(first, last, [&](uint32_t i) { return cands[i].y < ym; });
-  auto mid_top = std::partition(first, mid_y, [&](uint32_t i) { return cands[i].x < xm; });
-  auto mid_bottom = std::partition(mid_y, last, [&](uint32_t i) { return cands[i].x < xm; });
-  const auto at = [&](auto it) { return static_cast<uint32_t>(it - idx->begin()); };
-  const Node quarters[4] = {{n.x0, n.y0, xm, ym, n.begin, at(mid_top)},
-                            {xm, n.y0, n.x1, ym, at(mid_top), at(mid_y)},
-                            {n.x0, ym, xm, n.y1, at(mid_y), at(mid_bottom)},
-                            {xm, ym, n.x1, n.y1, at(mid_bottom), n.end}};
+  Candidate* p = pts->data();
+  const auto quarter = [xm, ym](const Candidate& c) { return (c.y >= ym) * 2 + (c.x >= xm); };
+  uint32_t count[4] = {0, 0, 0, 0};
+  for (uint32_t i = n.begin; i < n.end; ++i) ++count[quarter(p[i])];
+  uint32_t start[4] = {n.begin, n.begin + count[0], n.begin + count[0] + count[1],
+                       n.begin + count[0] + count[1] + count[2]};
+  const uint32_t begins[4] = {start[0], start[1], start[2], start[3]};
+  tmp->resize(pts->size());
+  Candidate* t = tmp->data();
+  for (uint32_t i = n.begin; i < n.end; ++i) t[start[quarter(p[i])]++] = p[i];
+  std::copy(t + n.begin, t + n.end, p + n.begin);
+  const Node quarters[4] = {{n.x0, n.y0, xm, ym, begins[0], begins[0] + count[0]},
+                            {xm, n.y0, n.x1, ym, begins[1], begins[1] + count[1]},
+                            {n.x0, ym, xm, n.y1, begins[2], begins[2] + count[2]},
+                            {xm, ym, n.x1, n.y1, begins[3], begins[3] + count[3]}};
   for (const Node& q : quarters) {
     if (q.count() > 0) children->push_back(q);
   }
@@ -318,39 +472,43 @@ void SplitNode(const Node& n, const std::vector<Candidate>& cands, std::vector<u
 
 // Keeps at most `budget` candidates spread over the region: quarters cells (largest first once
 // close to the budget) until there are `budget` non-empty cells, then keeps each cell's strongest.
-// Output sorted by (y, x).
-void Distribute(const std::vector<Candidate>& cands, float x0, float y0, float x1, float y1, int budget,
+// The result depends only on the set of candidates, not their order. Output sorted by (y, x).
+void Distribute(std::vector<Candidate>* pts, float x0, float y0, float x1, float y1, int budget,
+                std::vector<Node>* nodes, std::vector<Node>* next, std::vector<Candidate>* tmp,
                 std::vector<Candidate>* out) {
   out->clear();
-  if (budget <= 0 || cands.empty()) return;
-  const auto by_position = [](const Candidate& a, const Candidate& b) {
-    return a.y != b.y ? a.y < b.y : a.x < b.x;
-  };
-  if (static_cast<int>(cands.size()) <= budget) {
-    *out = cands;
+  if (budget <= 0 || pts->empty()) return;
+  const auto by_position = [](const Candidate& a, const Candidate& b) { return a.y != b.y ? a.y < b.y : a.x < b.x; };
+  if (static_cast<int>(pts->size()) <= budget) {
+    *out = *pts;
     std::sort(out->begin(), out->end(), by_position);
     return;
   }
-  std::vector<uint32_t> idx(cands.size());
-  std::iota(idx.begin(), idx.end(), 0u);
 
   // Start from roughly square cells: a wide image begins with several columns, a tall one rows.
   const float w = x1 - x0, h = y1 - y0;
   const int nx = std::max(1, static_cast<int>(std::lround(w / h)));
   const int ny = std::max(1, static_cast<int>(std::lround(h / w)));
-  std::vector<Node> nodes, next;
+  nodes->clear();
   {
-    auto row_begin = idx.begin();
+    auto row_begin = pts->begin();
     for (int j = 0; j < ny; ++j) {
       const float ya = y0 + h * j / ny, yb = j + 1 == ny ? y1 : y0 + h * (j + 1) / ny;
-      auto row_end = j + 1 == ny ? idx.end() : std::partition(row_begin, idx.end(), [&](uint32_t i) { return cands[i].y < yb; });
+      const auto row_end = j + 1 == ny
+                               ? pts->end()
+                               : std::partition(row_begin, pts->end(), [yb](const Candidate& c) { return c.y < yb; });
       auto col_begin = row_begin;
       for (int i = 0; i < nx; ++i) {
         const float xa = x0 + w * i / nx, xb = i + 1 == nx ? x1 : x0 + w * (i + 1) / nx;
-        auto col_end = i + 1 == nx ? row_end : std::partition(col_begin, row_end, [&](uint32_t k) { return cands[k].x < xb; });
-        const Node n{xa, ya, xb, yb, static_cast<uint32_t>(col_begin - idx.begin()),
-                     static_cast<uint32_t>(col_end - idx.begin())};
-        if (n.count() > 0) nodes.push_back(n);
+        const auto col_end =
+            i + 1 == nx ? row_end : std::partition(col_begin, row_end, [xb](const Candidate& c) { return c.x < xb; });
+        const Node n{xa,
+                     ya,
+                     xb,
+                     yb,
+                     static_cast<uint32_t>(col_begin - pts->begin()),
+                     static_cast<uint32_t>(col_end - pts->begin())};
+        if (n.count() > 0) nodes->push_back(n);
         col_begin = col_end;
       }
       row_begin = row_end;
@@ -358,62 +516,64 @@ void Distribute(const std::vector<Candidate>& cands, float x0, float y0, float x
   }
 
   std::vector<uint32_t> order;
-  while (static_cast<int>(nodes.size()) < budget) {
+  while (static_cast<int>(nodes->size()) < budget) {
     size_t expandable = 0;
-    for (const Node& n : nodes) expandable += n.splittable();
+    for (const Node& n : *nodes) expandable += n.splittable();
     if (expandable == 0) break;
-    next.clear();
-    if (nodes.size() + 3 * expandable <= static_cast<size_t>(budget)) {
+    next->clear();
+    if (nodes->size() + 3 * expandable <= static_cast<size_t>(budget)) {
       // A full round cannot overshoot: split every cell.
-      for (const Node& n : nodes) {
+      for (const Node& n : *nodes) {
         if (n.splittable()) {
-          SplitNode(n, cands, &idx, &next);
+          SplitNode(n, pts, tmp, next);
         } else {
-          next.push_back(n);
+          next->push_back(n);
         }
       }
     } else {
-      // Last round: split the most crowded cells first and stop at the budget.
+      // Last round: split the most crowded cells first and stop at the budget. Cells are in a
+      // geometric order, so ties break the same way whatever the candidates' order.
       order.clear();
-      for (uint32_t i = 0; i < nodes.size(); ++i) {
-        if (nodes[i].splittable()) order.push_back(i);
+      for (uint32_t i = 0; i < nodes->size(); ++i) {
+        if ((*nodes)[i].splittable()) order.push_back(i);
       }
       std::sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
-        return nodes[a].count() != nodes[b].count() ? nodes[a].count() > nodes[b].count() : a < b;
+        const uint32_t ca = (*nodes)[a].count(), cb = (*nodes)[b].count();
+        return ca != cb ? ca > cb : a < b;
       });
-      std::vector<uint8_t> split(nodes.size(), 0);
-      size_t count = nodes.size();
+      size_t count = nodes->size();
+      size_t split_until = 0;  // order[0, split_until) are split
       std::vector<Node> children;
-      for (uint32_t i : order) {
+      for (; split_until < order.size() && count < static_cast<size_t>(budget); ++split_until) {
         const size_t before = children.size();
-        SplitNode(nodes[i], cands, &idx, &children);
-        split[i] = 1;
+        SplitNode((*nodes)[order[split_until]], pts, tmp, &children);
         count += children.size() - before - 1;
-        if (count >= static_cast<size_t>(budget)) break;
       }
-      for (uint32_t i = 0; i < nodes.size(); ++i) {
-        if (!split[i]) next.push_back(nodes[i]);
+      std::vector<uint8_t> split(nodes->size(), 0);
+      for (size_t k = 0; k < split_until; ++k) split[order[k]] = 1;
+      for (uint32_t i = 0; i < nodes->size(); ++i) {
+        if (!split[i]) next->push_back((*nodes)[i]);
       }
-      next.insert(next.end(), children.begin(), children.end());
+      next->insert(next->end(), children.begin(), children.end());
     }
-    nodes.swap(next);
+    nodes->swap(*next);
   }
 
-  out->reserve(nodes.size());
-  for (const Node& n : nodes) {
-    uint32_t best = idx[n.begin];
-    for (uint32_t k = n.begin + 1; k < n.end; ++k) {
-      const uint32_t c = idx[k];
-      if (cands[c].response > cands[best].response ||
-          (cands[c].response == cands[best].response && by_position(cands[c], cands[best])))
-        best = c;
+  out->reserve(nodes->size());
+  const auto stronger = [](const Candidate& a, const Candidate& b) { return a.key() > b.key(); };
+  const Candidate* p = pts->data();
+  for (const Node& n : *nodes) {
+    uint64_t best = 0;
+    uint32_t best_index = n.begin;
+    for (uint32_t k = n.begin; k < n.end; ++k) {
+      const uint64_t key = p[k].key();
+      best_index = key > best ? k : best_index;
+      best = std::max(best, key);
     }
-    out->push_back(cands[best]);
+    out->push_back(p[best_index]);
   }
   if (static_cast<int>(out->size()) > budget) {
-    std::nth_element(out->begin(), out->begin() + budget, out->end(), [&](const Candidate& a, const Candidate& b) {
-      return a.response != b.response ? a.response > b.response : by_position(a, b);
-    });
+    std::nth_element(out->begin(), out->begin() + budget, out->end(), stronger);
     out->resize(budget);
   }
   std::sort(out->begin(), out->end(), by_position);
@@ -422,14 +582,14 @@ void Distribute(const std::vector<Candidate>& cands, float x0, float y0, float x
 // Direction of the intensity centroid of the disc around (x, y): atan2(m01, m10), radians.
 // weights holds, per row v = -15..15, 32 column weights over x-15 .. x+16: u inside the disc
 // (else 0), then 32 membership flags; fixed-length rows vectorise.
-float CentroidAngle(const cv::Mat& img, int x, int y, const int16_t* weights) {
+float CentroidAngle(const cv::Mat& img, int x, int y, const int8_t* weights) {
   const ptrdiff_t step = static_cast<ptrdiff_t>(img.step1());
   const uint8_t* top_left = img.ptr<uint8_t>(y - kOrientationRadius) + x - kOrientationRadius;
   int m10 = 0, m01 = 0;
   for (int v = 0; v < 2 * kOrientationRadius + 1; ++v) {
     const uint8_t* row = top_left + v * step;
-    const int16_t* wu = weights + v * 64;
-    const int16_t* inside = wu + 32;
+    const int8_t* wu = weights + v * 64;
+    const int8_t* inside = wu + 32;
     int sum_u = 0, sum = 0;
     for (int i = 0; i < 32; ++i) {
       sum_u += wu[i] * row[i];
@@ -441,18 +601,24 @@ float CentroidAngle(const cv::Mat& img, int x, int y, const int16_t* weights) {
   return std::atan2(static_cast<float>(m01), static_cast<float>(m10));
 }
 
+// The pattern as float columns x1, y1, x2, y2 (256 each) for the rotation.
+struct PatternColumns {
+  alignas(32) float v[4][kDescriptorBits];
+};
+
+// Rounds to nearest by truncating a value shifted positive (the same in scalar and vector code).
+inline int RoundShifted(float v) { return static_cast<int>(v + 64.5f) - 64; }
+
 // Steered BRIEF on the blurred level: the pattern rotated by `angle`, points rounded to pixels.
-Descriptor SteeredBrief(const cv::Mat& blurred, int x, int y, float angle, const float* px1, const float* py1,
-                        const float* px2, const float* py2) {
+Descriptor SteeredBrief(const cv::Mat& blurred, int x, int y, float angle, const PatternColumns& pattern) {
   const uint8_t* center = blurred.ptr<uint8_t>(y) + x;
   const int step = static_cast<int>(blurred.step1());
   const float c = std::cos(angle), s = std::sin(angle);
+  const float *px1 = pattern.v[0], *py1 = pattern.v[1], *px2 = pattern.v[2], *py2 = pattern.v[3];
   alignas(64) int off1[kDescriptorBits], off2[kDescriptorBits];
-  // Rounds to nearest by truncating a value shifted positive (vectorises without SSE4.1).
-  const auto round = [](float v) { return static_cast<int>(v + 64.5f) - 64; };
   for (int k = 0; k < kDescriptorBits; ++k) {
-    off1[k] = round(px1[k] * s + py1[k] * c) * step + round(px1[k] * c - py1[k] * s);
-    off2[k] = round(px2[k] * s + py2[k] * c) * step + round(px2[k] * c - py2[k] * s);
+    off1[k] = RoundShifted(px1[k] * s + py1[k] * c) * step + RoundShifted(px1[k] * c - py1[k] * s);
+    off2[k] = RoundShifted(px2[k] * s + py2[k] * c) * step + RoundShifted(px2[k] * c - py2[k] * s);
   }
   Descriptor d{};
   for (int word = 0; word < 4; ++word) {
@@ -466,6 +632,93 @@ Descriptor SteeredBrief(const cv::Mat& blurred, int x, int y, float angle, const
   return d;
 }
 
+// Angles (on the level image) and descriptors (on its blurred copy) of a level's corners.
+void DescribeCornersBaseline(const cv::Mat& img, const cv::Mat& blurred, const std::vector<Candidate>& corners,
+                             const int8_t* weights, const PatternColumns& pattern, float* angles,
+                             Descriptor* descriptors) {
+  for (size_t i = 0; i < corners.size(); ++i) {
+    angles[i] = CentroidAngle(img, corners[i].x, corners[i].y, weights);
+    descriptors[i] = SteeredBrief(blurred, corners[i].x, corners[i].y, angles[i], pattern);
+  }
+}
+
+#if defined(__x86_64__) || defined(__i386__)
+// Pixel offsets of 8 pattern points rotated by (c, s): RoundShifted on each coordinate, with the
+// same float operations as the baseline (no FMA), so both round alike.
+__attribute__((target("avx2"))) inline __m256i RotatedOffsetsAvx2(const float* px, const float* py, __m256 c, __m256 s,
+                                                                  __m256i step8) {
+  const __m256 ax = _mm256_load_ps(px), ay = _mm256_load_ps(py);
+  const __m256 shift = _mm256_set1_ps(64.5f);
+  const __m256i sixty_four = _mm256_set1_epi32(64);
+  const __m256i rx = _mm256_sub_epi32(
+      _mm256_cvttps_epi32(_mm256_add_ps(_mm256_sub_ps(_mm256_mul_ps(ax, c), _mm256_mul_ps(ay, s)), shift)), sixty_four);
+  const __m256i ry = _mm256_sub_epi32(
+      _mm256_cvttps_epi32(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ax, s), _mm256_mul_ps(ay, c)), shift)), sixty_four);
+  return _mm256_add_epi32(_mm256_mullo_epi32(ry, step8), rx);
+}
+
+// Same sums and tests as the baseline: pmaddubsw for the moments, 8 tests per gather. Rows are
+// read 32 bytes (x-15 .. x+16) and gathers 4 bytes: both stay inside the image as keypoints keep
+// edge_margin >= 16 from borders (and are never on the last rows).
+__attribute__((target("avx2"))) void DescribeCornersAvx2(const cv::Mat& img, const cv::Mat& blurred,
+                                                         const std::vector<Candidate>& corners, const int8_t* weights,
+                                                         const PatternColumns& pattern, float* angles,
+                                                         Descriptor* descriptors) {
+  const ptrdiff_t img_step = static_cast<ptrdiff_t>(img.step1());
+  const int step = static_cast<int>(blurred.step1());
+  const __m256i ones16 = _mm256_set1_epi16(1), byte_mask = _mm256_set1_epi32(0xff);
+  const __m256i step8 = _mm256_set1_epi32(step);
+  for (size_t i = 0; i < corners.size(); ++i) {
+    const int x = corners[i].x, y = corners[i].y;
+    // Intensity centroid.
+    const uint8_t* top_left = img.ptr<uint8_t>(y - kOrientationRadius) + x - kOrientationRadius;
+    __m256i m10 = _mm256_setzero_si256(), m01 = _mm256_setzero_si256();
+    for (int v = 0; v < 2 * kOrientationRadius + 1; ++v) {
+      const __m256i row = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(top_left + v * img_step));
+      const __m256i wu = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(weights + v * 64));
+      const __m256i inside = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(weights + v * 64 + 32));
+      m10 = _mm256_add_epi32(m10, _mm256_madd_epi16(_mm256_maddubs_epi16(row, wu), ones16));
+      const __m256i dv = _mm256_set1_epi16(static_cast<int16_t>(v - kOrientationRadius));
+      m01 = _mm256_add_epi32(m01, _mm256_madd_epi16(_mm256_maddubs_epi16(row, inside), dv));
+    }
+    alignas(32) int lanes10[8], lanes01[8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(lanes10), m10);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(lanes01), m01);
+    int s10 = 0, s01 = 0;
+    for (int k = 0; k < 8; ++k) {
+      s10 += lanes10[k];
+      s01 += lanes01[k];
+    }
+    const float angle = std::atan2(static_cast<float>(s01), static_cast<float>(s10));
+    angles[i] = angle;
+
+    // Steered BRIEF.
+    const uint8_t* center = blurred.ptr<uint8_t>(y) + x;
+    const __m256 c = _mm256_set1_ps(std::cos(angle)), s = _mm256_set1_ps(std::sin(angle));
+    Descriptor d{};
+    for (int k = 0; k < kDescriptorBits; k += 8) {
+      const __m256i off1 = RotatedOffsetsAvx2(pattern.v[0] + k, pattern.v[1] + k, c, s, step8);
+      const __m256i off2 = RotatedOffsetsAvx2(pattern.v[2] + k, pattern.v[3] + k, c, s, step8);
+      const __m256i a =
+          _mm256_and_si256(_mm256_i32gather_epi32(reinterpret_cast<const int*>(center), off1, 1), byte_mask);
+      const __m256i b =
+          _mm256_and_si256(_mm256_i32gather_epi32(reinterpret_cast<const int*>(center), off2, 1), byte_mask);
+      const uint32_t bits = static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(b, a))));
+      d[k / 64] |= static_cast<uint64_t>(bits) << (k % 64);
+    }
+    descriptors[i] = d;
+  }
+}
+#endif
+
+void DescribeCorners(bool avx2, const cv::Mat& img, const cv::Mat& blurred, const std::vector<Candidate>& corners,
+                     const int8_t* weights, const PatternColumns& pattern, float* angles, Descriptor* descriptors) {
+#if defined(__x86_64__) || defined(__i386__)
+  if (avx2) return DescribeCornersAvx2(img, blurred, corners, weights, pattern, angles, descriptors);
+#endif
+  DescribeCornersBaseline(img, blurred, corners, weights, pattern, angles, descriptors);
+}
+
 // What one level produces.
 struct LevelResult {
   std::vector<Candidate> corners;  // all FAST candidates, then the kept ones
@@ -475,70 +728,58 @@ struct LevelResult {
 
 // Learned by OrbExtractor.DISABLED_LearnPattern (see LearnedBriefPattern()).
 constexpr int8_t kLearnedPattern[256][4] = {
-    {-7, 0, -8, 8}, {6, -4, 8, 10}, {-8, 3, -7, -4}, {7, 2, 8, -7},
-    {-2, -3, -2, -13}, {3, -10, 3, 1}, {-1, -3, -1, 1}, {-2, 13, -1, -9},
-    {-8, -11, -6, -8}, {11, 4, 13, 1}, {-1, 4, -1, -1}, {-7, 12, -5, 9},
-    {-7, -4, -7, -7}, {-9, 2, -7, 2}, {4, 12, 4, 5}, {-12, -3, -14, 4},
-    {-10, -10, -8, -11}, {9, 8, 11, 9}, {7, -9, 7, -5}, {-11, 0, -14, -3},
-    {4, -13, 4, -9}, {-3, 4, -3, 7}, {12, -9, 13, -7}, {-8, 8, -7, 10},
-    {4, 11, 5, 13}, {2, 8, 2, -6}, {11, -2, 14, -5}, {12, -2, 14, 4},
-    {-3, 11, -2, 13}, {-13, -7, -13, -2}, {6, -10, 9, -12}, {-2, -10, 0, -11},
-    {5, 5, 7, 0}, {6, -1, 8, -1}, {-6, 1, -3, 1}, {-3, -3, -1, -6},
-    {13, 7, 12, 9}, {-8, -6, -1, 11}, {0, -15, -7, 11}, {0, 7, 3, 7},
-    {-5, -14, 2, 11}, {8, 12, 6, 12}, {0, 12, 6, -9}, {5, -4, 2, -4},
-    {1, -13, 10, 4}, {4, -5, -12, 6}, {5, 2, -7, -4}, {-8, -10, 7, 12},
-    {7, -13, -6, 4}, {-11, 10, 12, -7}, {-13, -6, 9, -5}, {-14, 0, 13, 6},
-    {-8, -7, 12, 1}, {-10, 3, 9, -1}, {-14, 4, -11, 10}, {-5, 7, -6, -13},
-    {-12, -8, -11, -10}, {-10, 6, -11, 8}, {11, 7, 11, 4}, {1, -13, 2, 13},
-    {-2, -11, -2, -14}, {9, -12, 11, -10}, {-4, -4, -4, -2}, {-1, -11, 1, 6},
-    {4, -2, 5, 1}, {-6, 7, -2, -6}, {14, -1, 10, -4}, {7, 13, 12, -4},
-    {1, 8, 0, 5}, {1, -4, 0, -6}, {5, 4, 4, 2}, {11, 5, 7, 3},
-    {2, 5, -1, 2}, {2, 14, 0, 13}, {12, -9, 2, 3}, {-3, -6, 4, 11},
-    {-5, 14, 6, -4}, {-3, -1, 11, 8}, {11, -4, -4, 7}, {-10, -1, 8, 9},
-    {9, 6, -10, -8}, {-14, -2, -9, -5}, {-12, -1, -9, 4}, {-10, 11, -8, -10},
-    {0, 0, 0, 15}, {-13, 7, -7, 9}, {5, 7, 5, 3}, {-9, -5, -6, -3},
-    {-5, -5, -5, 14}, {-3, 8, -3, 10}, {-13, 3, -13, 5}, {3, -7, 4, -10},
-    {-6, -10, -4, -13}, {6, -5, 7, -3}, {4, 10, 7, -13}, {-4, -7, -2, -6},
-    {-1, 14, 1, 11}, {8, -5, 12, -4}, {-7, 7, -3, 7}, {-4, 3, -5, -1},
-    {-10, 2, -4, -12}, {4, 5, 6, 7}, {0, -15, 2, -13}, {4, -10, 6, -10},
-    {3, 13, 6, 9}, {-3, 1, -1, 1}, {-1, 1, 1, -1}, {3, 4, 5, 3},
-    {-11, -9, 1, 4}, {4, -9, -1, 5}, {7, 12, 1, -9}, {-2, -8, 7, 5},
-    {3, -13, -9, 1}, {-8, 11, 5, -10}, {15, 0, -2, 13}, {9, 10, -4, -14},
-    {6, -8, -9, -2}, {-14, 5, 12, -1}, {-7, 6, 14, 4}, {-11, 4, 9, -9},
-    {14, -3, -7, -1}, {-11, -2, 10, 2}, {8, -3, 9, 0}, {11, -9, 11, 0},
-    {-4, 5, -3, 2}, {-2, 10, -1, -14}, {-11, -6, -12, -8}, {-7, -7, -6, -11},
-    {-2, -7, -1, 8}, {-6, 3, -5, 5}, {10, 11, 9, 7}, {1, -5, 1, -9},
-    {-3, 4, -2, -9}, {3, 2, 3, 0}, {-1, 9, 0, 7}, {-9, -3, -6, -5},
-    {4, -3, 5, -6}, {-12, 9, -3, -2}, {5, 0, 6, -2}, {-9, -12, -4, 13},
-    {1, 6, 2, 3}, {5, -11, 7, 7}, {1, -9, 1, -11}, {-4, 2, -8, -4},
-    {6, 9, 8, 6}, {-3, -8, -4, -10}, {2, 13, 1, 9}, {1, -1, 3, -4},
-    {-3, 13, 0, 13}, {-1, -10, 1, -8}, {-6, 13, -7, 10}, {14, 5, 10, 4},
-    {-3, 7, -1, 8}, {9, -1, 8, 3}, {-3, -2, 0, 11}, {8, -7, 8, -12},
-    {1, -4, -2, 10}, {5, -5, 10, -7}, {13, 5, 9, -12}, {4, 7, 2, -14},
-    {-2, 14, -14, 2}, {9, 3, 7, 0}, {-1, -9, -3, -6}, {-4, 8, 1, -10},
-    {0, -4, 2, -4}, {5, -5, 3, -11}, {0, 15, -5, -9}, {11, -4, 6, -11},
-    {-6, 0, 1, 6}, {-8, 9, 2, 0}, {-7, 3, 3, 14}, {4, -2, -7, -12},
-    {1, -1, 14, -1}, {-13, -5, 4, 11}, {-3, -14, 8, -5}, {4, 7, -5, -10},
-    {10, -11, -2, 9}, {-3, 2, 8, -6}, {-6, 6, 5, -6}, {-9, 5, 6, 5},
-    {11, -7, -4, -6}, {9, 7, -7, 10}, {-6, -13, 12, 4}, {-6, 1, 9, 3},
-    {11, 5, -5, -6}, {-9, 8, 11, 0}, {12, -5, -12, 0}, {12, 8, 13, -5},
-    {-10, -8, -7, 5}, {3, -9, 4, 14}, {-5, 10, -4, -9}, {-8, 1, -14, 4},
-    {-5, -11, -3, 1}, {-6, 9, -4, 5}, {8, 2, 9, 5}, {7, 6, 8, 9},
-    {-1, 1, 0, -10}, {-7, 3, -6, 1}, {-14, -5, -8, 11}, {9, 4, 11, 3},
-    {10, -1, 11, -3}, {-4, 1, -3, -2}, {2, 13, 3, -3}, {-7, -9, -5, -9},
-    {-10, -11, -11, 2}, {-10, -4, -10, -2}, {2, -1, 4, 10}, {-5, -12, -2, -13},
-    {1, -4, 2, -6}, {-7, 5, -9, 1}, {-8, 9, -9, 4}, {0, 8, 3, -13},
-    {1, -7, 3, 4}, {3, 5, 6, -9}, {-6, 1, -3, 13}, {5, -14, 7, 0},
-    {5, 8, 7, 8}, {-4, -3, -2, -3}, {-2, 6, -6, -8}, {-8, 11, -1, 13},
-    {4, 11, 7, -4}, {13, -7, 11, -7}, {3, -11, 0, 15}, {2, -11, 4, -10},
-    {1, -13, 0, -11}, {4, -1, 6, -1}, {5, 3, 13, -3}, {7, -12, 2, 0},
-    {0, -15, 4, -1}, {-1, 2, 5, 14}, {14, 1, 8, 9}, {0, -14, -4, 3},
-    {0, -7, -7, 13}, {-4, -6, 1, 3}, {-1, -14, -11, -5}, {-2, -12, 4, -14},
-    {3, -1, 11, 10}, {4, -7, 12, 5}, {5, -4, 4, -6}, {-11, 0, 0, -5},
-    {-4, 12, 3, -14}, {0, 11, 6, 2}, {-10, 8, 1, -10}, {0, 5, -2, 6},
-    {-1, -5, 5, -10}, {1, -6, -4, 4}, {-5, -5, 2, -6}, {5, -3, 0, 7},
-    {7, 12, 0, 15}, {9, 3, 4, 3}, {-1, -3, 6, 8}, {2, 8, 12, 0},
-    {9, -8, 3, -14}, {-1, 0, 7, 0}, {1, -8, 10, -2}, {-1, -10, 11, 10},
+    {-7, 0, -8, 8},     {6, -4, 8, 10},      {-8, 3, -7, -4},    {7, 2, 8, -7},      {-2, -3, -2, -13},
+    {3, -10, 3, 1},     {-1, -3, -1, 1},     {-2, 13, -1, -9},   {-8, -11, -6, -8},  {11, 4, 13, 1},
+    {-1, 4, -1, -1},    {-7, 12, -5, 9},     {-7, -4, -7, -7},   {-9, 2, -7, 2},     {4, 12, 4, 5},
+    {-12, -3, -14, 4},  {-10, -10, -8, -11}, {9, 8, 11, 9},      {7, -9, 7, -5},     {-11, 0, -14, -3},
+    {4, -13, 4, -9},    {-3, 4, -3, 7},      {12, -9, 13, -7},   {-8, 8, -7, 10},    {4, 11, 5, 13},
+    {2, 8, 2, -6},      {11, -2, 14, -5},    {12, -2, 14, 4},    {-3, 11, -2, 13},   {-13, -7, -13, -2},
+    {6, -10, 9, -12},   {-2, -10, 0, -11},   {5, 5, 7, 0},       {6, -1, 8, -1},     {-6, 1, -3, 1},
+    {-3, -3, -1, -6},   {13, 7, 12, 9},      {-8, -6, -1, 11},   {0, -15, -7, 11},   {0, 7, 3, 7},
+    {-5, -14, 2, 11},   {8, 12, 6, 12},      {0, 12, 6, -9},     {5, -4, 2, -4},     {1, -13, 10, 4},
+    {4, -5, -12, 6},    {5, 2, -7, -4},      {-8, -10, 7, 12},   {7, -13, -6, 4},    {-11, 10, 12, -7},
+    {-13, -6, 9, -5},   {-14, 0, 13, 6},     {-8, -7, 12, 1},    {-10, 3, 9, -1},    {-14, 4, -11, 10},
+    {-5, 7, -6, -13},   {-12, -8, -11, -10}, {-10, 6, -11, 8},   {11, 7, 11, 4},     {1, -13, 2, 13},
+    {-2, -11, -2, -14}, {9, -12, 11, -10},   {-4, -4, -4, -2},   {-1, -11, 1, 6},    {4, -2, 5, 1},
+    {-6, 7, -2, -6},    {14, -1, 10, -4},    {7, 13, 12, -4},    {1, 8, 0, 5},       {1, -4, 0, -6},
+    {5, 4, 4, 2},       {11, 5, 7, 3},       {2, 5, -1, 2},      {2, 14, 0, 13},     {12, -9, 2, 3},
+    {-3, -6, 4, 11},    {-5, 14, 6, -4},     {-3, -1, 11, 8},    {11, -4, -4, 7},    {-10, -1, 8, 9},
+    {9, 6, -10, -8},    {-14, -2, -9, -5},   {-12, -1, -9, 4},   {-10, 11, -8, -10}, {0, 0, 0, 15},
+    {-13, 7, -7, 9},    {5, 7, 5, 3},        {-9, -5, -6, -3},   {-5, -5, -5, 14},   {-3, 8, -3, 10},
+    {-13, 3, -13, 5},   {3, -7, 4, -10},     {-6, -10, -4, -13}, {6, -5, 7, -3},     {4, 10, 7, -13},
+    {-4, -7, -2, -6},   {-1, 14, 1, 11},     {8, -5, 12, -4},    {-7, 7, -3, 7},     {-4, 3, -5, -1},
+    {-10, 2, -4, -12},  {4, 5, 6, 7},        {0, -15, 2, -13},   {4, -10, 6, -10},   {3, 13, 6, 9},
+    {-3, 1, -1, 1},     {-1, 1, 1, -1},      {3, 4, 5, 3},       {-11, -9, 1, 4},    {4, -9, -1, 5},
+    {7, 12, 1, -9},     {-2, -8, 7, 5},      {3, -13, -9, 1},    {-8, 11, 5, -10},   {15, 0, -2, 13},
+    {9, 10, -4, -14},   {6, -8, -9, -2},     {-14, 5, 12, -1},   {-7, 6, 14, 4},     {-11, 4, 9, -9},
+    {14, -3, -7, -1},   {-11, -2, 10, 2},    {8, -3, 9, 0},      {11, -9, 11, 0},    {-4, 5, -3, 2},
+    {-2, 10, -1, -14},  {-11, -6, -12, -8},  {-7, -7, -6, -11},  {-2, -7, -1, 8},    {-6, 3, -5, 5},
+    {10, 11, 9, 7},     {1, -5, 1, -9},      {-3, 4, -2, -9},    {3, 2, 3, 0},       {-1, 9, 0, 7},
+    {-9, -3, -6, -5},   {4, -3, 5, -6},      {-12, 9, -3, -2},   {5, 0, 6, -2},      {-9, -12, -4, 13},
+    {1, 6, 2, 3},       {5, -11, 7, 7},      {1, -9, 1, -11},    {-4, 2, -8, -4},    {6, 9, 8, 6},
+    {-3, -8, -4, -10},  {2, 13, 1, 9},       {1, -1, 3, -4},     {-3, 13, 0, 13},    {-1, -10, 1, -8},
+    {-6, 13, -7, 10},   {14, 5, 10, 4},      {-3, 7, -1, 8},     {9, -1, 8, 3},      {-3, -2, 0, 11},
+    {8, -7, 8, -12},    {1, -4, -2, 10},     {5, -5, 10, -7},    {13, 5, 9, -12},    {4, 7, 2, -14},
+    {-2, 14, -14, 2},   {9, 3, 7, 0},        {-1, -9, -3, -6},   {-4, 8, 1, -10},    {0, -4, 2, -4},
+    {5, -5, 3, -11},    {0, 15, -5, -9},     {11, -4, 6, -11},   {-6, 0, 1, 6},      {-8, 9, 2, 0},
+    {-7, 3, 3, 14},     {4, -2, -7, -12},    {1, -1, 14, -1},    {-13, -5, 4, 11},   {-3, -14, 8, -5},
+    {4, 7, -5, -10},    {10, -11, -2, 9},    {-3, 2, 8, -6},     {-6, 6, 5, -6},     {-9, 5, 6, 5},
+    {11, -7, -4, -6},   {9, 7, -7, 10},      {-6, -13, 12, 4},   {-6, 1, 9, 3},      {11, 5, -5, -6},
+    {-9, 8, 11, 0},     {12, -5, -12, 0},    {12, 8, 13, -5},    {-10, -8, -7, 5},   {3, -9, 4, 14},
+    {-5, 10, -4, -9},   {-8, 1, -14, 4},     {-5, -11, -3, 1},   {-6, 9, -4, 5},     {8, 2, 9, 5},
+    {7, 6, 8, 9},       {-1, 1, 0, -10},     {-7, 3, -6, 1},     {-14, -5, -8, 11},  {9, 4, 11, 3},
+    {10, -1, 11, -3},   {-4, 1, -3, -2},     {2, 13, 3, -3},     {-7, -9, -5, -9},   {-10, -11, -11, 2},
+    {-10, -4, -10, -2}, {2, -1, 4, 10},      {-5, -12, -2, -13}, {1, -4, 2, -6},     {-7, 5, -9, 1},
+    {-8, 9, -9, 4},     {0, 8, 3, -13},      {1, -7, 3, 4},      {3, 5, 6, -9},      {-6, 1, -3, 13},
+    {5, -14, 7, 0},     {5, 8, 7, 8},        {-4, -3, -2, -3},   {-2, 6, -6, -8},    {-8, 11, -1, 13},
+    {4, 11, 7, -4},     {13, -7, 11, -7},    {3, -11, 0, 15},    {2, -11, 4, -10},   {1, -13, 0, -11},
+    {4, -1, 6, -1},     {5, 3, 13, -3},      {7, -12, 2, 0},     {0, -15, 4, -1},    {-1, 2, 5, 14},
+    {14, 1, 8, 9},      {0, -14, -4, 3},     {0, -7, -7, 13},    {-4, -6, 1, 3},     {-1, -14, -11, -5},
+    {-2, -12, 4, -14},  {3, -1, 11, 10},     {4, -7, 12, 5},     {5, -4, 4, -6},     {-11, 0, 0, -5},
+    {-4, 12, 3, -14},   {0, 11, 6, 2},       {-10, 8, 1, -10},   {0, 5, -2, 6},      {-1, -5, 5, -10},
+    {1, -6, -4, 4},     {-5, -5, 2, -6},     {5, -3, 0, 7},      {7, 12, 0, 15},     {9, 3, 4, 3},
+    {-1, -3, 6, 8},     {2, 8, 12, 0},       {9, -8, 3, -14},    {-1, 0, 7, 0},      {1, -8, 10, -2},
+    {-1, -10, 11, 10},
 };
 
 }  // namespace
@@ -571,8 +812,8 @@ BriefPattern GaussianBriefPairs(uint64_t seed, int count, double sigma) {
     if ((x1 - x2) * (x1 - x2) + (y1 - y2) * (y1 - y2) < 4) continue;
     const int k = key(x1, y1, x2, y2);
     if (!seen.insert(k).second) continue;
-    pattern.push_back({static_cast<int8_t>(x1), static_cast<int8_t>(y1), static_cast<int8_t>(x2),
-                       static_cast<int8_t>(y2)});
+    pattern.push_back(
+        {static_cast<int8_t>(x1), static_cast<int8_t>(y1), static_cast<int8_t>(x2), static_cast<int8_t>(y2)});
   }
   return pattern;
 }
@@ -587,11 +828,10 @@ const BriefPattern& LearnedBriefPattern() {
 }
 
 bool OrbOptions::Check() const {
-  return features >= 1 && levels >= 1 && levels <= 32 && (scale_factor > 1.f || levels == 1) &&
-         fast_threshold >= 1 && fast_threshold <= 127 && min_fast_threshold >= 1 &&
-         min_fast_threshold <= fast_threshold &&
-         cell_size >= 8 && edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000 && blur_sigma >= 0 &&
-         blur_kernel >= 1 && blur_kernel % 2 == 1 && blur_kernel <= 31;
+  return features >= 1 && levels >= 1 && levels <= 32 && (scale_factor > 1.f || levels == 1) && fast_threshold >= 1 &&
+         fast_threshold <= 127 && min_fast_threshold >= 1 && min_fast_threshold <= fast_threshold && cell_size >= 8 &&
+         edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000 && blur_sigma >= 0 && blur_kernel >= 1 &&
+         blur_kernel % 2 == 1 && blur_kernel <= 31;
 }
 
 void FastScores(const cv::Mat& gray, cv::Mat* scores) {
@@ -600,7 +840,8 @@ void FastScores(const cv::Mat& gray, cv::Mat* scores) {
   scores->create(gray.size(), CV_8UC1);
   scores->setTo(0);
   if (gray.cols < 7 || gray.rows < 7) return;
-  ComputeFastScores(gray, 3, 3, gray.cols - 3, gray.rows - 3, scores->ptr<uint8_t>(3) + 3, scores->step1());
+  ComputeFastScores(HasAvx2(), gray, 3, 3, gray.cols - 3, gray.rows - 3, 0, scores->ptr<uint8_t>(3) + 3,
+                    scores->step1());
 }
 
 Eigen::Vector2f ImagePyramid::ToLevel(const Eigen::Vector2f& uv0, int level) const {
@@ -618,21 +859,22 @@ Eigen::Vector2f ImagePyramid::FromLevel(const Eigen::Vector2f& uv, int level) co
 OrbExtractor::OrbExtractor(const OrbOptions& options)
     : options_(options), scales_(ScalePyramid::Make(options.levels, options.scale_factor)) {
   FLATSLAM_CHECK(options.Check(), "OrbExtractor: invalid OrbOptions (features ", options.features, ", levels ",
-                 options.levels, ", scale_factor ", options.scale_factor, ", thresholds ", options.fast_threshold,
-                 "/", options.min_fast_threshold, ", edge_margin ", options.edge_margin, ")");
+                 options.levels, ", scale_factor ", options.scale_factor, ", thresholds ", options.fast_threshold, "/",
+                 options.min_fast_threshold, ", edge_margin ", options.edge_margin, ")");
   std::vector<double> weights;
   for (int i = 0; i < options.levels; ++i) {
     weights.push_back(options.budget_by_area ? scales_.inv_sigma2[i] : scales_.inv_scale[i]);
   }
   level_budget_ = Apportion(options.features, weights);
-  pattern_ = options.pattern_seed == 0 ? LearnedBriefPattern() : GaussianBriefPairs(options.pattern_seed, kDescriptorBits);
+  pattern_ =
+      options.pattern_seed == 0 ? LearnedBriefPattern() : GaussianBriefPairs(options.pattern_seed, kDescriptorBits);
   // Disc u^2 + v^2 <= (r + 1/2)^2: symmetric under 90-degree rotations and mirroring.
   const int r = kOrientationRadius;
   orientation_weights_.assign((2 * r + 1) * 64, 0);
   for (int v = -r; v <= r; ++v) {
     for (int u = -r; u <= r; ++u) {
       if (u * u + v * v > (r + 0.5) * (r + 0.5)) continue;
-      orientation_weights_[(v + r) * 64 + (u + r)] = static_cast<int16_t>(u);
+      orientation_weights_[(v + r) * 64 + (u + r)] = static_cast<int8_t>(u);
       orientation_weights_[(v + r) * 64 + 32 + (u + r)] = 1;
     }
   }
@@ -643,6 +885,8 @@ void OrbExtractor::BuildPyramid(const cv::Mat& gray, ImagePyramid* pyramid) cons
   FLATSLAM_CHECK(!gray.empty(), "OrbExtractor: empty image");
   FLATSLAM_CHECK(gray.type() == CV_8UC1, "OrbExtractor: image must be CV_8UC1 (gray), got type ", gray.type());
   FLATSLAM_CHECK(pyramid != nullptr, "OrbExtractor: null pyramid");
+  FLATSLAM_CHECK(gray.cols < 32768 && gray.rows < 32768, "OrbExtractor: image too large (", gray.cols, "x", gray.rows,
+                 "), at most 32767 pixels a side");
   pyramid->levels.resize(options_.levels);
   pyramid->levels[0] = gray;
   for (int i = 1; i < options_.levels; ++i) {
@@ -661,13 +905,14 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
   FLATSLAM_CHECK(out != nullptr, "OrbExtractor: null output");
   BuildPyramid(gray, pyramid);
   const int levels = options_.levels;
+  const bool avx2 = options_.use_avx2 && HasAvx2();
   std::vector<LevelResult> results(levels);
 
   // 1. Candidates per level.
   tbb::parallel_for(tbb::blocked_range<int>(0, levels, 1), [&](const tbb::blocked_range<int>& range) {
     Scratch scratch;
     for (int l = range.begin(); l != range.end(); ++l) {
-      DetectCorners(pyramid->levels[l], options_, &scratch, &results[l].corners);
+      DetectCorners(avx2, pyramid->levels[l], options_, &scratch, &results[l].corners);
     }
   });
 
@@ -692,12 +937,9 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
   }
 
   // 3. Spread, orientation and descriptors per level.
-  std::array<float, kDescriptorBits> px1, py1, px2, py2;
+  PatternColumns pattern;
   for (int k = 0; k < kDescriptorBits; ++k) {
-    px1[k] = pattern_[k][0];
-    py1[k] = pattern_[k][1];
-    px2[k] = pattern_[k][2];
-    py2[k] = pattern_[k][3];
+    for (int j = 0; j < 4; ++j) pattern.v[j][k] = pattern_[k][j];
   }
   const int m = options_.edge_margin;
   tbb::parallel_for(tbb::blocked_range<int>(0, levels, 1), [&](const tbb::blocked_range<int>& range) {
@@ -706,24 +948,20 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
     for (int l = range.begin(); l != range.end(); ++l) {
       LevelResult& r = results[l];
       const cv::Mat& img = pyramid->levels[l];
-      Distribute(r.corners, static_cast<float>(m), static_cast<float>(m), static_cast<float>(img.cols - m),
-                 static_cast<float>(img.rows - m), take[l], &kept);
+      Distribute(&r.corners, static_cast<float>(m), static_cast<float>(m), static_cast<float>(img.cols - m),
+                 static_cast<float>(img.rows - m), take[l], &scratch.nodes, &scratch.next_nodes, &scratch.sort_buffer,
+                 &kept);
       r.corners.swap(kept);
       r.angle.resize(r.corners.size());
       r.descriptor.resize(r.corners.size());
       if (r.corners.empty()) continue;
-      for (size_t i = 0; i < r.corners.size(); ++i) {
-        r.angle[i] = CentroidAngle(img, r.corners[i].x, r.corners[i].y, orientation_weights_.data());
-      }
       cv::Mat blurred = img;
       if (blur_taps_.size() > 1) {
-        Blur(img, blur_taps_, &scratch.blurred, &scratch.blur_row, &scratch.blur_acc);
+        Blur(avx2, img, blur_taps_, &scratch.blurred, &scratch.blur_row);
         blurred = scratch.blurred;
       }
-      for (size_t i = 0; i < r.corners.size(); ++i) {
-        r.descriptor[i] = SteeredBrief(blurred, r.corners[i].x, r.corners[i].y, r.angle[i], px1.data(), py1.data(),
-                                       px2.data(), py2.data());
-      }
+      DescribeCorners(avx2, img, blurred, r.corners, orientation_weights_.data(), pattern, r.angle.data(),
+                      r.descriptor.data());
     }
   });
 
@@ -739,7 +977,7 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
       out->uv[k] = pyramid->FromLevel(Eigen::Vector2f(r.corners[i].x, r.corners[i].y), l);
       out->angle[k] = r.angle[i];
       out->octave[k] = static_cast<uint8_t>(l);
-      out->response[k] = r.corners[i].response;
+      out->response[k] = r.corners[i].score;
       out->descriptor[k] = r.descriptor[i];
     }
   }

@@ -42,19 +42,20 @@ inline constexpr int kLearnedPatternPoolSize = 40000;
 void FastScores(const cv::Mat& gray, cv::Mat* scores);
 
 struct OrbOptions {
-  int features = 1000;           // keypoints per image over all levels
-  float scale_factor = 1.2f;     // between consecutive pyramid levels
-  int levels = 8;                // pyramid levels
-  int fast_threshold = 20;       // FAST threshold (grey levels, 1..127)
-  int min_fast_threshold = 7;    // used in a grid cell where fast_threshold finds nothing
-  int cell_size = 30;            // pixels (at each level) of a FAST grid cell, about
-  int edge_margin = 19;          // pixels (at each level) kept free at the border, >= 16 (radius 15 disc)
+  int features = 1000;         // keypoints per image over all levels
+  float scale_factor = 1.2f;   // between consecutive pyramid levels
+  int levels = 8;              // pyramid levels
+  int fast_threshold = 20;     // FAST threshold (grey levels, 1..127)
+  int min_fast_threshold = 7;  // used in a grid cell where fast_threshold finds nothing
+  int cell_size = 30;          // pixels (at each level) of a FAST grid cell, about
+  int edge_margin = 19;        // pixels (at each level) kept free at the border, >= 16 (radius 15 disc)
   // false: level i gets a share proportional to 1/scale_factor^i (ORB-SLAM2's series, level 0
   // gets 21.7% at 1.2 x 8); true: proportional to the level's area, 1/scale_factor^(2i) (32.3%).
   bool budget_by_area = false;
-  double blur_sigma = 2.0;       // Gaussian blur before the BRIEF tests (pixels)
-  int blur_kernel = 7;           // odd kernel size of that blur
-  uint64_t pattern_seed = 0;     // 0 = LearnedBriefPattern(); else 256 GaussianBriefPairs(seed)
+  double blur_sigma = 2.0;    // Gaussian blur before the BRIEF tests (pixels)
+  int blur_kernel = 7;        // odd kernel size of that blur
+  uint64_t pattern_seed = 0;  // 0 = LearnedBriefPattern(); else 256 GaussianBriefPairs(seed)
+  bool use_avx2 = true;       // where the CPU has it; false forces the baseline kernels (same output)
 
   [[nodiscard]] bool Check() const;
 };
@@ -98,8 +99,8 @@ class OrbExtractor {
   ScalePyramid scales_;
   std::vector<int> level_budget_;
   BriefPattern pattern_;
-  std::vector<int16_t> orientation_weights_;  // per disc row: column weights u, then membership
-  std::vector<uint16_t> blur_taps_;           // integer Gaussian, sum 256
+  std::vector<int8_t> orientation_weights_;  // per disc row: column weights u, then membership
+  std::vector<uint16_t> blur_taps_;          // integer Gaussian, sum 256
 };
 
 }  // namespace flatslam

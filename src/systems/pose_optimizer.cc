@@ -98,9 +98,16 @@ template <int kResiduals>
 class PoseCost final : public ceres::SizedCostFunction<kResiduals, detail::kPoseParameterSize> {
  public:
   PoseCost(const PinholeCamera& camera, double bf, const PoseObservation& obs, const uint8_t* active)
-      : fx_(camera.fx), fy_(camera.fy), cx_(camera.cx), cy_(camera.cy), bf_(bf),
-        X_(obs.X_world), uv_(obs.uv), right_u_(obs.right_u),
-        sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))), active_(active) {}
+      : fx_(camera.fx),
+        fy_(camera.fy),
+        cx_(camera.cx),
+        cy_(camera.cy),
+        bf_(bf),
+        X_(obs.X_world),
+        uv_(obs.uv),
+        right_u_(obs.right_u),
+        sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))),
+        active_(active) {}
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
     Eigen::Map<Eigen::Matrix<double, kResiduals, 1>> r(residuals);
@@ -231,7 +238,6 @@ PoseOptimizationResult OptimizePose(const PinholeCamera& camera, double baseline
     }
     ceres::Solver::Summary summary;
     ceres::Solve(solver_options, &problem, &summary);
-    if (getenv("CERES_DEBUG")) fprintf(stderr, "%s\n", summary.FullReport().c_str());
     if (summary.termination_type == ceres::FAILURE || !summary.IsSolutionUsable()) return result;
     T = detail::ParametersToPose(pose.data());
     // Every observation is re-classified, so a point rejected early can come back.

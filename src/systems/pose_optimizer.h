@@ -27,24 +27,24 @@ struct PoseObservation {
 };
 
 struct PoseOptimizerOptions {
-  int rounds = 4;                     // optimize / classify rounds
-  int iterations_per_round = 10;      // Levenberg-Marquardt iterations per round
-  double chi2_mono = 5.991;           // outlier gate, 2 DoF at 95%
-  double chi2_stereo = 7.815;         // outlier gate, 3 DoF at 95%
-  double huber_mono = std::sqrt(5.991);    // Huber delta on the whitened residual
+  int rounds = 4;                        // optimize / classify rounds
+  int iterations_per_round = 10;         // Levenberg-Marquardt iterations per round
+  double chi2_mono = 5.991;              // outlier gate, 2 DoF at 95%
+  double chi2_stereo = 7.815;            // outlier gate, 3 DoF at 95%
+  double huber_mono = std::sqrt(5.991);  // Huber delta on the whitened residual
   double huber_stereo = std::sqrt(7.815);
-  bool robust_last_round = false;     // ORB-SLAM2 drops the robust kernel in the last round
-  int min_observations = 3;           // fewer active observations = failure
+  bool robust_last_round = false;  // ORB-SLAM2 drops the robust kernel in the last round
+  int min_observations = 3;        // fewer active observations = failure
 
   [[nodiscard]] bool Check() const;
 };
 
 struct PoseOptimizationResult {
   Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();
-  std::vector<bool> inlier;           // per observation, after the last round
+  std::vector<bool> inlier;  // per observation, after the last round
   int num_inliers = 0;
-  bool success = false;               // false: too few observations or the solver failed;
-                                      // T_cam_world is then the initial pose
+  bool success = false;  // false: too few observations or the solver failed;
+                         // T_cam_world is then the initial pose
 };
 
 // Refines T_cam_world_initial. baseline_m is used for stereo observations only (may be 0 when

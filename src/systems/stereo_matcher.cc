@@ -7,28 +7,112 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 
 #include "core/error.h"
 
 namespace flatslam {
 namespace {
 
-// Zero-mean SAD of two (2w+1)^2 patches, both scaled by the pixel count n to stay in integers:
-// sum |n*L - sum(L) - (n*R - sum(R))|.
-int ZeroMeanSad(const int* left_scaled, const uint8_t* right_top_left, size_t right_step, int w) {
+// Zero-mean SAD of the (2w+1)^2 left patch around (xl, yl) against the right windows centred on
+// (xr_begin + k, yl), k in [0, count), all on one pyramid level. With n pixels and patch sums
+// S_L, S_R, each pixel adds |n (L - R) - (S_L - S_R)| (= n |(L - mean_L) - (R - mean_R)|, in
+// integers), capped at 32767 so that 16-bit lanes hold it; the cap only touches pixels whose
+// mean-free difference exceeds 32767 / n grey levels (270 for the default 11 x 11).
+void ZeroMeanSadsBaseline(const cv::Mat& limg, int xl, int yl, const cv::Mat& rimg, int xr_begin, int count, int w,
+                          int* sads) {
   const int side = 2 * w + 1, n = side * side;
-  int sum = 0;
+  int left_sum = 0;
   for (int r = 0; r < side; ++r) {
-    const uint8_t* row = right_top_left + r * right_step;
-    for (int c = 0; c < side; ++c) sum += row[c];
+    const uint8_t* row = limg.ptr<uint8_t>(yl - w + r) + xl - w;
+    for (int c = 0; c < side; ++c) left_sum += row[c];
   }
-  int sad = 0;
+  for (int k = 0; k < count; ++k) {
+    const int x0 = xr_begin + k - w;
+    int right_sum = 0;
+    for (int r = 0; r < side; ++r) {
+      const uint8_t* row = rimg.ptr<uint8_t>(yl - w + r) + x0;
+      for (int c = 0; c < side; ++c) right_sum += row[c];
+    }
+    const int offset = left_sum - right_sum;
+    int sad = 0;
+    for (int r = 0; r < side; ++r) {
+      const uint8_t* lrow = limg.ptr<uint8_t>(yl - w + r) + xl - w;
+      const uint8_t* rrow = rimg.ptr<uint8_t>(yl - w + r) + x0;
+      for (int c = 0; c < side; ++c) sad += std::min(std::abs(n * (lrow[c] - rrow[c]) - offset), 32767);
+    }
+    sads[k] = sad;
+  }
+}
+
+#if defined(__x86_64__) || defined(__i386__)
+// The same sums in 16-bit lanes, one patch row per step. Needs n * 255 < 32768 (2w+1 <= 11) and
+// 16 readable bytes from every window's and the patch's left column.
+__attribute__((target("avx2"))) void ZeroMeanSadsAvx2(const cv::Mat& limg, int xl, int yl, const cv::Mat& rimg,
+                                                      int xr_begin, int count, int w, int* sads) {
+  const int side = 2 * w + 1, n = side * side;
+  alignas(32) int16_t lane_mask_values[16];
+  for (int c = 0; c < 16; ++c) lane_mask_values[c] = c < side ? -1 : 0;
+  const __m256i lane_mask = _mm256_load_si256(reinterpret_cast<const __m256i*>(lane_mask_values));
+  const __m256i n16 = _mm256_set1_epi16(static_cast<int16_t>(n)), ones = _mm256_set1_epi16(1);
+  __m256i left_rows[32];  // n * L per patch row
+  int left_sum = 0;
   for (int r = 0; r < side; ++r) {
-    const uint8_t* row = right_top_left + r * right_step;
-    const int* lrow = left_scaled + r * side;
-    for (int c = 0; c < side; ++c) sad += std::abs(lrow[c] - (n * row[c] - sum));
+    const uint8_t* row = limg.ptr<uint8_t>(yl - w + r) + xl - w;
+    const __m256i v =
+        _mm256_and_si256(_mm256_cvtepu8_epi16(_mm_loadu_si128(reinterpret_cast<const __m128i*>(row))), lane_mask);
+    left_rows[r] = _mm256_mullo_epi16(v, n16);
+    for (int c = 0; c < side; ++c) left_sum += row[c];
   }
-  return sad;
+  // Column sums of the right band, then window sums by sliding.
+  int column_sum[64 * 2 + 32];
+  const int first_column = xr_begin - w, columns = count + 2 * w;
+  for (int c = 0; c < columns; ++c) column_sum[c] = 0;
+  for (int r = 0; r < side; ++r) {
+    const uint8_t* row = rimg.ptr<uint8_t>(yl - w + r) + first_column;
+    for (int c = 0; c < columns; ++c) column_sum[c] += row[c];
+  }
+  int window_sum = 0;
+  for (int c = 0; c < side; ++c) window_sum += column_sum[c];
+  for (int k = 0; k < count; ++k) {
+    if (k > 0) window_sum += column_sum[k + side - 1] - column_sum[k - 1];
+    const __m256i offset = _mm256_set1_epi16(static_cast<int16_t>(left_sum - window_sum));
+    __m256i acc = _mm256_setzero_si256();
+    for (int r = 0; r < side; ++r) {
+      const uint8_t* row = rimg.ptr<uint8_t>(yl - w + r) + first_column + k;
+      const __m256i v = _mm256_cvtepu8_epi16(_mm_loadu_si128(reinterpret_cast<const __m128i*>(row)));
+      // n (L - R) - offset with saturation; |.| of -32768 is 32767 after the min below.
+      const __m256i d = _mm256_subs_epi16(_mm256_sub_epi16(left_rows[r], _mm256_mullo_epi16(v, n16)), offset);
+      const __m256i a = _mm256_and_si256(_mm256_min_epu16(_mm256_abs_epi16(d), _mm256_set1_epi16(32767)), lane_mask);
+      acc = _mm256_add_epi32(acc, _mm256_madd_epi16(a, ones));
+    }
+    alignas(32) int lanes[8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(lanes), acc);
+    sads[k] = lanes[0] + lanes[1] + lanes[2] + lanes[3] + lanes[4] + lanes[5] + lanes[6] + lanes[7];
+  }
+}
+
+#endif
+
+bool HasAvx2() {
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2");
+#else
+  return false;
+#endif
+}
+
+void ZeroMeanSads(bool avx2, const cv::Mat& limg, int xl, int yl, const cv::Mat& rimg, int xr_begin, int count, int w,
+                  int* sads) {
+#if defined(__x86_64__) || defined(__i386__)
+  if (avx2 && 2 * w + 1 <= 11 && xl - w + 16 <= limg.cols && xr_begin + count - 1 - w + 16 <= rimg.cols) {
+    return ZeroMeanSadsAvx2(limg, xl, yl, rimg, xr_begin, count, w, sads);
+  }
+#endif
+  ZeroMeanSadsBaseline(limg, xl, yl, rimg, xr_begin, count, w, sads);
 }
 
 }  // namespace
@@ -94,10 +178,9 @@ StereoStats MatchStereo(const Keypoints& right, const ImagePyramid& left_pyramid
   std::vector<uint8_t> stage(n_left, 0);
   std::vector<int> sad_score(n_left, std::numeric_limits<int>::max());
   const int w = options.sad_half_window, search = options.sad_search_radius;
-  const int side = 2 * w + 1, n_pixels = side * side;
+  const bool avx2 = options.use_avx2 && HasAvx2();
 
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n_left, 64), [&](const tbb::blocked_range<size_t>& range) {
-    std::vector<int> left_scaled(n_pixels);
     std::vector<int> sads(2 * search + 1);
     for (size_t i = range.begin(); i != range.end(); ++i) {
       const float ul = left->uv[i].x(), vl = left->uv[i].y();
@@ -126,27 +209,16 @@ StereoStats MatchStereo(const Keypoints& right, const ImagePyramid& left_pyramid
       const cv::Mat& rimg = right_pyramid.levels[level];
       const Eigen::Vector2f pl = left_pyramid.ToLevel(left->uv[i], level);
       const int xl = static_cast<int>(std::lround(pl.x())), yl = static_cast<int>(std::lround(pl.y()));
-      const int xr0 = static_cast<int>(
-          std::lround(right_pyramid.ToLevel(Eigen::Vector2f(right.uv[best].x(), vl), level).x()));
+      const int xr0 =
+          static_cast<int>(std::lround(right_pyramid.ToLevel(Eigen::Vector2f(right.uv[best].x(), vl), level).x()));
       if (yl - w < 0 || yl + w >= limg.rows || xl - w < 0 || xl + w >= limg.cols) continue;
       if (xr0 - search - w < 0 || xr0 + search + w >= rimg.cols) continue;
 
-      int left_sum = 0;
-      for (int r = 0; r < side; ++r) {
-        const uint8_t* row_ptr = limg.ptr<uint8_t>(yl - w + r) + xl - w;
-        for (int c = 0; c < side; ++c) left_sum += row_ptr[c];
-      }
-      for (int r = 0; r < side; ++r) {
-        const uint8_t* row_ptr = limg.ptr<uint8_t>(yl - w + r) + xl - w;
-        for (int c = 0; c < side; ++c) left_scaled[r * side + c] = n_pixels * row_ptr[c] - left_sum;
-      }
+      ZeroMeanSads(avx2, limg, xl, yl, rimg, xr0 - search, 2 * search + 1, w, sads.data());
       int best_sad = std::numeric_limits<int>::max(), best_offset = 0;
       for (int k = -search; k <= search; ++k) {
-        const uint8_t* top_left = rimg.ptr<uint8_t>(yl - w) + (xr0 + k - w);
-        const int s = ZeroMeanSad(left_scaled.data(), top_left, rimg.step1(), w);
-        sads[k + search] = s;
-        if (s < best_sad) {
-          best_sad = s;
+        if (sads[k + search] < best_sad) {
+          best_sad = sads[k + search];
           best_offset = k;
         }
       }

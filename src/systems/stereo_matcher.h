@@ -20,6 +20,7 @@ struct StereoOptions {
   int sad_half_window = 5;        // SAD patch (2w+1)^2 on the left keypoint's pyramid level
   int sad_search_radius = 5;      // level pixels searched either side of the descriptor match
   float outlier_factor = 2.1f;    // drop matches whose SAD exceeds factor * median SAD (1.5 * 1.4)
+  bool use_avx2 = true;           // where the CPU has it; false forces the baseline kernels (same output)
 
   [[nodiscard]] bool Check() const;
 };

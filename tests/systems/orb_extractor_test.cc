@@ -23,9 +23,7 @@
 namespace flatslam {
 namespace {
 
-cv::Mat KittiImage() {
-  return ReadGrayImage(testing::DatasetsDir() / "kitti/sequences/07/image_0/000000.png");
-}
+cv::Mat KittiImage() { return ReadGrayImage(testing::DatasetsDir() / "kitti/sequences/07/image_0/000000.png"); }
 
 cv::Mat SyntheticImage(size_t frame = 40) {
   SyntheticOptions options;
@@ -62,10 +60,10 @@ int NearestDescriptor(const Descriptor& d, const Keypoints& b, int* distance) {
 }
 
 struct Repeatability {
-  int considered = 0;   // keypoints of a whose warped position lies well inside b
-  int detected = 0;     // of those, with a keypoint of b near the warped position at the expected octave
-  int correct = 0;      // nearest descriptor in b within 2 px (at its level) and at the expected octave
-  int angle_ok = 0;     // of the correct ones, angle difference within 10 degrees of the expected one
+  int considered = 0;  // keypoints of a whose warped position lies well inside b
+  int detected = 0;    // of those, with a keypoint of b near the warped position at the expected octave
+  int correct = 0;     // nearest descriptor in b within 2 px (at its level) and at the expected octave
+  int angle_ok = 0;    // of the correct ones, angle difference within 10 degrees of the expected one
 };
 
 // Matches a's keypoints to b's by brute force; `warp` maps a level-0 point of a to b,
@@ -245,6 +243,29 @@ TEST(OrbExtractor, FillsTheBudgetOnKitti) {
   }
 }
 
+TEST(OrbExtractor, AreaBudgetFavoursFineLevels) {
+  OrbOptions options;
+  options.budget_by_area = true;
+  const OrbExtractor orb(options);
+  EXPECT_NEAR(orb.level_budget()[0], 323, 1);  // 1000 (1 - 1.44^-1) / (1 - 1.44^-8)
+  for (int i = 1; i < 8; ++i) EXPECT_NEAR(orb.level_budget()[i] * 1.44, orb.level_budget()[i - 1], 2);
+}
+
+TEST(ImagePyramid, LevelCoordinatesRoundTrip) {
+  const OrbExtractor orb;
+  ImagePyramid pyramid;
+  orb.BuildPyramid(KittiImage(), &pyramid);
+  ASSERT_EQ(pyramid.levels.size(), 8u);
+  EXPECT_EQ(pyramid.levels[1].size(), cv::Size(1022, 308));
+  for (int l = 0; l < 8; ++l) {
+    const Eigen::Vector2f p(123.25f, 77.5f);
+    EXPECT_LT((pyramid.FromLevel(pyramid.ToLevel(p, l), l) - p).norm(), 1e-3f);
+  }
+  // Pixel centres align as in cv::resize: level pixel x covers level-0 [x s, (x + 1) s).
+  const float s = 1226.f / pyramid.levels[3].cols;
+  EXPECT_NEAR(pyramid.FromLevel(Eigen::Vector2f(0, 0), 3).x(), 0.5f * s - 0.5f, 1e-4f);
+}
+
 TEST(OrbExtractor, FillsTheBudgetOnSyntheticFrames) {
   const OrbExtractor orb = MakeExtractor(1000);
   Keypoints kps;
@@ -329,6 +350,19 @@ void ExpectValidPattern(const BriefPattern& pattern, size_t size) {
   }
 }
 
+TEST(OrbExtractor, VectorAndBaselineKernelsAgree) {
+  // The AVX2 kernels (used where the CPU has them) against the portable baseline ones.
+  OrbOptions baseline;
+  baseline.features = 2000;
+  baseline.use_avx2 = false;
+  Keypoints fast, reference;
+  for (const cv::Mat& img : {KittiImage(), SyntheticImage()}) {
+    MakeExtractor(2000).Extract(img, &fast);
+    OrbExtractor(baseline).Extract(img, &reference);
+    ExpectIdentical(fast, reference);
+  }
+}
+
 TEST(OrbExtractor, PatternsAreValidAndSeeded) {
   const OrbExtractor orb;
   EXPECT_EQ(orb.pattern(), LearnedBriefPattern());
@@ -359,7 +393,8 @@ TEST(OrbExtractor, DescriptorBitsAreInformative) {
   EXPECT_GE(balanced, 190);
   double mean_distance = 0;
   int pairs = 0;
-  for (size_t i = 0; i + 1 < kps.size(); i += 2, ++pairs) mean_distance += Hamming(kps.descriptor[i], kps.descriptor[i + 1]);
+  for (size_t i = 0; i + 1 < kps.size(); i += 2, ++pairs)
+    mean_distance += Hamming(kps.descriptor[i], kps.descriptor[i + 1]);
   mean_distance /= pairs;
   std::printf("bits with 0.2 < mean < 0.8: %d, mean distance of unrelated pairs %.1f\n", balanced, mean_distance);
   EXPECT_GT(mean_distance, 98);
@@ -370,7 +405,8 @@ TEST(OrbExtractor, DescriptorBitsAreInformative) {
   Keypoints plain;
   OrbExtractor(g2).Extract(KittiImage(), &plain);
   double plain_distance = 0;
-  for (size_t i = 0; i + 1 < plain.size(); i += 2) plain_distance += Hamming(plain.descriptor[i], plain.descriptor[i + 1]);
+  for (size_t i = 0; i + 1 < plain.size(); i += 2)
+    plain_distance += Hamming(plain.descriptor[i], plain.descriptor[i + 1]);
   plain_distance /= pairs;
   std::printf("mean distance of unrelated pairs with a plain G II pattern: %.1f\n", plain_distance);
   EXPECT_GT(mean_distance, plain_distance + 5);
@@ -416,9 +452,10 @@ TEST(OrbExtractor, RepeatableUnderRotation) {
     const double correct = static_cast<double>(r.correct) / r.considered;
     const double score = static_cast<double>(r.correct) / std::max(1, r.detected);
     const double angle_ok = static_cast<double>(r.angle_ok) / std::max(1, r.correct);
-    std::printf("synthetic rotated %.0f deg: %d considered, %.1f%% re-detected, %.1f%% nearest descriptor correct "
-                "(%.1f%% of re-detected), %.1f%% of those with angle within 10 deg\n",
-                degrees, r.considered, 100.0 * r.detected / r.considered, 100 * correct, 100 * score, 100 * angle_ok);
+    std::printf(
+        "synthetic rotated %.0f deg: %d considered, %.1f%% re-detected, %.1f%% nearest descriptor correct "
+        "(%.1f%% of re-detected), %.1f%% of those with angle within 10 deg\n",
+        degrees, r.considered, 100.0 * r.detected / r.considered, 100 * correct, 100 * score, 100 * angle_ok);
     EXPECT_GT(r.considered, 200);
     EXPECT_GT(correct, 0.38) << degrees;
     EXPECT_GT(score, 0.85) << degrees;
@@ -437,12 +474,15 @@ TEST(OrbExtractor, RepeatableUnderExactQuarterTurnOnKitti) {
   orb.Extract(turned, &b);
   const float w = static_cast<float>(img.cols);
   const Repeatability r = Measure(
-      a, b, orb.scales(), turned.size(), [&](const Eigen::Vector2f& p) { return Eigen::Vector2f(p.y(), w - 1 - p.x()); },
+      a, b, orb.scales(), turned.size(),
+      [&](const Eigen::Vector2f& p) { return Eigen::Vector2f(p.y(), w - 1 - p.x()); },
       [&](float angle) { return static_cast<float>(angle - M_PI / 2); }, 0);
   const double correct = static_cast<double>(r.correct) / r.considered;
   const double angle_ok = static_cast<double>(r.angle_ok) / std::max(1, r.correct);
-  std::printf("KITTI quarter turn: %d considered, %.1f%% re-detected, %.1f%% correct, %.1f%% with angle within 10 "
-              "deg\n", r.considered, 100.0 * r.detected / r.considered, 100 * correct, 100 * angle_ok);
+  std::printf(
+      "KITTI quarter turn: %d considered, %.1f%% re-detected, %.1f%% correct, %.1f%% with angle within 10 "
+      "deg\n",
+      r.considered, 100.0 * r.detected / r.considered, 100 * correct, 100 * angle_ok);
   EXPECT_GT(correct, 0.7);
   EXPECT_GT(static_cast<double>(r.correct) / r.detected, 0.95);
   EXPECT_GT(angle_ok, 0.95);
@@ -464,13 +504,16 @@ TEST(OrbExtractor, RepeatableUnderScaleChange) {
     orb.Extract(small, &b);
     const Repeatability r = Measure(
         a, b, scales, small.size(),
-        [&](const Eigen::Vector2f& p) { return Eigen::Vector2f((p.x() + 0.5f) / sx - 0.5f, (p.y() + 0.5f) / sy - 0.5f); },
+        [&](const Eigen::Vector2f& p) {
+          return Eigen::Vector2f((p.x() + 0.5f) / sx - 0.5f, (p.y() + 0.5f) / sy - 0.5f);
+        },
         [](float angle) { return angle; }, 2);
     const double correct = static_cast<double>(r.correct) / r.considered;
     const double angle_ok = static_cast<double>(r.angle_ok) / std::max(1, r.correct);
-    std::printf("%s scaled by 1/1.44: %d considered, %.1f%% re-detected, %.1f%% correct (two levels down), %.1f%% "
-                "angle within 10 deg\n", kitti ? "KITTI" : "synthetic", r.considered,
-                100.0 * r.detected / r.considered, 100 * correct, 100 * angle_ok);
+    std::printf(
+        "%s scaled by 1/1.44: %d considered, %.1f%% re-detected, %.1f%% correct (two levels down), %.1f%% "
+        "angle within 10 deg\n",
+        kitti ? "KITTI" : "synthetic", r.considered, 100.0 * r.detected / r.considered, 100 * correct, 100 * angle_ok);
     EXPECT_GT(r.considered, 150);
     EXPECT_GT(correct, 0.65);
     EXPECT_GT(static_cast<double>(r.correct) / r.detected, 0.9);
@@ -500,7 +543,8 @@ TEST(OrbExtractor, MatchesAcrossFramesWithKnownMotion) {
       const int x = static_cast<int>(std::lround(a.uv[i].x())), y = static_cast<int>(std::lround(a.uv[i].y()));
       const double z = depth.at<float>(y, x);
       if (z <= 0) continue;
-      const Eigen::Vector3d X_b = T_b_a * Eigen::Vector3d((a.uv[i].x() - cam.cx) / cam.fx * z, (a.uv[i].y() - cam.cy) / cam.fy * z, z);
+      const Eigen::Vector3d X_b =
+          T_b_a * Eigen::Vector3d((a.uv[i].x() - cam.cx) / cam.fx * z, (a.uv[i].y() - cam.cy) / cam.fy * z, z);
       if (X_b.z() < 0.1) continue;
       const Eigen::Vector2f p(cam.fx * X_b.x() / X_b.z() + cam.cx, cam.fy * X_b.y() / X_b.z() + cam.cy);
       if (p.x() < 20 || p.y() < 20 || p.x() > cam.width - 20 || p.y() > cam.height - 20) continue;
@@ -515,9 +559,11 @@ TEST(OrbExtractor, MatchesAcrossFramesWithKnownMotion) {
       }
     }
   }
-  std::printf("room frames 4 apart: %d considered, nearest descriptor right %.1f%%; distance <= 50: %d (%.1f%%), "
-              "%.1f%% right\n", considered, 100.0 * nearest_right / considered, accepted, 100.0 * accepted / considered,
-              100.0 * accepted_right / accepted);
+  std::printf(
+      "room frames 4 apart: %d considered, nearest descriptor right %.1f%%; distance <= 50: %d (%.1f%%), "
+      "%.1f%% right\n",
+      considered, 100.0 * nearest_right / considered, accepted, 100.0 * accepted / considered,
+      100.0 * accepted_right / accepted);
   EXPECT_GT(nearest_right, 0.5 * considered);
   EXPECT_GT(accepted, 0.4 * considered);
   EXPECT_GT(accepted_right, 0.88 * accepted);
@@ -616,8 +662,8 @@ TEST(OrbExtractor, DISABLED_LearnPattern) {
         size_t both = 0;
         for (size_t w = 0; w < words; ++w) both += std::popcount(bits[t][w] & bits[u][w]);
         const double p_ab = static_cast<double>(both) / n;
-        const double corr = (p_ab - mean[t] * mean[u]) /
-                            std::sqrt(mean[t] * (1 - mean[t]) * mean[u] * (1 - mean[u]) + 1e-12);
+        const double corr =
+            (p_ab - mean[t] * mean[u]) / std::sqrt(mean[t] * (1 - mean[t]) * mean[u] * (1 - mean[u]) + 1e-12);
         if (std::abs(corr) > threshold) {
           independent = false;
           break;

@@ -108,10 +108,11 @@ void CheckConverges(bool stereo) {
     outliers_flagged += scene.is_outlier[i] && !r.inlier[i];
   }
   const double correct_fraction = static_cast<double>(correct) / scene.observations.size();
-  printf("  %s: position error %.2f mm, rotation error %.4f deg, inliers %d/%zu, classified %.1f%% correctly, "
-         "outliers flagged %d/%d\n",
-         stereo ? "stereo" : "mono", pos_err * 1e3, rot_err, r.num_inliers, scene.observations.size(),
-         100 * correct_fraction, outliers_flagged, outliers);
+  printf(
+      "  %s: position error %.2f mm, rotation error %.4f deg, inliers %d/%zu, classified %.1f%% correctly, "
+      "outliers flagged %d/%d\n",
+      stereo ? "stereo" : "mono", pos_err * 1e3, rot_err, r.num_inliers, scene.observations.size(),
+      100 * correct_fraction, outliers_flagged, outliers);
   EXPECT_LT(pos_err, 0.01);
   EXPECT_LT(rot_err, 0.1);
   EXPECT_GT(correct_fraction, 0.95);
@@ -148,9 +149,9 @@ TEST(OptimizePose, NoiseFreeIsExact) {
     if (obs.right_u >= 0) obs.right_u = obs.uv.x() - bf / x.z();
   }
   std::mt19937_64 rng(2);
-  const PoseOptimizationResult r = OptimizePose(scene.camera, scene.baseline_m,
-                                                Perturb(scene.T_cam_world_true, 0.05, 3.0, rng),
-                                                scene.observations, PoseOptimizerOptions{});
+  const PoseOptimizationResult r =
+      OptimizePose(scene.camera, scene.baseline_m, Perturb(scene.T_cam_world_true, 0.05, 3.0, rng), scene.observations,
+                   PoseOptimizerOptions{});
   ASSERT_TRUE(r.success);
   EXPECT_EQ(r.num_inliers, 60);
   EXPECT_LT((r.T_cam_world.matrix() - scene.T_cam_world_true.matrix()).norm(), 1e-6);

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -70,7 +71,8 @@ TEST(MatchStereo, DepthsAgreeWithTheRendererOnSyntheticFrames) {
       ASSERT_EQ(f.left.depth[k] < 0, f.left.right_u[k] < 0);
       if (f.left.depth[k] < 0) continue;
       ++frame_matched;
-      const int x = static_cast<int>(std::lround(f.left.uv[k].x())), y = static_cast<int>(std::lround(f.left.uv[k].y()));
+      const int x = static_cast<int>(std::lround(f.left.uv[k].x())),
+                y = static_cast<int>(std::lround(f.left.uv[k].y()));
       const double truth = depth.at<float>(y, x);
       ASSERT_GT(truth, 0);
       const double disparity = f.left.uv[k].x() - f.left.right_u[k];
@@ -80,8 +82,8 @@ TEST(MatchStereo, DepthsAgreeWithTheRendererOnSyntheticFrames) {
       within_half_px += std::abs(disparity - true_disparity) < 0.5;
     }
     EXPECT_EQ(frame_matched, stats.matched);
-    std::printf("synthetic frame %zu: %zu keypoints, %d descriptor matches, %d refined, %d matched\n", i,
-                f.left.size(), stats.descriptor_matches, stats.refined, stats.matched);
+    std::printf("synthetic frame %zu: %zu keypoints, %d descriptor matches, %d refined, %d matched\n", i, f.left.size(),
+                stats.descriptor_matches, stats.refined, stats.matched);
     total += static_cast<int>(f.left.size());
     matched += frame_matched;
   }
@@ -111,6 +113,27 @@ TEST(MatchStereo, DeterministicAcrossThreadCounts) {
   EXPECT_EQ(a.left.depth, b.left.depth);
 }
 
+TEST(MatchStereo, VectorAndBaselineKernelsAgree) {
+  const auto dir = testing::DatasetsDir() / "kitti/sequences/06";
+  const OrbExtractor orb = MakeExtractor(2000);
+  const StereoFrame pair =
+      ExtractPair(orb, ReadGrayImage(dir / "image_0/000010.png"), ReadGrayImage(dir / "image_1/000010.png"));
+  for (int w : {3, 5, 7}) {
+    StereoFrame a = pair, b = pair;
+    StereoOptions fast, baseline;
+    fast.sad_half_window = baseline.sad_half_window = w;
+    baseline.use_avx2 = false;
+    const StereoStats sa =
+        MatchStereo(a.right, a.left_pyramid, a.right_pyramid, orb.scales(), 707.0912, 0.537, fast, &a.left);
+    const StereoStats sb =
+        MatchStereo(b.right, b.left_pyramid, b.right_pyramid, orb.scales(), 707.0912, 0.537, baseline, &b.left);
+    EXPECT_GT(sa.matched, 500) << w;
+    EXPECT_EQ(sa.matched, sb.matched) << w;
+    EXPECT_EQ(a.left.right_u, b.left.right_u) << w;
+    EXPECT_EQ(a.left.depth, b.left.depth) << w;
+  }
+}
+
 TEST(MatchStereo, RespectsMinimumDepth) {
   SyntheticOptions options;
   SyntheticScene scene(MakeScene("room"), options);
@@ -137,13 +160,13 @@ TEST(MatchStereo, RejectsBadInput) {
   cv::Mat other(100, 160, CV_8UC1);
   cv::randu(other, 0, 255);
   StereoFrame f = ExtractPair(orb, img, other);
-  EXPECT_THROW((void)MatchStereo(f.right, f.left_pyramid, f.right_pyramid, orb.scales(), 500, 0.1, StereoOptions(),
-                                 &f.left),
-               Error);
+  EXPECT_THROW(
+      (void)MatchStereo(f.right, f.left_pyramid, f.right_pyramid, orb.scales(), 500, 0.1, StereoOptions(), &f.left),
+      Error);
   f = ExtractPair(orb, img, img);
-  EXPECT_THROW((void)MatchStereo(f.right, f.left_pyramid, f.right_pyramid, orb.scales(), 0, 0.1, StereoOptions(),
-                                 &f.left),
-               Error);
+  EXPECT_THROW(
+      (void)MatchStereo(f.right, f.left_pyramid, f.right_pyramid, orb.scales(), 0, 0.1, StereoOptions(), &f.left),
+      Error);
   StereoOptions bad;
   bad.sad_search_radius = 0;
   EXPECT_THROW((void)MatchStereo(f.right, f.left_pyramid, f.right_pyramid, orb.scales(), 500, 0.1, bad, &f.left),
@@ -169,11 +192,12 @@ TEST(MatchStereo, PlausibleDepthsOnKitti06) {
     }
     const double median = Median(depths);
     const double ratio = ground_ratio.size() > 10 ? Median(ground_ratio) : 0;
-    std::printf("KITTI 06 %s: %zu keypoints, %d descriptor matches, %d refined, %d matched; median depth %.1f m, "
-                "min %.2f, max %.1f; road ratio %.2f over %zu\n",
-                name, f.left.size(), stats.descriptor_matches, stats.refined, stats.matched, median,
-                *std::min_element(depths.begin(), depths.end()), *std::max_element(depths.begin(), depths.end()),
-                ratio, ground_ratio.size());
+    std::printf(
+        "KITTI 06 %s: %zu keypoints, %d descriptor matches, %d refined, %d matched; median depth %.1f m, "
+        "min %.2f, max %.1f; road ratio %.2f over %zu\n",
+        name, f.left.size(), stats.descriptor_matches, stats.refined, stats.matched, median,
+        *std::min_element(depths.begin(), depths.end()), *std::max_element(depths.begin(), depths.end()), ratio,
+        ground_ratio.size());
     EXPECT_GT(stats.matched, 700) << name;
     for (double d : depths) EXPECT_GE(d, baseline);
     EXPECT_GT(median, 5);
