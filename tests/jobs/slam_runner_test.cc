@@ -72,9 +72,27 @@ TEST(SlamRun, KittiStereoSnippet) {
   const Outcome o = RunAndScore(seq.string(), false, 2000);
   EXPECT_EQ(o.lost, 0u);
   EXPECT_EQ(o.run.trajectory.size(), 51u);
-  // The bar (ORB-SLAM2: 0.059 m) is not reached yet; this guards the level measured now.
-  EXPECT_LT(o.se3.ate_m.rmse, 0.2);
-  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.015);
+  // The bar (ORB-SLAM2: 0.059 m) is not reached yet (measured 0.087 m); this guards that level.
+  EXPECT_LT(o.se3.ate_m.rmse, 0.12);
+  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
+}
+
+TEST(SlamRun, KittiMonocularSnippet) {
+  const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "07";
+  const Outcome o = RunAndScore(seq.string(), false, 2000);
+  size_t first_tracked = o.run.reports.size();
+  for (const FrameReport& r : o.run.reports)
+    if (r.state == TrackingState::kOk) first_tracked = std::min(first_tracked, r.index);
+  EXPECT_LE(first_tracked, 10u);  // ORB-SLAM2 initializes at frame 5
+  EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size() - first_tracked);  // nothing lost after that
+  // Bar: 0.28 m after Sim(3) (ORB-SLAM2 0.283 m); measured 0.282 m, guarded with a margin.
+  EXPECT_LT(o.sim3.ate_m.rmse, 0.33);
+}
+
+TEST(SlamRun, MonocularRoomAfterSim3) {
+  const Outcome o = RunAndScore("synth:room:duration=20,width=480,height=360,sensor=mono", false);
+  EXPECT_GT(o.run.trajectory.size(), 300u);
+  EXPECT_LT(o.sim3.ate_m.rmse, 0.02 * o.path_m);
 }
 
 }  // namespace
