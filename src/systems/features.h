@@ -12,32 +12,13 @@
 #include <Eigen/Core>
 
 #include "core/error.h"
+#include "ecs/descriptor.h"
 
 namespace flatslam {
 
-// A 256-bit binary descriptor (steered BRIEF), bit i of the test sequence at word i/64, bit i%64.
-using Descriptor = std::array<uint64_t, 4>;
-
-// Number of differing bits (0..256). std::popcount is one instruction where the build targets
-// POPCNT; on the x86-64 baseline it is a library call, so count bits in parallel instead.
-[[nodiscard]] inline int Hamming(const Descriptor& a, const Descriptor& b) {
-#if defined(__POPCNT__) || !(defined(__x86_64__) || defined(__i386__))
-  return std::popcount(a[0] ^ b[0]) + std::popcount(a[1] ^ b[1]) + std::popcount(a[2] ^ b[2]) +
-         std::popcount(a[3] ^ b[3]);
-#else
-  constexpr uint64_t k1 = 0x5555555555555555ull, k2 = 0x3333333333333333ull, k4 = 0x0f0f0f0f0f0f0f0full;
-  uint64_t bytes = 0;  // per-byte counts of the four words: at most 32 each, no carries
-  for (int i = 0; i < 4; ++i) {
-    uint64_t x = a[i] ^ b[i];
-    x -= (x >> 1) & k1;
-    x = (x & k2) + ((x >> 2) & k2);
-    bytes += (x + (x >> 4)) & k4;
-  }
-  // Pairs of bytes into 16-bit lanes (the total, up to 256, does not fit a byte), then add them.
-  const uint64_t halves = (bytes & 0x00ff00ff00ff00ffull) + ((bytes >> 8) & 0x00ff00ff00ff00ffull);
-  return static_cast<int>((halves * 0x0001000100010001ull) >> 48);
-#endif
-}
+// Descriptor (256-bit steered BRIEF, bit i at word i/64, bit i%64) lives with the map in
+// ecs/descriptor.h; Hamming is its distance under the name the systems use.
+[[nodiscard]] inline int Hamming(const Descriptor& a, const Descriptor& b) { return DescriptorDistance(a, b); }
 
 // Keypoints of one image, struct-of-arrays: element i of every column describes keypoint i.
 struct Keypoints {

@@ -896,6 +896,17 @@ void OrbExtractor::BuildPyramid(const cv::Mat& gray, ImagePyramid* pyramid) cons
   }
 }
 
+void OrbExtractor::BlurLevel(const cv::Mat& level, cv::Mat* blurred) const {
+  FLATSLAM_CHECK(!level.empty() && level.type() == CV_8UC1, "OrbExtractor: level must be a non-empty CV_8UC1");
+  FLATSLAM_CHECK(blurred != nullptr, "OrbExtractor: null output");
+  if (blur_taps_.size() == 1) {
+    level.copyTo(*blurred);
+    return;
+  }
+  std::vector<uint8_t> row;
+  Blur(options_.use_avx2 && HasAvx2(), level, blur_taps_, blurred, &row);
+}
+
 void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out) const {
   ImagePyramid pyramid;
   Extract(gray, out, &pyramid);

@@ -85,6 +85,8 @@ class OrbExtractor {
 
   // Builds the pyramid (levels()[0] shares gray). Throws on an empty or non-CV_8UC1 image.
   void BuildPyramid(const cv::Mat& gray, ImagePyramid* pyramid) const;
+  // The smoothed copy of a pyramid level that the BRIEF tests read (for tools and tests).
+  void BlurLevel(const cv::Mat& level, cv::Mat* blurred) const;
 
   // Extracts up to options().features keypoints with descriptors into *out (replacing its
   // content; right_u and depth are -1). Keypoints are ordered by level, then by position

@@ -155,6 +155,19 @@ TEST(FastScores, CornerSetsMatchOpenCvAtEveryThreshold) {
   EXPECT_THROW(FastScores(cv::Mat(), &scores), Error);
 }
 
+TEST(OrbExtractor, BlurMatchesOpenCvGaussian) {
+  // Integer taps (sum 256) and two roundings against OpenCV's 7x7, sigma 2 blur (reference).
+  const OrbExtractor orb;
+  const cv::Mat img = KittiImage();
+  cv::Mat ours, reference;
+  orb.BlurLevel(img, &ours);
+  cv::GaussianBlur(img, reference, cv::Size(7, 7), 2.0, 2.0, cv::BORDER_REFLECT_101);
+  double max_difference = 0;
+  cv::minMaxLoc(cv::abs(ours - reference) + cv::abs(reference - ours), nullptr, &max_difference);
+  EXPECT_LE(max_difference, 2);
+  EXPECT_LT(cv::mean(cv::abs(ours - reference) + cv::abs(reference - ours))[0], 0.6);
+}
+
 TEST(ScalePyramid, LevelsScalesAndSigmas) {
   const ScalePyramid p = ScalePyramid::Make(8, 1.2f);
   ASSERT_EQ(p.scale.size(), 8u);
@@ -614,10 +627,7 @@ TEST(OrbExtractor, DISABLED_LearnPattern) {
     ImagePyramid pyramid;
     orb.Extract(ReadGrayImage(file), &kps, &pyramid);
     std::vector<cv::Mat> blurred(pyramid.levels.size());
-    for (size_t l = 0; l < blurred.size(); ++l) {
-      cv::GaussianBlur(pyramid.levels[l], blurred[l], cv::Size(options.blur_kernel, options.blur_kernel),
-                       options.blur_sigma, options.blur_sigma, cv::BORDER_REFLECT_101);
-    }
+    for (size_t l = 0; l < blurred.size(); ++l) orb.BlurLevel(pyramid.levels[l], &blurred[l]);
     for (size_t i = 0; i < kps.size(); i += 3) {
       const int level = kps.octave[i];
       const Eigen::Vector2f q = pyramid.ToLevel(kps.uv[i], level);
