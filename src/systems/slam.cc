@@ -68,7 +68,6 @@ double Slam::CloseDepth() const {
 }
 
 void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
-  const auto start = std::chrono::steady_clock::now();
   const PinholeCamera& cam = calibration_.camera;
   FLATSLAM_CHECK(frame.left.cols == cam.width && frame.left.rows == cam.height, "frame ", frame.index, " is ",
                  frame.left.cols, "x", frame.left.rows, ", calibration says ", cam.width, "x", cam.height);
@@ -90,7 +89,6 @@ void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
     DepthFromImage(frame.depth, cam.fx, options_.rgbd_virtual_baseline_m, &out->keypoints);
   }
   out->Prepare(cam.width, cam.height);
-  (void)MsSince(start);
 }
 
 FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe) {

@@ -161,7 +161,9 @@ TEST(Map, RandomChurnKeepsReferencesConsistentAndSlotsBounded) {
     }
     // Points seen by nobody are culled, as local mapping does.
     map.points().erase_if([](PointHandle, const MapPoint& p) { return p.observations.empty(); });
-    if (step % 100 == 0) ASSERT_EQ(map.Validate(), "") << "step " << step;
+    if (step % 100 == 0) {
+      ASSERT_EQ(map.Validate(), "") << "step " << step;
+    }
     if (step > 1000) max_slots = std::max(max_slots, map.keyframes().slot_count());
   }
   EXPECT_EQ(map.Validate(), "");

@@ -66,8 +66,12 @@ TEST(DatasetWriter, TumRgbdRoundTrip) {
   for (int v = 0; v < a.depth.rows; v += 7) {
     for (int u = 0; u < a.depth.cols; u += 7) {
       const float za = a.depth.at<float>(v, u), zb = b.depth.at<float>(v, u);
-      if (za > 0 && za < 13.0f) EXPECT_NEAR(za, zb, 0.5 / 5000 + 1e-6) << u << "," << v;
-      if (za == 0) EXPECT_EQ(zb, 0.0f);
+      if (za > 0 && za < 13.0f) {
+        EXPECT_NEAR(za, zb, 0.5 / 5000 + 1e-6) << u << "," << v;
+      }
+      if (za == 0) {
+        EXPECT_EQ(zb, 0.0f);
+      }
     }
   }
 }
