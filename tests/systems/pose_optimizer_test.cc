@@ -8,35 +8,16 @@
 #include <gtest/gtest.h>
 
 #include "core/error.h"
+#include "systems/geometry_fixtures.h"
 
 namespace flatslam {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
-constexpr double kDeg = kPi / 180.0;
-
-PinholeCamera TestCamera() {
-  PinholeCamera camera;
-  camera.fx = 500;
-  camera.fy = 500;
-  camera.cx = 320;
-  camera.cy = 240;
-  camera.width = 640;
-  camera.height = 480;
-  return camera;
-}
-
-Eigen::Isometry3d Pose(const Eigen::Matrix3d& R, const Eigen::Vector3d& t) {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.linear() = R;
-  T.translation() = t;
-  return T;
-}
-
-Eigen::Vector3d RandomUnit(std::mt19937_64& rng) {
-  std::normal_distribution<double> n(0, 1);
-  return Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
-}
+using testing::kDeg;
+using testing::kPi;
+using testing::Pose;
+using testing::RandomUnit;
+using testing::TestCamera;
 
 // Moves T by exactly `meters` and `degrees` in random directions.
 Eigen::Isometry3d Perturb(const Eigen::Isometry3d& T, double meters, double degrees, std::mt19937_64& rng) {
