@@ -22,13 +22,14 @@ namespace flatslam::app {
 
 const char* const kRunUsage =
     "usage: flatslam run DATASET [--sensor mono|stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
-    "                    [--features N] [--deterministic] [--quiet]\n\n"
+    "                    [--features N] [--mapping-lag N] [--deterministic] [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
     "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
     "  --out DIR        write trajectory.tum, trajectory.kitti, keyframes.tum and stats.csv\n"
     "  --features N     ORB features per image (default 1000; 2000 suits KITTI)\n"
     "  --deterministic  run local mapping inline after each keyframe: same input, same output\n"
+    "  --mapping-lag N  keyframes tracking may run ahead of local mapping (default 0: wait)\n"
     "  --max-frames N   stop after N frames\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
@@ -57,7 +58,7 @@ double Median(std::vector<double> v) {
 }  // namespace
 
 int RunRun(const std::vector<std::string>& argv) {
-  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features"}, {"deterministic", "quiet"});
+  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag"}, {"deterministic", "quiet"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
     return 0;
@@ -83,6 +84,8 @@ int RunRun(const std::vector<std::string>& argv) {
   SlamRunOptions run;
   run.max_frames = frames;
   run.deterministic = args.has("deterministic");
+  run.max_mapping_lag = static_cast<int>(args.get_int("mapping-lag", run.max_mapping_lag));
+  if (run.max_mapping_lag < 0) throw UsageError{"--mapping-lag must be at least 0"};
   size_t done = 0, keyframes_so_far = 0;
   std::vector<double> rss_mib;  // sampled every frame: long sessions show whether memory stays flat
   rss_mib.reserve(frames);
