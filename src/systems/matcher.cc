@@ -48,6 +48,18 @@ std::unordered_set<PointHandle> MatchedPoints(const TrackedFrame& frame) {
   return set;
 }
 
+// Keypoint k of current can take a projected point: still free, on a level in [min_level,
+// max_level], and (stereo) its right-image x within r of the predicted right_u.
+bool Usable(const TrackedFrame& current, uint32_t k, int min_level, int max_level, double right_u, bool stereo,
+            float r) {
+  if (!current.points[k].is_null()) return false;
+  const int o = current.keypoints.octave[k];
+  if (o < min_level || o > max_level) return false;
+  if (stereo && current.keypoints.right_u[k] >= 0 && std::abs(right_u - current.keypoints.right_u[k]) > r)
+    return false;
+  return true;
+}
+
 // Level at which a point at `distance` is expected, from its scale-invariance range.
 int PredictLevel(const MapPoint& point, double distance, const ScalePyramid& pyramid) {
   const double ratio = point.max_distance / distance;
@@ -79,13 +91,7 @@ int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOcta
     int best = 257;
     int best_index = -1;
     for (uint32_t k : candidates) {
-      if (!current.points[k].is_null()) continue;
-      const int o = current.keypoints.octave[k];
-      if (o < octave - 1 || o > octave + 1) continue;
-      if (g.bf > 0 && current.keypoints.right_u[k] >= 0) {
-        const double ur = u - g.bf * inv_z;
-        if (std::abs(ur - current.keypoints.right_u[k]) > r) continue;
-      }
+      if (!Usable(current, k, octave - 1, octave + 1, u - g.bf * inv_z, g.bf > 0, r)) continue;
       const int d = Hamming(point->descriptor, current.keypoints.descriptor[k]);
       if (d < best) {
         best = d;
@@ -214,13 +220,8 @@ int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const Poin
     current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, current.keypoints.uv, &candidates);
     int best = 257, second = 257, best_level = -1, second_level = -1, best_index = -1;
     for (uint32_t k : candidates) {
-      if (!current.points[k].is_null()) continue;
+      if (!Usable(current, k, level - 1, level, u - g.bf * inv_z, g.bf > 0, r)) continue;
       const int o = current.keypoints.octave[k];
-      if (o < level - 1 || o > level) continue;
-      if (g.bf > 0 && current.keypoints.right_u[k] >= 0) {
-        const double ur = u - g.bf * inv_z;
-        if (std::abs(ur - current.keypoints.right_u[k]) > r) continue;
-      }
       const int d = Hamming(point->descriptor, current.keypoints.descriptor[k]);
       if (d < best) {
         second = best;

@@ -1,3 +1,4 @@
+#include "systems/cpu_features.h"
 #include "systems/orb_extractor.h"
 
 #include <algorithm>
@@ -352,14 +353,6 @@ __attribute__((target("avx2"))) void SuppressAvx2(const uint8_t* scores, int str
 }
 #endif
 
-bool HasAvx2() {
-#if defined(__x86_64__) || defined(__i386__)
-  __builtin_cpu_init();
-  return __builtin_cpu_supports("avx2");
-#else
-  return false;
-#endif
-}
 
 void ComputeFastScores(bool avx2, const cv::Mat& img, int x0, int y0, int x1, int y1, int floor, uint8_t* out,
                        size_t out_step) {

@@ -1,3 +1,4 @@
+#include "systems/cpu_features.h"
 #include "systems/stereo_matcher.h"
 
 #include <algorithm>
@@ -96,14 +97,6 @@ __attribute__((target("avx2"))) void ZeroMeanSadsAvx2(const cv::Mat& limg, int x
 
 #endif
 
-bool HasAvx2() {
-#if defined(__x86_64__) || defined(__i386__)
-  __builtin_cpu_init();
-  return __builtin_cpu_supports("avx2");
-#else
-  return false;
-#endif
-}
 
 void ZeroMeanSads(bool avx2, const cv::Mat& limg, int xl, int yl, const cv::Mat& rimg, int xr_begin, int count, int w,
                   int* sads) {
