@@ -103,6 +103,8 @@ void Map::EraseKeyFrame(KeyFrameHandle kf) {
     }
   }
   if (KeyFrame* p = keyframes_.try_get(parent)) std::erase(p->children, kf);
+  for (KeyFrameHandle other : frame.loop_edges)
+    if (KeyFrame* o = keyframes_.try_get(other)) std::erase(o->loop_edges, kf);
   keyframes_.erase(kf);
 }
 
@@ -123,6 +125,15 @@ void Map::ReplacePoint(PointHandle from, PointHandle into) {
     frame->points[o.keypoint] = into;
     keep.observations.push_back(o);
   }
+}
+
+void Map::AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b) {
+  FLATSLAM_CHECK(a != b, "loop edge from ", a, " to itself");
+  KeyFrame& ka = keyframes_.get(a);
+  KeyFrame& kb = keyframes_.get(b);
+  if (std::find(ka.loop_edges.begin(), ka.loop_edges.end(), b) != ka.loop_edges.end()) return;
+  ka.loop_edges.push_back(b);
+  kb.loop_edges.push_back(a);
 }
 
 void Map::UpdateCovisibility(KeyFrameHandle kf, int min_shared) {
@@ -244,6 +255,12 @@ std::string Map::Validate() const {
       const bool mirrored = std::any_of(o->covisible.begin(), o->covisible.end(),
                                         [&](const auto& l) { return l.first == h && l.second == w; });
       if (!mirrored) return (problem << "covisibility " << h << "-" << other << " not mirrored", problem.str());
+    }
+    for (KeyFrameHandle other : kf.loop_edges) {
+      const KeyFrame* o = keyframes_.try_get(other);
+      if (!o) return (problem << h << " has a loop edge to erased " << other, problem.str());
+      if (std::find(o->loop_edges.begin(), o->loop_edges.end(), h) == o->loop_edges.end())
+        return (problem << "loop edge " << h << "-" << other << " not mirrored", problem.str());
     }
     if (!kf.parent.is_null()) {
       const KeyFrame* parent = keyframes_.try_get(kf.parent);

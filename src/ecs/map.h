@@ -13,6 +13,7 @@
 #include <Eigen/Geometry>
 
 #include "ecs/arena.h"
+#include "ecs/bow.h"
 #include "ecs/descriptor.h"
 #include "ecs/handle.h"
 
@@ -47,6 +48,13 @@ struct KeyFrame {
   std::vector<std::pair<KeyFrameHandle, int>> covisible;  // shared points, strongest first
   KeyFrameHandle parent;                                  // spanning tree (null for a root)
   std::vector<KeyFrameHandle> children;
+  std::vector<KeyFrameHandle> loop_edges;                 // keyframes joined to this one by loop closure
+
+  // Place recognition: derived from the descriptors and the vocabulary (not stored in snapshots).
+  BowVector bow;
+  FeatureVector bow_features;
+
+  uint32_t agent = 0;  // the agent (robot, session) that made this keyframe
 
   [[nodiscard]] size_t size() const { return uv.size(); }
   [[nodiscard]] Eigen::Vector3d camera_center() const { return T_cam_world.inverse().translation(); }
@@ -93,6 +101,8 @@ class Map {
   // already sees `into`; `from` is erased. Visible/found counters add up.
   void ReplacePoint(PointHandle from, PointHandle into);
 
+  // Joins a and b by a loop edge (both directions; once).
+  void AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b);
   // Recomputes kf's covisibility (keyframes sharing >= min_shared points; if none reach it,
   // the single best one) and mirrors the weights into the neighbours. Sets the parent of a
   // keyframe without one to its strongest neighbour.
