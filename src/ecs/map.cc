@@ -26,6 +26,15 @@ KeyFrameHandle Map::AddKeyFrame(KeyFrame&& keyframe) {
   return keyframes_.create(std::move(keyframe));
 }
 
+KeyFrameHandle Map::RestoreKeyFrame(KeyFrame&& keyframe) {
+  FLATSLAM_CHECK(keyframe.points.size() == keyframe.uv.size() && keyframe.descriptor.size() == keyframe.uv.size(),
+                 "keyframe columns differ in size");
+  const uint64_t id = keyframe.id;
+  const KeyFrameHandle h = keyframes_.create(std::move(keyframe));
+  next_keyframe_id_ = std::max(next_keyframe_id_, id + 1);
+  return h;
+}
+
 PointHandle Map::AddPoint(const Eigen::Vector3d& position, KeyFrameHandle reference) {
   MapPoint p;
   p.position = position;

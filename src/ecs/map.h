@@ -85,6 +85,8 @@ struct MapScales {
 class Map {
  public:
   [[nodiscard]] KeyFrameHandle AddKeyFrame(KeyFrame&& keyframe);
+  // Adds a keyframe keeping its id (loading a saved map); later AddKeyFrame ids come after it.
+  [[nodiscard]] KeyFrameHandle RestoreKeyFrame(KeyFrame&& keyframe);
   [[nodiscard]] PointHandle AddPoint(const Eigen::Vector3d& position, KeyFrameHandle reference);
 
   // Links keypoint k of kf to point p (both directions). A keypoint already bound to another
