@@ -15,6 +15,7 @@
 #include "core/error.h"
 #include "io/dataset.h"
 #include "jobs/slam_runner.h"
+#include "systems/vocabulary.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
 
@@ -22,7 +23,8 @@ namespace flatslam::app {
 
 const char* const kRunUsage =
     "usage: flatslam run DATASET [--sensor mono|stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
-    "                    [--features N] [--mapping-lag N] [--deterministic] [--quiet]\n\n"
+    "                    [--features N] [--mapping-lag N] [--deterministic] [--quiet]\n"
+    "                    [--vocabulary FILE|none] [--no-loop-closing] [--skip A:B,...] [--lose-at N,...]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
     "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
@@ -31,6 +33,11 @@ const char* const kRunUsage =
     "  --deterministic  run local mapping inline after each keyframe: same input, same output\n"
     "  --mapping-lag N  keyframes tracking may run ahead of local mapping (default 0: wait)\n"
     "  --max-frames N   stop after N frames\n"
+    "  --vocabulary F   bag-of-words vocabulary for relocalization and loop closing (default: the\n"
+    "                   one shipped in data/vocabulary, or $FLATSLAM_VOCABULARY); 'none' turns both off\n"
+    "  --no-loop-closing  relocalize, but never close loops\n"
+    "  --skip A:B,...   drop frames A..B-1 (the camera seems to jump: a kidnapping test)\n"
+    "  --lose-at N,...  declare tracking lost at frame N (a relocalization test)\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
 namespace {
@@ -49,6 +56,36 @@ double CurrentRssMiB() {
   return resident * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
 }
 
+// "A:B,C:D" -> {{A, B}, {C, D}}; "N,M" -> {{N, N}, {M, M}} when ranges are not wanted.
+std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, const std::string& text, bool ranges) {
+  std::vector<std::pair<size_t, size_t>> out;
+  size_t pos = 0;
+  while (pos <= text.size()) {
+    const size_t comma = std::min(text.find(',', pos), text.size());
+    const std::string item = text.substr(pos, comma - pos);
+    const size_t colon = item.find(':');
+    try {
+      if (ranges) {
+        if (colon == std::string::npos) throw std::invalid_argument(item);
+        size_t used_a = 0, used_b = 0;
+        const std::string a = item.substr(0, colon), b = item.substr(colon + 1);
+        out.emplace_back(std::stoull(a, &used_a), std::stoull(b, &used_b));
+        if (used_a != a.size() || used_b != b.size() || out.back().second <= out.back().first)
+          throw std::invalid_argument(item);
+      } else {
+        size_t used = 0;
+        const size_t n = std::stoull(item, &used);
+        if (used != item.size()) throw std::invalid_argument(item);
+        out.emplace_back(n, n);
+      }
+    } catch (const std::exception&) {
+      throw UsageError{"--" + flag + ": cannot read '" + item + "' (expected " + (ranges ? "A:B with A < B" : "a frame number") + ")"};
+    }
+    pos = comma + 1;
+  }
+  return out;
+}
+
 double Median(std::vector<double> v) {
   if (v.empty()) return 0;
   std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
@@ -58,7 +95,8 @@ double Median(std::vector<double> v) {
 }  // namespace
 
 int RunRun(const std::vector<std::string>& argv) {
-  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag"}, {"deterministic", "quiet"});
+  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at"},
+                  {"deterministic", "quiet", "no-loop-closing"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
     return 0;
@@ -79,6 +117,18 @@ int RunRun(const std::vector<std::string>& argv) {
   }
 
   SlamOptions options;
+  // Place recognition: the vocabulary is memory-mapped, so loading it costs milliseconds.
+  Vocabulary vocabulary;
+  double vocabulary_ms = 0;
+  const std::string vocabulary_arg = args.get_or("vocabulary", "");
+  if (vocabulary_arg != "none") {
+    const std::filesystem::path path = vocabulary_arg.empty() ? DefaultVocabularyPath() : std::filesystem::path(vocabulary_arg);
+    const auto load_start = std::chrono::steady_clock::now();
+    vocabulary = Vocabulary::Load(path);
+    vocabulary_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - load_start).count();
+    options.vocabulary = &vocabulary;
+  }
+  options.loop_closing = !args.has("no-loop-closing");
   options.orb.features = static_cast<int>(args.get_int("features", options.orb.features));
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);
   SlamRunOptions run;
@@ -86,6 +136,9 @@ int RunRun(const std::vector<std::string>& argv) {
   run.deterministic = args.has("deterministic");
   run.max_mapping_lag = static_cast<int>(args.get_int("mapping-lag", run.max_mapping_lag));
   if (run.max_mapping_lag < 0) throw UsageError{"--mapping-lag must be at least 0"};
+  if (auto skip = args.get("skip")) run.skip = ParseRanges("skip", *skip, true);
+  if (auto lose = args.get("lose-at"))
+    for (const auto& [n, unused] : ParseRanges("lose-at", *lose, false)) run.lose_at.push_back(n);
   size_t done = 0, keyframes_so_far = 0;
   std::vector<double> rss_mib;  // sampled every frame: long sessions show whether memory stays flat
   rss_mib.reserve(frames);
@@ -105,11 +158,11 @@ int RunRun(const std::vector<std::string>& argv) {
   const Trajectory& keyframes = result.keyframes;
   if (out_dir) {
     std::ofstream csv(*out_dir / "stats.csv");
-    csv << "frame,t_ns,state,keyframe,reinitialized,features,stereo_points,matches,inliers,extract_ms,track_ms,rss_mib\n";
+    csv << "frame,t_ns,state,keyframe,reinitialized,relocalized,features,stereo_points,matches,inliers,extract_ms,track_ms,rss_mib\n";
     for (size_t k = 0; k < reports.size(); ++k) {
       const FrameReport& r = reports[k];
       csv << r.index << "," << r.t_ns << "," << TrackingStateName(r.state) << "," << r.keyframe << ","
-          << r.reinitialized << "," << r.features << "," << r.stereo_points << "," << r.matches << "," << r.inliers
+          << r.reinitialized << "," << r.relocalized << "," << r.features << "," << r.stereo_points << "," << r.matches << "," << r.inliers
           << "," << r.extract_ms << "," << r.track_ms << "," << rss_mib[k] << "\n";
     }
     FLATSLAM_CHECK(csv.good(), "cannot write ", (*out_dir / "stats.csv"));
@@ -120,19 +173,31 @@ int RunRun(const std::vector<std::string>& argv) {
     }
   }
 
-  size_t lost = 0, not_initialized = 0;
+  size_t lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
   std::vector<double> track_ms, extract_ms;
   for (const FrameReport& r : reports) {
     lost += r.state == TrackingState::kLost;
     not_initialized += r.state == TrackingState::kNotInitialized;
+    relocalized += r.relocalized;
+    reinitialized += r.reinitialized;
     track_ms.push_back(r.track_ms);
     extract_ms.push_back(r.extract_ms);
   }
   const double mean_track = std::accumulate(track_ms.begin(), track_ms.end(), 0.0) / track_ms.size();
   const double mean_extract = std::accumulate(extract_ms.begin(), extract_ms.end(), 0.0) / extract_ms.size();
   std::printf("dataset       %s\n", dataset->name().c_str());
-  std::printf("frames        %zu tracked, %zu lost (map re-initialized), %zu before initialization\n",
-              trajectory.size(), lost, not_initialized);
+  std::printf("frames        %zu tracked, %zu lost, %zu before initialization\n", trajectory.size(), lost,
+              not_initialized);
+  if (options.vocabulary) {
+    std::printf("places        vocabulary %zu words (loaded in %.1f ms), %zu relocalizations, %zu new map segments, "
+                "%zu loop closures\n",
+                vocabulary.word_count(), vocabulary_ms, relocalized, reinitialized, result.loop_closures.size());
+    for (const LoopClosure& l : result.loop_closures)
+      std::printf("  loop        frame %zu -> frame %zu: %d points, scale %.4f, moved %.3f m, %.0f ms\n",
+                  l.frame_index, l.matched_frame_index, l.matches, l.scale, l.correction_m, l.correction_ms);
+  } else {
+    std::printf("places        no vocabulary: %zu new map segments after tracking loss\n", reinitialized);
+  }
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               Median(extract_ms), mean_extract, Median(track_ms), mean_track);

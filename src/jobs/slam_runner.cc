@@ -30,10 +30,17 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   FramePipeline<Item> pipeline(pipeline_options);
   auto mapping =
       pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
+  // The frames SLAM sees, in order.
+  std::vector<size_t> order;
+  for (size_t i = 0; i < frames; ++i) {
+    const bool skipped =
+        std::any_of(run.skip.begin(), run.skip.end(), [&](const auto& r) { return i >= r.first && i < r.second; });
+    if (!skipped) order.push_back(i);
+  }
   pipeline.set_source([&](size_t seq) -> std::optional<Item> {
-    if (seq >= frames) return std::nullopt;
+    if (seq >= order.size()) return std::nullopt;
     Item item;
-    item.index = seq;
+    item.index = order[seq];
     return item;
   });
   pipeline.add_parallel_stage("extract", [&](Item& item) {
@@ -48,6 +55,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     while (!inline_mapping && slam.pending_keyframes() > run.max_mapping_lag)
       std::this_thread::sleep_for(std::chrono::microseconds(200));
     std::optional<KeyFrameHandle> keyframe;
+    if (std::find(run.lose_at.begin(), run.lose_at.end(), item.index) != run.lose_at.end()) slam.ForceLost();
     FrameReport report = slam.Track(std::move(item.frame), &keyframe);
     report.extract_ms = item.extract_ms;
     if (keyframe) {
@@ -59,11 +67,14 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   });
   const auto start = std::chrono::steady_clock::now();
   pipeline.run();
+  slam.WaitForBackground();
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   result.trajectory = slam.FrameTrajectory();
   result.keyframes = slam.KeyFrameTrajectory();
   result.keyframe_count = slam.map().keyframes().size();
   result.point_count = slam.map().points().size();
+  result.loop_closures = slam.loop_closures();
+  if (run.on_finished) run.on_finished(slam);
   return result;
 }
 

@@ -5,6 +5,7 @@
 
 #include <cstddef>
 #include <functional>
+#include <utility>
 #include <vector>
 
 #include "io/dataset.h"
@@ -19,8 +20,15 @@ struct SlamRunOptions {
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which
   // reads faster than real time, never tracks against a map that mapping has fallen behind on.
   int max_mapping_lag = 0;
+  // Frames [first, last) are never given to SLAM (dropped frames: the camera seems to jump).
+  std::vector<std::pair<size_t, size_t>> skip;
+  // Tracking is declared lost at these frames (relocalization tests).
+  std::vector<size_t> lose_at;
   // Called from the track stage after every frame (progress display); may be empty.
   std::function<void(const FrameReport&)> on_frame;
+  // Called once after every stage has drained, before RunSlam returns (e.g. to save the map);
+  // may be empty.
+  std::function<void(const Slam&)> on_finished;
 };
 
 struct SlamRunResult {
@@ -28,6 +36,7 @@ struct SlamRunResult {
   Trajectory trajectory;             // tracked frames, T_world_cam, refined through keyframes
   Trajectory keyframes;
   size_t keyframe_count = 0, point_count = 0;
+  std::vector<LoopClosure> loop_closures;
   double wall_s = 0;
 };
 

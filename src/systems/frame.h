@@ -7,6 +7,7 @@
 
 #include <Eigen/Geometry>
 
+#include "ecs/bow.h"
 #include "ecs/map.h"
 #include "systems/features.h"
 
@@ -36,6 +37,9 @@ struct TrackedFrame {
   std::vector<uint8_t> outlier;     // set by pose optimization
   Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();
   bool has_pose = false;
+  // Bag of words, filled when place recognition needs it (relocalization, new keyframes).
+  BowVector bow;
+  FeatureVector bow_features;
 
   // Sizes points/outlier to the keypoints and builds the grid.
   void Prepare(int width, int height);

@@ -432,3 +432,147 @@ int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> 
 }
 
 }  // namespace flatslam
+
+namespace flatslam {
+namespace {
+
+// Walks two direct indexes node by node; for each usable keypoint of A the best usable keypoint
+// of B under the same node, ratio-tested; each keypoint of B taken once. Orientation-checked.
+template <class UsableA, class UsableB>
+std::vector<std::pair<uint32_t, uint32_t>> MatchDirectIndex(const FeatureVector& fa, std::span<const Descriptor> da,
+                                                            std::span<const float> angle_a, const FeatureVector& fb,
+                                                            std::span<const Descriptor> db,
+                                                            std::span<const float> angle_b, UsableA usable_a,
+                                                            UsableB usable_b, const MatcherOptions& options,
+                                                            float ratio) {
+  std::vector<std::pair<uint32_t, uint32_t>> pairs;
+  std::unordered_set<uint32_t> taken_b;
+  size_t ia = 0, ib = 0;
+  while (ia < fa.size() && ib < fb.size()) {
+    const uint32_t na = fa[ia].first, nb = fb[ib].first;
+    if (na < nb) {
+      ++ia;
+      continue;
+    }
+    if (nb < na) {
+      ++ib;
+      continue;
+    }
+    size_t ea = ia, eb = ib;
+    while (ea < fa.size() && fa[ea].first == na) ++ea;
+    while (eb < fb.size() && fb[eb].first == nb) ++eb;
+    for (size_t x = ia; x < ea; ++x) {
+      const uint32_t i = fa[x].second;
+      if (!usable_a(i)) continue;
+      int best = 257, second = 257;
+      int best_j = -1;
+      for (size_t y = ib; y < eb; ++y) {
+        const uint32_t j = fb[y].second;
+        if (!usable_b(j) || taken_b.count(j)) continue;
+        const int d = Hamming(da[i], db[j]);
+        if (d < best) {
+          second = best;
+          best = d;
+          best_j = static_cast<int>(j);
+        } else if (d < second) {
+          second = d;
+        }
+      }
+      if (best_j < 0 || best > options.max_distance_strict) continue;
+      if (static_cast<float>(best) >= ratio * static_cast<float>(second)) continue;
+      taken_b.insert(static_cast<uint32_t>(best_j));
+      pairs.emplace_back(i, static_cast<uint32_t>(best_j));
+    }
+    ia = ea;
+    ib = eb;
+  }
+  if (options.check_orientation && !pairs.empty()) {
+    RotationHistogram histogram;
+    for (uint32_t k = 0; k < pairs.size(); ++k)
+      histogram.Add(angle_a[pairs[k].first] - angle_b[pairs[k].second], k);
+    std::vector<bool> drop(pairs.size(), false);
+    for (uint32_t k : histogram.Rejected()) drop[k] = true;
+    std::vector<std::pair<uint32_t, uint32_t>> kept;
+    for (size_t k = 0; k < pairs.size(); ++k)
+      if (!drop[k]) kept.push_back(pairs[k]);
+    pairs.swap(kept);
+  }
+  return pairs;
+}
+
+}  // namespace
+
+int MatchByBow(TrackedFrame& frame, const KeyFrame& kf, const Map& map, const MatcherOptions& options, float ratio) {
+  std::unordered_set<PointHandle> taken = MatchedPoints(frame);
+  const auto pairs = MatchDirectIndex(
+      kf.bow_features, kf.descriptor, kf.angle, frame.bow_features, frame.keypoints.descriptor,
+      frame.keypoints.angle,
+      [&](uint32_t i) { return map.points().contains(kf.points[i]) && !taken.count(kf.points[i]); },
+      [&](uint32_t j) { return frame.points[j].is_null(); }, options, ratio);
+  int matches = 0;
+  for (const auto& [i, j] : pairs) {
+    if (!taken.insert(kf.points[i]).second) continue;
+    frame.points[j] = kf.points[i];
+    ++matches;
+  }
+  return matches;
+}
+
+std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const KeyFrame& b, const Map& map,
+                                                               const MatcherOptions& options, float ratio) {
+  return MatchDirectIndex(
+      a.bow_features, a.descriptor, a.angle, b.bow_features, b.descriptor, b.angle,
+      [&](uint32_t i) { return map.points().contains(a.points[i]); },
+      [&](uint32_t j) { return map.points().contains(b.points[j]); }, options, ratio);
+}
+
+}  // namespace flatslam
+
+namespace flatslam {
+
+int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<const PointHandle> points,
+                      const Map& map, const CameraGeometry& g, float radius, const MatcherOptions& options,
+                      std::vector<PointHandle>* matched) {
+  matched->resize(kf.size(), PointHandle::null());
+  FeatureGrid grid;
+  grid.Build(kf.uv, g.camera.width, g.camera.height);
+  std::unordered_set<PointHandle> taken;
+  for (PointHandle p : *matched)
+    if (!p.is_null()) taken.insert(p);
+  const Eigen::Vector3d center = S_cw.inverse().t;  // camera centre in the world
+  std::vector<uint32_t> candidates;
+  int added = 0;
+  for (PointHandle p : points) {
+    if (taken.count(p)) continue;
+    const MapPoint* point = map.points().try_get(p);
+    if (!point) continue;
+    const Eigen::Vector3d Xc = S_cw * point->position;
+    double u, v;
+    if (!g.Project(Xc, &u, &v)) continue;
+    const Eigen::Vector3d ray = point->position - center;
+    const double distance = ray.norm();
+    if (distance < 0.8 * point->min_distance || distance > 1.2 * point->max_distance) continue;
+    if (ray.dot(point->normal) < 0.5 * distance) continue;  // viewed from more than 60 degrees off
+    const int level = PredictLevel(*point, distance, g.pyramid);
+    const float r = radius * g.pyramid.scale[level];
+    candidates.clear();
+    grid.Query(static_cast<float>(u), static_cast<float>(v), r, kf.uv, &candidates);
+    int best = 257, best_k = -1;
+    for (uint32_t k : candidates) {
+      if (!(*matched)[k].is_null()) continue;
+      if (kf.octave[k] < level - 1 || kf.octave[k] > level) continue;
+      const int d = Hamming(point->descriptor, kf.descriptor[k]);
+      if (d < best) {
+        best = d;
+        best_k = static_cast<int>(k);
+      }
+    }
+    if (best_k < 0 || best > options.max_distance_strict) continue;
+    (*matched)[best_k] = p;
+    taken.insert(p);
+    ++added;
+  }
+  return added;
+}
+
+}  // namespace flatslam

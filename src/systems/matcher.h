@@ -14,6 +14,7 @@
 #include "io/types.h"
 #include "systems/features.h"
 #include "systems/frame.h"
+#include "systems/similarity.h"
 
 namespace flatslam {
 
@@ -79,6 +80,23 @@ int FusePoints(Map& map, KeyFrameHandle kf, std::span<const PointHandle> points,
 // Returns pairs (index in first, index in second).
 std::vector<std::pair<uint32_t, uint32_t>> MatchForInitialization(const TrackedFrame& first, const TrackedFrame& second,
                                                                   float window, const MatcherOptions& options);
+
+// Bag-of-words search: keypoints compared only within the same vocabulary node (direct index),
+// best Hamming distance under max_distance_strict with a best/second-best ratio, orientation
+// checked. Map points of kf go to free keypoints of frame; returns the number of matches.
+int MatchByBow(TrackedFrame& frame, const KeyFrame& kf, const Map& map, const MatcherOptions& options,
+               float ratio = 0.75f);
+// Keypoint pairs (i1 in a, i2 in b) where both keypoints carry live map points.
+std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const KeyFrame& b, const Map& map,
+                                                               const MatcherOptions& options, float ratio = 0.75f);
+
+// Projects world points through S_cw (X_c = s R X + t; a corrected pose across a loop) into kf
+// and binds each to the best keypoint within radius x level scale at the level predicted from
+// its distance, under max_distance_strict. (*matched)[k] is the point for keypoint k (sized to
+// kf); entries already set are kept. Returns the number of new matches.
+int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<const PointHandle> points,
+                      const Map& map, const CameraGeometry& geometry, float radius, const MatcherOptions& options,
+                      std::vector<PointHandle>* matched);
 
 // Fundamental matrix mapping pixels of kf1 to epipolar lines in kf2.
 [[nodiscard]] Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, const PinholeCamera& camera);

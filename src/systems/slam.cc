@@ -10,6 +10,7 @@
 
 #include "core/error.h"
 #include "systems/geometry.h"
+#include "systems/vocabulary.h"
 
 namespace flatslam {
 namespace {
@@ -40,11 +41,17 @@ bool SlamOptions::Check() const {
   return orb.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
          rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && min_init_points > 0 && min_motion_inliers > 0 &&
          min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 &&
-         local_keyframes > 0 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1;
+         local_keyframes > 0 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 &&
+         relocalization_frames >= 0 && loop_consistency >= 1 && min_loop_matches >= 3;
 }
 
 Slam::Slam(const Calibration& calibration, const SlamOptions& options)
-    : calibration_(calibration), options_(options), extractor_(options.orb), rng_(options.seed) {
+    : calibration_(calibration),
+      options_(options),
+      extractor_(options.orb),
+      rng_(options.seed),
+      database_(options.vocabulary ? options.vocabulary->word_count() : 0),
+      loop_rng_(options.seed + 1) {
   FLATSLAM_CHECK(options_.Check(), "invalid SLAM options");
   FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
   FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
@@ -107,11 +114,32 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     ok = monocular() ? InitializeMonocular(frame) : Initialize(frame);
     if (ok) *new_keyframe = reference_keyframe_;
   } else {
-    ok = TrackWithMotion(frame) || TrackReferenceKeyFrame(frame);
+    if (map_corrected_ && last_frame_ && !frame_poses_.empty()) {
+      // A loop correction or global BA moved the map: the last frame follows its reference keyframe.
+      if (const KeyFrame* ref = map_.keyframes().try_get(frame_poses_.back().reference))
+        last_frame_->T_cam_world = frame_poses_.back().T_cam_ref * ref->T_cam_world;
+      map_corrected_ = false;
+    }
+    bool relocalizing = state_ == TrackingState::kLost;
+    if (force_lost_) {
+      force_lost_ = false;
+      relocalizing = true;
+      velocity_.reset();
+    }
+    if (!relocalizing) ok = TrackWithMotion(frame) || TrackReferenceKeyFrame(frame);
+    if (!ok && options_.vocabulary) {
+      ok = Relocalize(frame);
+      report.relocalized = ok;
+    }
     if (ok) ok = TrackLocalMap(frame, &matches);
-    if (!ok && monocular()) {
+    if (!ok) report.relocalized = false;
+    if (!ok && options_.vocabulary && ++lost_frames_ <= options_.relocalization_frames) {
+      // Lost: relocalize in the same map on the coming frames before starting anew.
+      state_ = TrackingState::kLost;
+    } else if (!ok && monocular()) {
       // Lost without depth: a new two-view initialization starts a new map segment.
       report.reinitialized = true;
+      lost_frames_ = 0;
       state_ = TrackingState::kNotInitialized;
       velocity_.reset();
       init_frame_.reset();
@@ -119,6 +147,8 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     } else if (!ok) {
       // Lost: start a new map segment at the predicted pose so the trajectory continues.
       report.reinitialized = true;
+      lost_frames_ = 0;
+      state_ = TrackingState::kOk;
       frame.T_cam_world = velocity_ ? (*velocity_ * last_frame_->T_cam_world) : last_frame_->T_cam_world;
       std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
       const Eigen::Isometry3d T = frame.T_cam_world;
@@ -128,6 +158,8 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
       }
       velocity_.reset();
     } else {
+      lost_frames_ = 0;
+      if (report.relocalized) velocity_.reset();
       const int inliers = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
                                                          [](PointHandle p) { return !p.is_null(); }));
       report.inliers = inliers;
@@ -136,12 +168,14 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   }
 
   report.matches = matches;
-  if (state_ == TrackingState::kNotInitialized && !ok) {
+  if (state_ == TrackingState::kLost && !ok) {
+    report.state = TrackingState::kLost;
+  } else if (state_ == TrackingState::kNotInitialized && !ok) {
     report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kNotInitialized;
   } else {
     report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kOk;
     state_ = TrackingState::kOk;
-    if (last_frame_ && !report.reinitialized) velocity_ = frame.T_cam_world * last_frame_->T_cam_world.inverse();
+    if (last_frame_ && !report.reinitialized && !report.relocalized) velocity_ = frame.T_cam_world * last_frame_->T_cam_world.inverse();
     FramePose pose;
     pose.t_ns = frame.t_ns;
     pose.reference = reference_keyframe_;
@@ -424,16 +458,24 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     }
   }
   const std::vector<NewPoint> candidates = FindNewPoints(snapshot, neighbours, depth_range);
+  BowVector bow;
+  FeatureVector bow_features;
+  if (options_.vocabulary) options_.vocabulary->Transform(snapshot[0].descriptor, &bow, &bow_features);
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(keyframe)) return;
+    map_.keyframe(keyframe).bow = std::move(bow);
+    map_.keyframe(keyframe).bow_features = std::move(bow_features);
     AddNewPoints(keyframe, candidates);
     Fuse(keyframe);
     map_.UpdateCovisibility(keyframe);
   }
   LocalBundleAdjustment(keyframe);
-  std::lock_guard<std::mutex> lock(map_mutex_);
-  if (map_.keyframes().contains(keyframe)) CullKeyFrames(keyframe);
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (map_.keyframes().contains(keyframe)) CullKeyFrames(keyframe);
+  }
+  DetectAndCloseLoop(keyframe);
 }
 
 void Slam::CullRecentPoints(KeyFrameHandle current) {
@@ -621,6 +663,7 @@ void Slam::CullKeyFrames(KeyFrameHandle current) {
   for (const auto& [h, w] : std::vector<std::pair<KeyFrameHandle, int>>(map_.keyframe(current).covisible)) {
     if (h == first_keyframe_ || h == reference_keyframe_ || !map_.keyframes().contains(h)) continue;
     const KeyFrame& kf = map_.keyframe(h);
+    if (!kf.loop_edges.empty()) continue;  // loop closures keep both ends
     int considered = 0, redundant = 0;
     for (uint32_t i = 0; i < kf.size(); ++i) {
       const MapPoint* point = map_.points().try_get(kf.points[i]);
@@ -640,7 +683,7 @@ void Slam::CullKeyFrames(KeyFrameHandle current) {
     }
     if (considered > 0 && redundant > options_.redundant_keyframe_ratio * considered) {
       // Frames referring to the culled keyframe keep their absolute pose (see FrameTrajectory).
-      map_.EraseKeyFrame(h);
+      EraseKeyFrame(h);
     }
   }
 }

@@ -12,18 +12,22 @@
 #include <mutex>
 #include <optional>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "ecs/map.h"
 #include "io/types.h"
 #include "systems/bundle_adjustment.h"
 #include "systems/frame.h"
+#include "systems/keyframe_database.h"
 #include "systems/matcher.h"
 #include "systems/orb_extractor.h"
 #include "systems/pose_optimizer.h"
 #include "systems/stereo_matcher.h"
 
 namespace flatslam {
+
+class Vocabulary;
 
 struct SlamOptions {
   OrbOptions orb;                       // per image feature budget etc.
@@ -44,11 +48,28 @@ struct SlamOptions {
   size_t local_keyframes = 10;          // covisible keyframes used for triangulation
   size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
+  // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
+  const Vocabulary* vocabulary = nullptr;  // must outlive the Slam
+  bool loop_closing = true;
+  bool global_bundle_adjustment = true;    // after each loop correction, in the background
+  int relocalization_frames = 10;          // lost frames spent relocalizing before a new map segment starts
+  int loop_consistency = 3;                // consecutive keyframes that must agree on a loop
+  int min_loop_matches = 40;               // map points matched across the loop after the Sim(3)/SE(3) search
 
   [[nodiscard]] bool Check() const;
 };
 
 enum class TrackingState { kNotInitialized, kOk, kLost };
+
+// One loop closure, for the run summary and tests.
+struct LoopClosure {
+  size_t frame_index = 0;        // input frame of the keyframe that closed the loop
+  size_t matched_frame_index = 0;  // input frame of the keyframe it matched
+  int matches = 0;               // map points matched across the loop
+  double scale = 1;              // Sim(3) scale of the correction (1 for stereo/RGB-D)
+  double correction_m = 0;       // how far the closing keyframe moved
+  double correction_ms = 0;      // fusion + essential graph
+};
 [[nodiscard]] const char* TrackingStateName(TrackingState state);
 
 // Per-frame outcome of Track(), for stats.csv and the run summary.
@@ -58,6 +79,7 @@ struct FrameReport {
   TrackingState state = TrackingState::kNotInitialized;
   bool keyframe = false;
   bool reinitialized = false;  // tracking was lost and a new map segment started here
+  bool relocalized = false;    // tracking was lost and resumed in the existing map here
   int features = 0;
   int stereo_points = 0;       // keypoints with depth
   int matches = 0;             // map points matched before the final pose optimization
@@ -86,6 +108,14 @@ class Slam {
   // Direct map access when no stage is running.
   [[nodiscard]] const Map& map() const { return map_; }
   [[nodiscard]] int pending_keyframes() const { return pending_keyframes_; }
+  // Loop closures so far (call when no stage is running).
+  [[nodiscard]] const std::vector<LoopClosure>& loop_closures() const { return loop_closures_; }
+  [[nodiscard]] size_t database_size() const { return database_.size(); }
+  // Blocks until background work (global bundle adjustment) has finished.
+  void WaitForBackground();
+  // Forces tracking lost from the next frame on (tests and the --lose-at option).
+  void ForceLost();
+  ~Slam();
 
  private:
   struct FramePose {
@@ -122,6 +152,17 @@ class Slam {
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
   [[nodiscard]] double CloseDepth() const;
+  void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database
+
+  // Place recognition (loop_closing.cc).
+  void ComputeBow(TrackedFrame& frame) const;
+  bool Relocalize(TrackedFrame& frame);
+  // Called by local mapping for each keyframe: indexes it, and detects and corrects a loop.
+  void DetectAndCloseLoop(KeyFrameHandle keyframe);
+  struct LoopMatch;
+  bool VerifyLoop(KeyFrameHandle current, KeyFrameHandle candidate, LoopMatch* out);
+  void CorrectLoop(KeyFrameHandle current, const LoopMatch& match);
+  void GlobalBundleAdjustment(uint64_t loop_id);
 
   Calibration calibration_;
   SlamOptions options_;
@@ -148,6 +189,22 @@ class Slam {
   // Mapping bookkeeping (under map_mutex_).
   std::vector<PointHandle> recent_points_;
   std::atomic<int> pending_keyframes_{0};
+
+  // Place recognition (database under map_mutex_; loop state used by local mapping only).
+  KeyFrameDatabase database_;
+  int lost_frames_ = 0;
+  bool force_lost_ = false;
+  bool map_corrected_ = false;  // a loop correction moved keyframes: refresh the last frame's pose
+  struct ConsistentGroup {
+    std::vector<KeyFrameHandle> keyframes;
+    int count = 0;
+  };
+  std::vector<ConsistentGroup> consistent_groups_;
+  uint64_t last_loop_keyframe_id_ = 0;
+  std::vector<LoopClosure> loop_closures_;
+  std::mt19937_64 loop_rng_;
+  std::thread global_ba_;
+  std::atomic<bool> global_ba_running_{false};
 };
 
 }  // namespace flatslam

@@ -1,0 +1,433 @@
+// Slam's place recognition: bag-of-words for frames and keyframes, relocalization against the
+// keyframe database, loop detection with temporal consistency and geometric verification, loop
+// correction through the essential graph, and global bundle adjustment in the background.
+#include <algorithm>
+#include <chrono>
+#include <unordered_map>
+#include <unordered_set>
+
+#include <opencv2/calib3d.hpp>
+
+#include "core/error.h"
+#include "systems/similarity.h"
+#include "systems/slam.h"
+#include "systems/vocabulary.h"
+
+namespace flatslam {
+
+struct Slam::LoopMatch {
+  KeyFrameHandle candidate;
+  Similarity3 S_cw;                      // corrected pose of the current keyframe
+  std::vector<PointHandle> matched;      // per keypoint of the current keyframe: loop-side point
+  std::vector<PointHandle> loop_points;  // points of the candidate and its neighbours
+  int matches = 0;
+};
+
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
+void Slam::ComputeBow(TrackedFrame& frame) const {
+  if (!options_.vocabulary || !frame.bow.empty()) return;
+  options_.vocabulary->Transform(frame.keypoints.descriptor, &frame.bow, &frame.bow_features);
+}
+
+void Slam::ForceLost() {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  force_lost_ = true;
+}
+
+Slam::~Slam() { WaitForBackground(); }
+
+void Slam::WaitForBackground() {
+  if (global_ba_.joinable()) global_ba_.join();
+}
+
+void Slam::EraseKeyFrame(KeyFrameHandle kf) {
+  if (const KeyFrame* k = map_.keyframes().try_get(kf)) database_.Erase(kf, k->bow);
+  map_.EraseKeyFrame(kf);
+}
+
+bool Slam::Relocalize(TrackedFrame& frame) {
+  if (!options_.vocabulary || database_.size() == 0) return false;
+  ComputeBow(frame);
+  std::vector<PlaceCandidate> candidates = database_.DetectRelocalizationCandidates(map_, frame.bow);
+  if (candidates.size() > 20) candidates.resize(20);
+  const PinholeCamera& cam = geometry_.camera;
+  const cv::Matx33d K(cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
+  for (const PlaceCandidate& c : candidates) {
+    const KeyFrame* kf = map_.keyframes().try_get(c.keyframe);
+    if (!kf) continue;
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    if (MatchByBow(frame, *kf, map_, options_.matcher, 0.75f) < 15) continue;
+    std::vector<cv::Point3d> object;
+    std::vector<cv::Point2d> image;
+    std::vector<uint32_t> index;
+    for (uint32_t i = 0; i < frame.size(); ++i) {
+      const MapPoint* point = map_.points().try_get(frame.points[i]);
+      if (!point) continue;
+      object.emplace_back(point->position.x(), point->position.y(), point->position.z());
+      image.emplace_back(frame.keypoints.uv[i].x(), frame.keypoints.uv[i].y());
+      index.push_back(i);
+    }
+    cv::Mat rvec, tvec;
+    std::vector<int> inliers;
+    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 6.0f, 0.99,
+                                           inliers, cv::SOLVEPNP_EPNP);
+    if (!solved || inliers.size() < 10) continue;
+    std::vector<char> keep(index.size(), 0);
+    for (int k : inliers) keep[k] = 1;
+    for (size_t k = 0; k < index.size(); ++k)
+      if (!keep[k]) frame.points[index[k]] = PointHandle::null();
+    cv::Mat R;
+    cv::Rodrigues(rvec, R);
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    for (int r = 0; r < 3; ++r) {
+      for (int col = 0; col < 3; ++col) T.linear()(r, col) = R.at<double>(r, col);
+      T.translation()(r) = tvec.at<double>(r);
+    }
+    frame.T_cam_world = T;
+    int good = OptimizeFramePose(frame);
+    if (good < 10) continue;
+    if (good < 50) {
+      MatchByProjection(frame, *kf, map_, geometry_, 10.0f, options_.matcher);
+      good = OptimizeFramePose(frame);
+    }
+    if (good < 50) continue;
+    reference_keyframe_ = c.keyframe;
+    return true;
+  }
+  std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  return false;
+}
+
+void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
+  if (!options_.vocabulary) return;
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  const KeyFrame* kf = map_.keyframes().try_get(current);
+  if (!kf || kf->bow.empty()) return;
+  const bool detect = options_.loop_closing && !global_ba_running_ && map_.keyframes().size() > 10 &&
+                      (loop_closures_.empty() || kf->id >= last_loop_keyframe_id_ + 10);
+  std::vector<PlaceCandidate> candidates;
+  if (detect) {
+    // The loop must score at least as well as the least similar covisible keyframe.
+    float min_score = 1;
+    for (const auto& [n, w] : kf->covisible)
+      if (const KeyFrame* other = map_.keyframes().try_get(n)) min_score = std::min(min_score, Vocabulary::Score(kf->bow, other->bow));
+    if (kf->covisible.empty()) min_score = 0;
+    candidates = database_.DetectLoopCandidates(map_, current, min_score);
+  }
+  database_.Add(current, kf->bow);
+  if (!detect) return;
+
+  // Temporal consistency: a candidate's covisibility group must overlap groups that earlier
+  // keyframes also found, loop_consistency times in a row.
+  std::vector<ConsistentGroup> next;
+  std::vector<KeyFrameHandle> consistent;
+  std::vector<bool> extended(consistent_groups_.size(), false);
+  for (const PlaceCandidate& c : candidates) {
+    ConsistentGroup group;
+    group.keyframes.push_back(c.keyframe);
+    for (const auto& [n, w] : map_.keyframe(c.keyframe).covisible) group.keyframes.push_back(n);
+    std::sort(group.keyframes.begin(), group.keyframes.end());
+    bool found = false, enough = false;
+    for (size_t g = 0; g < consistent_groups_.size(); ++g) {
+      const auto& previous = consistent_groups_[g].keyframes;
+      const bool overlap = std::any_of(group.keyframes.begin(), group.keyframes.end(), [&](KeyFrameHandle h) {
+        return std::binary_search(previous.begin(), previous.end(), h);
+      });
+      if (!overlap) continue;
+      found = true;
+      const int count = consistent_groups_[g].count + 1;
+      if (!extended[g]) {
+        next.push_back({group.keyframes, count});
+        extended[g] = true;
+      }
+      if (count >= options_.loop_consistency) enough = true;
+    }
+    if (enough) consistent.push_back(c.keyframe);
+    if (!found) next.push_back({group.keyframes, 0});
+  }
+  consistent_groups_ = std::move(next);
+  for (KeyFrameHandle candidate : consistent) {
+    LoopMatch match;
+    if (!VerifyLoop(current, candidate, &match)) continue;
+    CorrectLoop(current, match);
+    consistent_groups_.clear();
+    last_loop_keyframe_id_ = map_.keyframe(current).id;
+    if (options_.global_bundle_adjustment) {
+      WaitForBackground();
+      global_ba_running_ = true;
+      global_ba_ = std::thread([this, id = last_loop_keyframe_id_] { GlobalBundleAdjustment(id); });
+    }
+    return;
+  }
+}
+
+bool Slam::VerifyLoop(KeyFrameHandle current, KeyFrameHandle candidate, LoopMatch* out) {
+  const KeyFrame& a = map_.keyframe(current);
+  const KeyFrame& b = map_.keyframe(candidate);
+  const auto pairs = MatchKeyFramesByBow(a, b, map_, options_.matcher, 0.75f);
+  if (pairs.size() < 20) return false;
+  std::vector<PointCorrespondence> correspondences;
+  correspondences.reserve(pairs.size());
+  for (const auto& [i1, i2] : pairs) {
+    PointCorrespondence c;
+    c.X1 = a.T_cam_world * map_.point(a.points[i1]).position;
+    c.X2 = b.T_cam_world * map_.point(b.points[i2]).position;
+    c.uv1 = a.uv[i1].cast<double>();
+    c.uv2 = b.uv[i2].cast<double>();
+    c.sigma2_1 = geometry_.pyramid.sigma2[a.octave[i1]];
+    c.sigma2_2 = geometry_.pyramid.sigma2[b.octave[i2]];
+    correspondences.push_back(c);
+  }
+  SimilarityRansacOptions ransac;
+  ransac.fix_scale = !monocular();
+  const auto result = EstimateSimilarityRansac(geometry_.camera, correspondences, ransac, loop_rng_);
+  if (!result) return false;
+
+  out->candidate = candidate;
+  out->S_cw = result->S_21.inverse() * Similarity3::FromIsometry(b.T_cam_world);
+  out->matched.assign(a.size(), PointHandle::null());
+  for (size_t k = 0; k < pairs.size(); ++k)
+    if (result->inlier[k]) out->matched[pairs[k].first] = b.points[pairs[k].second];
+  // Every point around the loop keyframe, searched in the current keyframe at the corrected pose.
+  std::unordered_set<PointHandle> unique;
+  std::vector<KeyFrameHandle> loop_keyframes = map_.BestCovisible(candidate, 20);
+  loop_keyframes.push_back(candidate);
+  for (KeyFrameHandle h : loop_keyframes)
+    for (PointHandle p : map_.keyframe(h).points)
+      if (map_.points().contains(p) && unique.insert(p).second) out->loop_points.push_back(p);
+  MatchBySimilarity(a, out->S_cw, out->loop_points, map_, geometry_, 10.0f, options_.matcher, &out->matched);
+  out->matches = static_cast<int>(
+      std::count_if(out->matched.begin(), out->matched.end(), [](PointHandle p) { return !p.is_null(); }));
+  return out->matches >= options_.min_loop_matches;
+}
+
+void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
+  const auto start = std::chrono::steady_clock::now();
+  const Eigen::Vector3d old_center = map_.keyframe(current).camera_center();
+  map_.UpdateCovisibility(current);
+
+  // 1. The current keyframe and its neighbours move rigidly with the loop correction.
+  std::vector<KeyFrameHandle> connected = {current};
+  for (const auto& [n, w] : map_.keyframe(current).covisible) connected.push_back(n);
+  std::unordered_map<KeyFrameHandle, Similarity3> corrected, uncorrected;
+  const Eigen::Isometry3d T_world_current = map_.keyframe(current).T_cam_world.inverse();
+  for (KeyFrameHandle k : connected) {
+    const Eigen::Isometry3d T_kw = map_.keyframe(k).T_cam_world;
+    uncorrected[k] = Similarity3::FromIsometry(T_kw);
+    corrected[k] = k == current ? m.S_cw : Similarity3::FromIsometry(T_kw * T_world_current) * m.S_cw;
+  }
+  std::unordered_map<PointHandle, KeyFrameHandle> corrected_by;
+  for (KeyFrameHandle k : connected) {
+    for (PointHandle p : map_.keyframe(k).points) {
+      if (!map_.points().contains(p) || corrected_by.count(p)) continue;
+      corrected_by[p] = k;
+      MapPoint& point = map_.point(p);
+      point.position = corrected[k].inverse() * (uncorrected[k] * point.position);
+    }
+  }
+  for (KeyFrameHandle k : connected) map_.keyframe(k).T_cam_world = corrected[k].ToIsometry();
+
+  // 2. Fuse the loop: the current keyframe takes the loop-side points, its neighbours too.
+  for (uint32_t i = 0; i < m.matched.size(); ++i) {
+    const PointHandle p = m.matched[i];
+    if (!map_.points().contains(p)) continue;
+    const PointHandle mine = map_.keyframe(current).points[i];
+    if (mine == p) continue;
+    if (map_.points().contains(mine)) {
+      map_.ReplacePoint(mine, p);
+    } else {
+      const auto& obs = map_.point(p).observations;
+      const bool seen = std::any_of(obs.begin(), obs.end(), [&](const Observation& o) { return o.keyframe == current; });
+      if (!seen) map_.AddObservation(p, current, i);
+    }
+  }
+  for (KeyFrameHandle k : connected)
+    if (map_.keyframes().contains(k)) FusePoints(map_, k, m.loop_points, geometry_, options_.matcher);
+
+  // 3. New covisibility links across the loop.
+  std::unordered_set<KeyFrameHandle> connected_set(connected.begin(), connected.end());
+  std::vector<std::pair<KeyFrameHandle, KeyFrameHandle>> loop_links;
+  for (KeyFrameHandle k : connected) {
+    if (!map_.keyframes().contains(k)) continue;
+    std::unordered_set<KeyFrameHandle> before;
+    for (const auto& [n, w] : map_.keyframe(k).covisible) before.insert(n);
+    map_.UpdateCovisibility(k);
+    for (const auto& [n, w] : map_.keyframe(k).covisible)
+      if (!before.count(n) && !connected_set.count(n)) loop_links.emplace_back(k, n);
+  }
+
+  // 4. Essential graph: spanning tree, loop edges, strong covisibility, the new loop links.
+  std::vector<KeyFrameHandle> nodes(map_.keyframes().handles().begin(), map_.keyframes().handles().end());
+  std::unordered_map<KeyFrameHandle, uint32_t> index;
+  std::vector<Similarity3> S(nodes.size()), S_before(nodes.size());
+  std::vector<bool> fixed(nodes.size(), false);
+  for (uint32_t i = 0; i < nodes.size(); ++i) {
+    index[nodes[i]] = i;
+    S[i] = Similarity3::FromIsometry(map_.keyframe(nodes[i]).T_cam_world);
+    if (const auto it = corrected.find(nodes[i]); it != corrected.end()) S[i] = it->second;
+    S_before[i] = S[i];
+    fixed[i] = nodes[i] == m.candidate;
+  }
+  auto measured = [&](uint32_t i) {  // the pose before the correction, for relative measurements
+    const auto it = uncorrected.find(nodes[i]);
+    return it != uncorrected.end() ? it->second : S[i];
+  };
+  std::vector<PoseGraphEdge> edges;
+  std::unordered_set<uint64_t> have;
+  auto add_edge = [&](uint32_t i, uint32_t j, const Similarity3& S_ij) {
+    if (i == j) return;
+    const uint64_t key = (uint64_t{std::min(i, j)} << 32) | std::max(i, j);
+    if (!have.insert(key).second) return;
+    edges.push_back({i, j, S_ij, 1.0});
+  };
+  for (const auto& [k, n] : loop_links) {
+    const uint32_t i = index.at(k), j = index.at(n);
+    const auto& cov = map_.keyframe(k).covisible;
+    const auto w = std::find_if(cov.begin(), cov.end(), [&](const auto& l) { return l.first == n; });
+    if (k != current && n != m.candidate && (w == cov.end() || w->second < 100)) continue;
+    add_edge(i, j, S[i] * S[j].inverse());
+  }
+  for (uint32_t i = 0; i < nodes.size(); ++i) {
+    const KeyFrame& kf = map_.keyframe(nodes[i]);
+    auto relative = [&](KeyFrameHandle other) {
+      const uint32_t j = index.at(other);
+      add_edge(i, j, measured(i) * measured(j).inverse());
+    };
+    if (map_.keyframes().contains(kf.parent)) relative(kf.parent);
+    for (KeyFrameHandle l : kf.loop_edges) relative(l);
+    for (const auto& [n, w] : kf.covisible)
+      if (w >= 100 && map_.keyframes().contains(n)) relative(n);
+  }
+  {
+    const uint32_t i = index.at(current), j = index.at(m.candidate);
+    add_edge(i, j, S[i] * S[j].inverse());
+  }
+  PoseGraphOptions graph;
+  graph.fix_scale = !monocular();
+  OptimizePoseGraph(S, fixed, edges, graph);
+
+  // 5. Write back: keyframes take the optimized poses; points follow the keyframe that moved them.
+  for (uint32_t i = 0; i < nodes.size(); ++i) map_.keyframe(nodes[i]).T_cam_world = S[i].ToIsometry();
+  const auto point_handles = map_.points().handles();
+  for (PointHandle p : std::vector<PointHandle>(point_handles.begin(), point_handles.end())) {
+    MapPoint& point = map_.point(p);
+    const auto by = corrected_by.find(p);
+    const KeyFrameHandle ref = by != corrected_by.end() ? by->second : point.reference;
+    const auto it = index.find(ref);
+    if (it == index.end()) continue;
+    point.position = S[it->second].inverse() * (S_before[it->second] * point.position);
+  }
+  for (PointHandle p : std::vector<PointHandle>(point_handles.begin(), point_handles.end()))
+    map_.UpdatePointStats(p, map_scales_);
+  map_.AddLoopEdge(current, m.candidate);
+  map_corrected_ = true;
+
+  LoopClosure closure;
+  closure.frame_index = map_.keyframe(current).frame_index;
+  closure.matched_frame_index = map_.keyframe(m.candidate).frame_index;
+  closure.matches = m.matches;
+  closure.scale = m.S_cw.s;
+  closure.correction_m = (map_.keyframe(current).camera_center() - old_center).norm();
+  closure.correction_ms = MsSince(start);
+  loop_closures_.push_back(closure);
+}
+
+void Slam::GlobalBundleAdjustment(uint64_t loop_id) {
+  struct Clear {
+    std::atomic<bool>& flag;
+    ~Clear() { flag = false; }
+  } clear{global_ba_running_};
+  BundleAdjustmentProblem problem;
+  std::vector<KeyFrameHandle> pose_handles;
+  std::vector<PointHandle> point_handles;
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    problem.camera = geometry_.camera;
+    problem.baseline_m = geometry_.bf / geometry_.camera.fx;
+    std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
+    const auto kfs = map_.keyframes().handles();
+    KeyFrameHandle oldest;
+    uint64_t oldest_id = UINT64_MAX;
+    for (KeyFrameHandle h : kfs)
+      if (map_.keyframe(h).id < oldest_id) oldest_id = map_.keyframe(h).id, oldest = h;
+    for (KeyFrameHandle h : kfs) {
+      pose_index[h] = static_cast<uint32_t>(problem.poses.size());
+      problem.poses.push_back({map_.keyframe(h).T_cam_world, h == oldest});
+      pose_handles.push_back(h);
+    }
+    const auto pts = map_.points().handles();
+    for (PointHandle p : pts) {
+      const MapPoint& point = map_.point(p);
+      if (point.observations.size() < 2) continue;
+      const uint32_t j = static_cast<uint32_t>(problem.points.size());
+      problem.points.push_back(point.position);
+      point_handles.push_back(p);
+      for (const Observation& o : point.observations) {
+        const KeyFrame& kf = map_.keyframe(o.keyframe);
+        BundleAdjustmentObservation obs;
+        obs.pose_index = pose_index.at(o.keyframe);
+        obs.point_index = j;
+        obs.uv = kf.uv[o.keypoint].cast<double>();
+        obs.right_u = kf.right_u[o.keypoint];
+        obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
+        problem.observations.push_back(obs);
+      }
+    }
+  }
+  if (problem.observations.empty()) return;
+  BundleAdjustmentOptions ba = options_.bundle_adjustment;
+  ba.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba);
+  if (!result.success) return;
+
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  if (last_loop_keyframe_id_ != loop_id) return;  // a newer loop moved the map: this solution is stale
+  // Keyframes in the solution take it; keyframes made since follow their spanning-tree parent.
+  std::unordered_map<KeyFrameHandle, Eigen::Isometry3d> before, after;
+  for (size_t k = 0; k < pose_handles.size(); ++k) {
+    KeyFrame* kf = map_.keyframes().try_get(pose_handles[k]);
+    if (!kf) continue;
+    before[pose_handles[k]] = kf->T_cam_world;
+    kf->T_cam_world = problem.poses[k].T_cam_world;
+    after[pose_handles[k]] = kf->T_cam_world;
+  }
+  bool progress = true;
+  while (progress) {
+    progress = false;
+    for (KeyFrameHandle h : map_.keyframes().handles()) {
+      if (after.count(h)) continue;
+      KeyFrame& kf = map_.keyframe(h);
+      const auto parent_before = before.find(kf.parent);
+      if (parent_before == before.end()) continue;
+      before[h] = kf.T_cam_world;
+      kf.T_cam_world = kf.T_cam_world * parent_before->second.inverse() * after.at(kf.parent);
+      after[h] = kf.T_cam_world;
+      progress = true;
+    }
+  }
+  std::unordered_set<PointHandle> solved;
+  for (size_t j = 0; j < point_handles.size(); ++j) {
+    if (MapPoint* point = map_.points().try_get(point_handles[j])) {
+      point->position = problem.points[j];
+      solved.insert(point_handles[j]);
+    }
+  }
+  for (PointHandle p : map_.points().handles()) {
+    if (solved.count(p)) continue;
+    MapPoint& point = map_.point(p);
+    const auto b = before.find(point.reference);
+    if (b == before.end()) continue;
+    point.position = after.at(point.reference).inverse() * (b->second * point.position);
+  }
+  for (PointHandle p : map_.points().handles()) map_.UpdatePointStats(p, map_scales_);
+  map_corrected_ = true;
+}
+
+}  // namespace flatslam
