@@ -1,0 +1,662 @@
+#include "storage/snapshot.h"
+
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <bit>
+#include <cerrno>
+#include <cstring>
+#include <random>
+#include <utility>
+
+#include <flatbuffers/flatbuffers.h>
+
+#include "core/error.h"
+#include "flatslam/schemas/map_generated.h"
+
+namespace flatslam {
+namespace {
+
+namespace fb = flatbuffers;
+
+// Columns are copied between arenas and files as raw bytes: the layouts must agree.
+static_assert(std::endian::native == std::endian::little, "snapshots are read in place: little-endian only");
+static_assert(sizeof(schema::Vec2f) == sizeof(Eigen::Vector2f));
+static_assert(sizeof(schema::Descriptor256) == sizeof(Descriptor));
+static_assert(sizeof(schema::ObservationRecord) == 8);
+static_assert(sizeof(schema::CovisibilityEdge) == 8);
+
+constexpr size_t kMaxBufferSize = (size_t{1} << 31) - 1;  // flatbuffers uses 32-bit offsets
+
+template <class T>
+size_t Size(const fb::Vector<T>* v) {
+  return v ? v->size() : 0;
+}
+// Absent vectors read as empty.
+template <class T>
+std::span<const T> Span(const fb::Vector<T>* v) {
+  return v ? std::span<const T>(v->data(), v->size()) : std::span<const T>();
+}
+template <class T>
+std::span<const T> Span(const fb::Vector<const T*>* v) {
+  return v ? std::span<const T>(reinterpret_cast<const T*>(v->Data()), v->size()) : std::span<const T>();
+}
+
+schema::Pose34 ToPose(const Eigen::Isometry3d& T) {
+  double m[12];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) m[r * 4 + c] = T.matrix()(r, c);
+  return schema::Pose34(fb::span<const double, 12>(m));
+}
+
+Eigen::Isometry3d FromPose(const schema::Pose34* pose) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  if (!pose) return T;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) T.matrix()(r, c) = pose->m()->Get(r * 4 + c);
+  return T;
+}
+
+schema::Vec3d ToVec(const Eigen::Vector3d& v) { return schema::Vec3d(v.x(), v.y(), v.z()); }
+Eigen::Vector3d FromVec(const schema::Vec3d& v) { return {v.x(), v.y(), v.z()}; }
+
+schema::Descriptor256 ToDescriptor(const Descriptor& d) {
+  return schema::Descriptor256(fb::span<const uint64_t, 4>(d.data(), 4));
+}
+Descriptor FromDescriptor(const schema::Descriptor256& d) {
+  Descriptor out;
+  for (int i = 0; i < 4; ++i) out[i] = d.w()->Get(i);
+  return out;
+}
+
+// Upper bound of the serialized size, to size the builder once and to refuse >2 GiB early.
+size_t EstimateSize(std::span<const SnapshotMapRef> maps) {
+  size_t bytes = 4096;
+  for (const SnapshotMapRef& ref : maps) {
+    bytes += 256;
+    for (const KeyFrame& kf : ref.map->keyframes().values()) {
+      bytes += 512 + kf.size() * (8 + 4 + 4 + 4 + 1 + 32 + 4) + 8 * 4;
+      bytes += (kf.children.size() + kf.loop_edges.size()) * 4 + kf.covisible.size() * 8;
+    }
+    for (const MapPoint& p : ref.map->points().values()) bytes += sizeof(schema::PointRecord) + 4 + p.observations.size() * 8;
+  }
+  return bytes;
+}
+
+fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, const SnapshotMapRef& ref) {
+  FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
+  const Map& map = *ref.map;
+  const auto& keyframes = map.keyframes();
+  const auto& points = map.points();
+  auto kf_index = [&](KeyFrameHandle h) -> uint32_t {
+    return keyframes.contains(h) ? static_cast<uint32_t>(keyframes.dense_index(h)) : kNoIndex;
+  };
+
+  std::vector<uint32_t> agents;
+  std::vector<fb::Offset<schema::KeyFrameRecord>> kf_offsets;
+  kf_offsets.reserve(keyframes.size());
+  std::vector<uint32_t> indices;
+  std::vector<schema::CovisibilityEdge> edges;
+  for (const KeyFrame& kf : keyframes.values()) {
+    const size_t n = kf.size();
+    FLATSLAM_CHECK(kf.right_u.size() == n && kf.depth.size() == n && kf.angle.size() == n && kf.octave.size() == n &&
+                       kf.descriptor.size() == n && kf.points.size() == n,
+                   "map snapshot: keyframe ", kf.id, " of map ", ref.id, " has keypoint columns of different sizes");
+    agents.push_back(kf.agent);
+    const auto uv = builder.CreateVectorOfStructs(reinterpret_cast<const schema::Vec2f*>(kf.uv.data()), n);
+    const auto right_u = builder.CreateVector(kf.right_u);
+    const auto depth = builder.CreateVector(kf.depth);
+    const auto angle = builder.CreateVector(kf.angle);
+    const auto octave = builder.CreateVector(kf.octave);
+    const auto descriptors =
+        builder.CreateVectorOfStructs(reinterpret_cast<const schema::Descriptor256*>(kf.descriptor.data()), n);
+    uint32_t* point_column = nullptr;
+    const auto point_indices = builder.CreateUninitializedVector<uint32_t>(n, &point_column);
+    for (size_t k = 0; k < n; ++k) {
+      const PointHandle p = kf.points[k];
+      point_column[k] = points.contains(p) ? static_cast<uint32_t>(points.dense_index(p)) : kNoIndex;
+    }
+    // Graph edges to erased keyframes carry no information: they are dropped.
+    indices.clear();
+    for (KeyFrameHandle c : kf.children)
+      if (keyframes.contains(c)) indices.push_back(kf_index(c));
+    const auto children = builder.CreateVector(indices);
+    indices.clear();
+    for (KeyFrameHandle l : kf.loop_edges)
+      if (keyframes.contains(l)) indices.push_back(kf_index(l));
+    const auto loop_edges = builder.CreateVector(indices);
+    edges.clear();
+    for (const auto& [other, weight] : kf.covisible)
+      if (keyframes.contains(other)) edges.emplace_back(kf_index(other), weight);
+    const auto covisible = builder.CreateVectorOfStructs(edges);
+
+    schema::KeyFrameRecordBuilder record(builder);
+    const schema::Pose34 pose = ToPose(kf.T_cam_world);
+    record.add_id(kf.id);
+    record.add_frame_index(kf.frame_index);
+    record.add_t_ns(kf.t_ns);
+    record.add_agent(kf.agent);
+    record.add_cam_from_world(&pose);
+    record.add_parent(kf_index(kf.parent));
+    record.add_children(children);
+    record.add_covisible(covisible);
+    record.add_loop_edges(loop_edges);
+    record.add_uv(uv);
+    record.add_right_u(right_u);
+    record.add_depth(depth);
+    record.add_angle(angle);
+    record.add_octave(octave);
+    record.add_descriptors(descriptors);
+    record.add_points(point_indices);
+    kf_offsets.push_back(record.Finish());
+  }
+  const auto keyframe_vector = builder.CreateVector(kf_offsets);
+
+  // Observations first (flat), then the offsets and records that index into them.
+  const auto point_values = points.values();
+  std::vector<uint32_t> offsets;
+  offsets.reserve(point_values.size() + 1);
+  offsets.push_back(0);
+  size_t total = 0;
+  for (const MapPoint& p : point_values) {
+    for (const Observation& o : p.observations) total += keyframes.contains(o.keyframe);
+    FLATSLAM_CHECK(total < kNoIndex, "map snapshot: map ", ref.id, " has too many observations");
+    offsets.push_back(static_cast<uint32_t>(total));
+  }
+  std::vector<schema::ObservationRecord> observations;
+  observations.reserve(total);
+  for (const MapPoint& p : point_values)
+    for (const Observation& o : p.observations)
+      if (keyframes.contains(o.keyframe)) observations.emplace_back(kf_index(o.keyframe), o.keypoint);
+  const auto observation_vector = builder.CreateVectorOfStructs(observations);
+  const auto offset_vector = builder.CreateVector(offsets);
+
+  std::vector<schema::PointRecord> records;
+  records.reserve(point_values.size());
+  for (const MapPoint& p : point_values) {
+    records.emplace_back(ToVec(p.position), ToVec(p.normal), ToDescriptor(p.descriptor), p.first_keyframe_id,
+                                     p.min_distance, p.max_distance, kf_index(p.reference), p.visible, p.found);
+  }
+  const auto point_vector = builder.CreateVectorOfStructs(records);
+
+  std::sort(agents.begin(), agents.end());
+  agents.erase(std::unique(agents.begin(), agents.end()), agents.end());
+  const auto agent_vector = builder.CreateVector(agents);
+  return schema::CreateMapSegment(builder, ref.id, agent_vector, keyframe_vector, point_vector, offset_vector,
+                                  observation_vector);
+}
+
+// Offset of the content hash's 8 bytes within a verified buffer.
+size_t HashOffset(const schema::MapSnapshot* root, const uint8_t* base) {
+  const schema::ContentHash* hash = root->content_hash();
+  return hash ? static_cast<size_t>(reinterpret_cast<const uint8_t*>(hash) - base) : 0;
+}
+
+std::string ErrnoText() { return std::strerror(errno); }
+
+// Closes a file descriptor on scope exit.
+struct FdCloser {
+  int fd = -1;
+  ~FdCloser() {
+    if (fd >= 0) ::close(fd);
+  }
+};
+
+}  // namespace
+
+uint64_t SnapshotHash(std::span<const uint8_t> bytes, size_t skip_offset, size_t skip_size) {
+  constexpr uint64_t kP1 = 0x9e3779b185ebca87ull, kP2 = 0xc2b2ae3d27d4eb4full, kP3 = 0x165667b19e3779f9ull;
+  constexpr uint64_t kP4 = 0x85ebca77c2b2ae63ull, kP5 = 0x27d4eb2f165667c5ull;
+  const size_t skip_end = skip_offset + skip_size;
+  const uint8_t* data = bytes.data();
+  const size_t n = bytes.size();
+  uint64_t lanes[4] = {kP1 + kP2, kP2, 0, 0 - kP1};
+  size_t pos = 0;
+  for (; pos + 32 <= n; pos += 32) {
+    const uint8_t* block = data + pos;
+    uint8_t masked[32];
+    if (skip_size > 0 && pos < skip_end && pos + 32 > skip_offset) {
+      std::memcpy(masked, block, 32);
+      for (size_t i = std::max(pos, skip_offset); i < std::min(pos + 32, skip_end); ++i) masked[i - pos] = 0;
+      block = masked;
+    }
+    for (int l = 0; l < 4; ++l) {
+      uint64_t word;
+      std::memcpy(&word, block + 8 * l, 8);
+      lanes[l] = std::rotl(lanes[l] + word * kP2, 31) * kP1;
+    }
+  }
+  uint64_t h = std::rotl(lanes[0], 1) + std::rotl(lanes[1], 7) + std::rotl(lanes[2], 12) + std::rotl(lanes[3], 18);
+  for (; pos < n; ++pos) {
+    const uint64_t byte = (pos >= skip_offset && pos < skip_end) ? 0 : data[pos];
+    h = std::rotl(h ^ (byte * kP5), 11) * kP1;
+  }
+  h ^= n * kP4;
+  h ^= h >> 33;
+  h *= kP2;
+  h ^= h >> 29;
+  h *= kP3;
+  h ^= h >> 32;
+  return h;
+}
+
+std::vector<uint8_t> SerializeMapSnapshot(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata) {
+  for (const SnapshotMapRef& ref : maps) FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
+  const size_t estimate = EstimateSize(maps);
+  FLATSLAM_CHECK(estimate < kMaxBufferSize, "map snapshot: about ", estimate >> 20,
+                 " MiB exceeds the 2 GiB limit of one snapshot buffer");
+  fb::FlatBufferBuilder builder(estimate);
+  std::vector<fb::Offset<schema::MapSegment>> segments;
+  for (const SnapshotMapRef& ref : maps) segments.push_back(BuildSegment(builder, ref));
+  const auto segment_vector = builder.CreateVector(segments);
+
+  const Calibration& calib = metadata.calibration;
+  const schema::Pose34 T_body_cam = ToPose(calib.T_body_cam);
+  const auto calibration = schema::CreateCalibration(
+      builder, static_cast<schema::Sensor>(calib.sensor), calib.camera.fx, calib.camera.fy, calib.camera.cx,
+      calib.camera.cy, calib.camera.width, calib.camera.height, calib.baseline_m, calib.frame_rate_hz, &T_body_cam);
+  const auto scales = schema::CreateScalePyramid(builder, metadata.scales.scale_factor, metadata.scales.levels);
+  const schema::ContentHash placeholder(0);
+  const auto root = schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder,
+                                              metadata.vocabulary_checksum, calibration, scales, segment_vector);
+  schema::FinishMapSnapshotBuffer(builder, root);
+
+  uint8_t* buffer = builder.GetBufferPointer();
+  const size_t size = builder.GetSize();
+  const size_t hash_offset = HashOffset(schema::GetMapSnapshot(buffer), buffer);
+  const uint64_t hash = SnapshotHash({buffer, size}, hash_offset, 8);
+  std::memcpy(buffer + hash_offset, &hash, 8);
+  return std::vector<uint8_t>(buffer, buffer + size);
+}
+
+void SaveMapSnapshot(const std::filesystem::path& path, std::span<const SnapshotMapRef> maps,
+                     const SnapshotMetadata& metadata) {
+  const std::vector<uint8_t> bytes = SerializeMapSnapshot(maps, metadata);
+  const std::filesystem::path dir = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
+  std::mt19937_64 rng(std::random_device{}());
+  std::string temp_name = ".";
+  temp_name += path.filename().string();
+  temp_name += ".tmp" + std::to_string(::getpid()) + "_" + std::to_string(rng() % 1000000);
+  const std::filesystem::path temp = dir / temp_name;
+  FdCloser file{::open(temp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644)};
+  FLATSLAM_CHECK(file.fd >= 0, "cannot save map snapshot ", path, ": cannot create ", temp, ": ", ErrnoText());
+  auto fail = [&](const std::string& what) {
+    const std::string reason = ErrnoText();
+    ::close(file.fd);
+    file.fd = -1;
+    ::unlink(temp.c_str());
+    Fail("cannot save map snapshot ", path, ": ", what, ": ", reason);
+  };
+  size_t written = 0;
+  while (written < bytes.size()) {
+    const ssize_t n = ::write(file.fd, bytes.data() + written, std::min<size_t>(bytes.size() - written, 1 << 30));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) fail("write failed");
+    written += static_cast<size_t>(n);
+  }
+  if (::fsync(file.fd) != 0) fail("fsync failed");
+  if (::close(file.fd) != 0) {
+    file.fd = -1;
+    fail("close failed");
+  }
+  file.fd = -1;
+  if (::rename(temp.c_str(), path.c_str()) != 0) {
+    const std::string reason = ErrnoText();
+    ::unlink(temp.c_str());
+    Fail("cannot save map snapshot ", path, ": rename failed: ", reason);
+  }
+  // Makes the rename itself durable; failure here leaves a complete file, so it is not an error.
+  FdCloser directory{::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC)};
+  if (directory.fd >= 0) (void)::fsync(directory.fd);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Read-only view
+
+MapSnapshotView::MapSnapshotView(MapSnapshotView&& other) noexcept
+    : name_(std::move(other.name_)),
+      bytes_(std::exchange(other.bytes_, {})),
+      mapping_(std::exchange(other.mapping_, nullptr)),
+      mapping_size_(std::exchange(other.mapping_size_, 0)),
+      root_(std::exchange(other.root_, nullptr)) {}
+
+MapSnapshotView& MapSnapshotView::operator=(MapSnapshotView&& other) noexcept {
+  if (this != &other) {
+    if (mapping_) ::munmap(mapping_, mapping_size_);
+    name_ = std::move(other.name_);
+    bytes_ = std::exchange(other.bytes_, {});
+    mapping_ = std::exchange(other.mapping_, nullptr);
+    mapping_size_ = std::exchange(other.mapping_size_, 0);
+    root_ = std::exchange(other.root_, nullptr);
+  }
+  return *this;
+}
+
+MapSnapshotView::~MapSnapshotView() {
+  if (mapping_) ::munmap(mapping_, mapping_size_);
+}
+
+MapSnapshotView MapSnapshotView::Open(const std::filesystem::path& path, const SnapshotReadOptions& options) {
+  MapSnapshotView view;
+  view.name_ = path.string();
+  FdCloser file{::open(path.c_str(), O_RDONLY | O_CLOEXEC)};
+  FLATSLAM_CHECK(file.fd >= 0, "map snapshot ", path, ": cannot open: ", ErrnoText());
+  struct stat info {};
+  FLATSLAM_CHECK(::fstat(file.fd, &info) == 0, "map snapshot ", path, ": cannot stat: ", ErrnoText());
+  FLATSLAM_CHECK(S_ISREG(info.st_mode), "map snapshot ", path, ": not a regular file");
+  const size_t size = static_cast<size_t>(info.st_size);
+  FLATSLAM_CHECK(size >= 8, "map snapshot ", path, ": truncated or not a map snapshot (", size, " bytes)");
+  FLATSLAM_CHECK(size < kMaxBufferSize, "map snapshot ", path, ": ", size, " bytes exceeds the 2 GiB format limit");
+  void* mapping = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, file.fd, 0);
+  FLATSLAM_CHECK(mapping != MAP_FAILED, "map snapshot ", path, ": cannot mmap: ", ErrnoText());
+  view.mapping_ = mapping;
+  view.mapping_size_ = size;
+  view.bytes_ = {static_cast<const uint8_t*>(mapping), size};
+  view.Verify(options);  // on throw, the view's destructor unmaps
+  return view;
+}
+
+MapSnapshotView MapSnapshotView::FromBytes(std::span<const uint8_t> bytes, const std::string& name,
+                                           const SnapshotReadOptions& options) {
+  MapSnapshotView view;
+  view.name_ = name;
+  view.bytes_ = bytes;
+  FLATSLAM_CHECK(bytes.size() >= 8, "map snapshot ", name, ": truncated or not a map snapshot (", bytes.size(),
+                 " bytes)");
+  FLATSLAM_CHECK(bytes.size() < kMaxBufferSize, "map snapshot ", name, ": exceeds the 2 GiB format limit");
+  view.Verify(options);
+  return view;
+}
+
+void MapSnapshotView::Verify(const SnapshotReadOptions& options) {
+  const uint8_t* buf = bytes_.data();
+  const size_t size = bytes_.size();
+  const std::string& file = name_;
+  if (!schema::MapSnapshotBufferHasIdentifier(buf)) {
+    std::string found;
+    for (int i = 4; i < 8; ++i) found += (buf[i] >= 32 && buf[i] < 127) ? static_cast<char>(buf[i]) : '?';
+    Fail("map snapshot ", file, ": not a flatslam map snapshot (file identifier '", found, "', expected '",
+         schema::MapSnapshotIdentifier(), "')");
+  }
+  // The version is read on its own first, so a newer file is named as such even where its
+  // layout no longer verifies against this schema.
+  fb::Verifier version_verifier(buf, size);
+  const fb::uoffset_t root_offset = version_verifier.VerifyOffset(0);
+  FLATSLAM_CHECK(root_offset != 0, "map snapshot ", file, ": truncated or corrupt (bad root offset)");
+  const auto* table = reinterpret_cast<const fb::Table*>(buf + root_offset);
+  FLATSLAM_CHECK(table->VerifyTableStart(version_verifier) &&
+                     table->VerifyField<uint32_t>(version_verifier, schema::MapSnapshot::VT_FORMAT_VERSION, 4),
+                 "map snapshot ", file, ": truncated or corrupt (bad root table)");
+  const uint32_t version = table->GetField<uint32_t>(schema::MapSnapshot::VT_FORMAT_VERSION, 0);
+  FLATSLAM_CHECK(version <= kMapSnapshotFormatVersion, "map snapshot ", file, ": format version ", version,
+                 " is newer than this build reads (version ", kMapSnapshotFormatVersion, "); update flatslam");
+  FLATSLAM_CHECK(version >= 1, "map snapshot ", file, ": invalid format version 0");
+
+  fb::Verifier verifier(buf, size);
+  FLATSLAM_CHECK(schema::VerifyMapSnapshotBuffer(verifier), "map snapshot ", file,
+                 ": truncated or corrupt (flatbuffers verification failed)");
+  root_ = schema::GetMapSnapshot(buf);
+  const schema::MapSnapshot& root = *root_;
+  FLATSLAM_CHECK(root.content_hash() != nullptr, "map snapshot ", file, ": no content hash");
+  if (options.verify_content_hash) {
+    const size_t offset = HashOffset(root_, buf);
+    const uint64_t computed = SnapshotHash(bytes_, offset, 8);
+    FLATSLAM_CHECK(computed == root.content_hash()->value(), "map snapshot ", file,
+                   ": corrupt (content hash mismatch: some bytes changed after it was written)");
+  }
+  if (options.vocabulary_checksum && *options.vocabulary_checksum != root.vocabulary_checksum()) {
+    Fail("map snapshot ", file, ": built with vocabulary checksum ", root.vocabulary_checksum(),
+         ", but the vocabulary in use has checksum ", *options.vocabulary_checksum,
+         " (a map only works with the vocabulary it was built with)");
+  }
+  FLATSLAM_CHECK(root.calibration() != nullptr, "map snapshot ", file, ": missing calibration");
+  FLATSLAM_CHECK(root.scales() != nullptr, "map snapshot ", file, ": missing scale pyramid");
+  const auto sensor = static_cast<uint8_t>(root.calibration()->sensor());
+  FLATSLAM_CHECK(sensor <= static_cast<uint8_t>(schema::Sensor::MAX), "map snapshot ", file, ": unknown sensor ",
+                 int{sensor});
+
+  const size_t maps = Size(root.maps());
+  for (size_t m = 0; m < maps; ++m) {
+    const schema::MapSegment& seg = *root.maps()->Get(static_cast<fb::uoffset_t>(m));
+    const size_t nk = Size(seg.keyframes());
+    const size_t np = Size(seg.points());
+    const size_t no = Size(seg.observations());
+    auto bad = [&](auto&&... what) { Fail("map snapshot ", file, ": map ", m, ": ", what...); };
+    const uint32_t* agents = Span(seg.agents()).data();
+    const size_t agent_count = Size(seg.agents());
+    for (size_t a = 1; a < agent_count; ++a)
+      if (agents[a - 1] >= agents[a]) bad("agent list not sorted and unique");
+
+    // Point records and observations.
+    if (Size(seg.observation_offsets()) != np + 1)
+      bad("observation offsets: ", Size(seg.observation_offsets()), " entries for ", np, " points (expected ", np + 1,
+          ")");
+    const uint32_t* offsets = Span(seg.observation_offsets()).data();
+    if (offsets[0] != 0) bad("first observation offset is ", offsets[0], ", not 0");
+    for (size_t i = 0; i < np; ++i)
+      if (offsets[i + 1] < offsets[i]) bad("observation offsets decrease at point ", i);
+    if (offsets[np] != no) bad("observation offsets end at ", offsets[np], " but there are ", no, " observations");
+    const schema::PointRecord* points = Span(seg.points()).data();
+    for (size_t i = 0; i < np; ++i) {
+      const uint32_t ref = points[i].reference();
+      if (ref != kNoIndex && ref >= nk) bad("point ", i, ": reference keyframe index ", ref, " out of range (", nk, " keyframes)");
+    }
+
+    // Keyframes: column sizes, indices.
+    std::vector<uint32_t> keypoints(nk);
+    for (size_t k = 0; k < nk; ++k) {
+      const schema::KeyFrameRecord& kf = *seg.keyframes()->Get(static_cast<fb::uoffset_t>(k));
+      const size_t n = Size(kf.uv());
+      if (Size(kf.right_u()) != n || Size(kf.depth()) != n || Size(kf.angle()) != n || Size(kf.octave()) != n ||
+          Size(kf.descriptors()) != n || Size(kf.points()) != n)
+        bad("keyframe ", k, ": keypoint columns differ in size");
+      keypoints[k] = static_cast<uint32_t>(n);
+      if (!std::binary_search(agents, agents + agent_count, kf.agent()))
+        bad("keyframe ", k, ": agent ", kf.agent(), " missing from the map's agent list");
+      if (kf.parent() != kNoIndex && kf.parent() >= nk)
+        bad("keyframe ", k, ": parent index ", kf.parent(), " out of range (", nk, " keyframes)");
+      if (kf.parent() == k) bad("keyframe ", k, " is its own parent");
+      const uint32_t* point_index = Span(kf.points()).data();
+      for (size_t j = 0; j < n; ++j)
+        if (point_index[j] != kNoIndex && point_index[j] >= np)
+          bad("keyframe ", k, " keypoint ", j, ": point index ", point_index[j], " out of range (", np, " points)");
+      for (uint32_t c : Span(kf.children()))
+        if (c >= nk) bad("keyframe ", k, ": child index ", c, " out of range (", nk, " keyframes)");
+      for (uint32_t l : Span(kf.loop_edges()))
+        if (l >= nk || l == k) bad("keyframe ", k, ": loop edge index ", l, " out of range or to itself");
+      for (const schema::CovisibilityEdge& e : Span(kf.covisible()))
+        if (e.keyframe() >= nk || e.keyframe() == k)
+          bad("keyframe ", k, ": covisible keyframe index ", e.keyframe(), " out of range or itself (", nk,
+              " keyframes)");
+    }
+    const schema::ObservationRecord* observations = Span(seg.observations()).data();
+    for (size_t o = 0; o < no; ++o) {
+      const uint32_t kf = observations[o].keyframe();
+      if (kf >= nk) bad("observation ", o, ": keyframe index ", kf, " out of range (", nk, " keyframes)");
+      if (observations[o].keypoint() >= keypoints[kf])
+        bad("observation ", o, ": keypoint ", observations[o].keypoint(), " out of range (keyframe ", kf, " has ",
+            keypoints[kf], ")");
+    }
+  }
+}
+
+uint32_t MapSnapshotView::format_version() const { return root_->format_version(); }
+uint64_t MapSnapshotView::vocabulary_checksum() const { return root_->vocabulary_checksum(); }
+uint64_t MapSnapshotView::content_hash() const { return root_->content_hash()->value(); }
+
+Calibration MapSnapshotView::calibration() const {
+  const schema::Calibration& c = *root_->calibration();
+  Calibration out;
+  out.sensor = static_cast<Sensor>(c.sensor());
+  out.camera.fx = c.fx();
+  out.camera.fy = c.fy();
+  out.camera.cx = c.cx();
+  out.camera.cy = c.cy();
+  out.camera.width = c.width();
+  out.camera.height = c.height();
+  out.baseline_m = c.baseline_m();
+  out.frame_rate_hz = c.frame_rate_hz();
+  out.T_body_cam = FromPose(c.body_from_cam());
+  return out;
+}
+
+MapScales MapSnapshotView::scales() const {
+  return MapScales{root_->scales()->scale_factor(), root_->scales()->levels()};
+}
+
+size_t MapSnapshotView::map_count() const { return Size(root_->maps()); }
+
+const schema::MapSegment& MapSnapshotView::segment(size_t m) const {
+  FLATSLAM_CHECK(m < map_count(), "map snapshot ", name_, ": no map ", m);
+  return *root_->maps()->Get(static_cast<fb::uoffset_t>(m));
+}
+
+uint32_t MapSnapshotView::map_id(size_t m) const { return segment(m).id(); }
+std::span<const uint32_t> MapSnapshotView::agents(size_t m) const {
+  const auto* a = segment(m).agents();
+  return a ? std::span<const uint32_t>(a->data(), a->size()) : std::span<const uint32_t>();
+}
+size_t MapSnapshotView::keyframe_count(size_t m) const { return Size(segment(m).keyframes()); }
+size_t MapSnapshotView::point_count(size_t m) const { return Size(segment(m).points()); }
+size_t MapSnapshotView::observation_count(size_t m) const { return Size(segment(m).observations()); }
+
+size_t MapSnapshotView::keypoint_count(size_t m) const {
+  size_t total = 0;
+  if (const auto* kfs = segment(m).keyframes())
+    for (const schema::KeyFrameRecord* kf : *kfs) total += Size(kf->uv());
+  return total;
+}
+
+Eigen::Vector3d MapSnapshotView::point_position(size_t m, size_t i) const {
+  const auto* points = segment(m).points();
+  FLATSLAM_CHECK(i < Size(points), "map snapshot ", name_, ": map ", m, " has no point ", i);
+  return FromVec(points->Get(static_cast<fb::uoffset_t>(i))->position());
+}
+
+BoundingBox MapSnapshotView::bounds(size_t m) const {
+  BoundingBox box;
+  const auto* points = segment(m).points();
+  for (const schema::PointRecord& record : Span(points)) {
+    const Eigen::Vector3d p = FromVec(record.position());
+    if (box.empty) {
+      box.min = box.max = p;
+      box.empty = false;
+    } else {
+      box.min = box.min.cwiseMin(p);
+      box.max = box.max.cwiseMax(p);
+    }
+  }
+  return box;
+}
+
+Trajectory MapSnapshotView::KeyFrameTrajectory(size_t m) const {
+  Trajectory out;
+  if (const auto* kfs = segment(m).keyframes()) {
+    out.reserve(kfs->size());
+    for (const schema::KeyFrameRecord* kf : *kfs) out.push_back({kf->t_ns(), FromPose(kf->cam_from_world()).inverse()});
+  }
+  std::stable_sort(out.begin(), out.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
+  return out;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Bulk load
+
+LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
+  LoadedSnapshot out;
+  out.format_version = view.format_version();
+  out.metadata.calibration = view.calibration();
+  out.metadata.scales = view.scales();
+  out.metadata.vocabulary_checksum = view.vocabulary_checksum();
+  out.maps.resize(view.map_count());
+  for (size_t m = 0; m < view.map_count(); ++m) {
+    const schema::MapSegment& seg = view.segment(m);
+    LoadedMap& loaded = out.maps[m];
+    loaded.id = seg.id();
+    const auto agents = view.agents(m);
+    loaded.agents.assign(agents.begin(), agents.end());
+    Map& map = loaded.map;
+    const size_t nk = Size(seg.keyframes());
+    const size_t np = Size(seg.points());
+    map.keyframes().reserve(nk);
+    map.points().reserve(np);
+
+    // Keyframes and points first (fresh arenas: the i-th created entity has handle (i, 0)), then
+    // the references between them, once every handle exists.
+    std::vector<KeyFrameHandle> kf_handles(nk);
+    for (size_t k = 0; k < nk; ++k) {
+      const schema::KeyFrameRecord& r = *seg.keyframes()->Get(static_cast<fb::uoffset_t>(k));
+      const size_t n = Size(r.uv());
+      KeyFrame kf;
+      kf.id = r.id();
+      kf.frame_index = r.frame_index();
+      kf.t_ns = r.t_ns();
+      kf.agent = r.agent();
+      kf.T_cam_world = FromPose(r.cam_from_world());
+      kf.uv.resize(n);
+      kf.descriptor.resize(n);
+      if (n > 0) {
+        std::memcpy(static_cast<void*>(kf.uv.data()), Span(r.uv()).data(), n * sizeof(Eigen::Vector2f));
+        std::memcpy(kf.descriptor.data(), Span(r.descriptors()).data(), n * sizeof(Descriptor));
+      }
+      const auto right_u = Span(r.right_u()), depth = Span(r.depth()), angle = Span(r.angle());
+      const auto octave = Span(r.octave());
+      kf.right_u.assign(right_u.begin(), right_u.end());
+      kf.depth.assign(depth.begin(), depth.end());
+      kf.angle.assign(angle.begin(), angle.end());
+      kf.octave.assign(octave.begin(), octave.end());
+      kf.points.resize(n);
+      kf_handles[k] = map.RestoreKeyFrame(std::move(kf));
+    }
+    std::vector<PointHandle> point_handles(np);
+    const schema::PointRecord* records = Span(seg.points()).data();
+    const uint32_t* offsets = Span(seg.observation_offsets()).data();
+    const schema::ObservationRecord* observations = Span(seg.observations()).data();
+    for (size_t i = 0; i < np; ++i) {
+      const schema::PointRecord& r = records[i];
+      MapPoint p;
+      p.position = FromVec(r.position());
+      p.normal = FromVec(r.normal());
+      p.descriptor = FromDescriptor(r.descriptor());
+      p.first_keyframe_id = r.first_keyframe_id();
+      p.min_distance = r.min_distance();
+      p.max_distance = r.max_distance();
+      p.reference = r.reference() == kNoIndex ? KeyFrameHandle::null() : kf_handles[r.reference()];
+      p.visible = r.visible();
+      p.found = r.found();
+      p.observations.reserve(offsets[i + 1] - offsets[i]);
+      for (uint32_t o = offsets[i]; o < offsets[i + 1]; ++o)
+        p.observations.push_back({kf_handles[observations[o].keyframe()], observations[o].keypoint()});
+      point_handles[i] = map.points().create(std::move(p));
+    }
+    for (size_t k = 0; k < nk; ++k) {
+      const schema::KeyFrameRecord& r = *seg.keyframes()->Get(static_cast<fb::uoffset_t>(k));
+      KeyFrame& kf = map.keyframe(kf_handles[k]);
+      const uint32_t* point_index = Span(r.points()).data();
+      for (size_t j = 0; j < kf.points.size(); ++j)
+        kf.points[j] = point_index[j] == kNoIndex ? PointHandle::null() : point_handles[point_index[j]];
+      kf.parent = r.parent() == kNoIndex ? KeyFrameHandle::null() : kf_handles[r.parent()];
+      for (uint32_t c : Span(r.children())) kf.children.push_back(kf_handles[c]);
+      for (uint32_t l : Span(r.loop_edges())) kf.loop_edges.push_back(kf_handles[l]);
+      kf.covisible.reserve(Size(r.covisible()));
+      for (const schema::CovisibilityEdge& e : Span(r.covisible())) kf.covisible.emplace_back(kf_handles[e.keyframe()], e.weight());
+    }
+    const std::string problem = map.Validate();
+    FLATSLAM_CHECK(problem.empty(), "map snapshot ", view.name(), ": map ", m, " is inconsistent: ", problem);
+  }
+  return out;
+}
+
+LoadedSnapshot LoadMapSnapshot(const std::filesystem::path& path, const SnapshotReadOptions& options) {
+  return LoadMapSnapshot(MapSnapshotView::Open(path, options));
+}
+
+LoadedSnapshot LoadMapSnapshotFromBytes(std::span<const uint8_t> bytes, const std::string& name,
+                                        const SnapshotReadOptions& options) {
+  return LoadMapSnapshot(MapSnapshotView::FromBytes(bytes, name, options));
+}
+
+}  // namespace flatslam

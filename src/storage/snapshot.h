@@ -1,0 +1,145 @@
+// Map snapshots: atomic save of one or more maps to a flatbuffers file (schemas/map.fbs), a
+// verified read-only view served in place from an mmap, and a bulk load into fresh Map arenas.
+// Concurrency: free functions are reentrant (distinct files); a MapSnapshotView is immutable after
+// construction and may be read from many threads.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "ecs/map.h"
+#include "io/types.h"
+#include "trajectory/trajectory.h"
+
+namespace flatslam {
+
+namespace schema {
+struct MapSnapshot;
+struct MapSegment;
+}  // namespace schema
+
+// Format written by this build; files with a larger version are refused.
+inline constexpr uint32_t kMapSnapshotFormatVersion = 1;
+inline constexpr uint32_t kNoIndex = 0xffffffffu;  // "none" for an index in a snapshot
+
+// What a snapshot records besides the maps.
+struct SnapshotMetadata {
+  Calibration calibration;
+  MapScales scales;
+  uint64_t vocabulary_checksum = 0;  // identity of the vocabulary the map was built with; 0 = none
+};
+
+// One map to save. Its agents are the distinct KeyFrame::agent values.
+struct SnapshotMapRef {
+  uint32_t id = 0;
+  const Map* map = nullptr;
+};
+
+struct LoadedMap {
+  uint32_t id = 0;
+  std::vector<uint32_t> agents;
+  Map map;
+};
+
+struct LoadedSnapshot {
+  uint32_t format_version = 0;
+  SnapshotMetadata metadata;
+  std::vector<LoadedMap> maps;
+};
+
+struct SnapshotReadOptions {
+  // Refuse a snapshot built with another vocabulary (checksum differs). Unset: accept any.
+  std::optional<uint64_t> vocabulary_checksum;
+  // Hash every byte (detects flipped bytes anywhere; costs a pass over the file). Structure and
+  // every index are verified either way, so an unhashed view is still safe to read.
+  bool verify_content_hash = true;
+};
+
+// Serializes the maps. Keyframes and points are written in the arenas' dense order; handles
+// become dense indices. A stale point reference is written as none. Throws flatslam::Error when
+// a map is inconsistent in a way the format cannot express or the buffer would exceed 2 GiB.
+[[nodiscard]] std::vector<uint8_t> SerializeMapSnapshot(std::span<const SnapshotMapRef> maps,
+                                                        const SnapshotMetadata& metadata);
+
+// Writes the snapshot atomically: a temporary file in the same directory, fsync, rename, fsync of
+// the directory. On any failure the previous file at path is untouched and the temporary removed.
+void SaveMapSnapshot(const std::filesystem::path& path, std::span<const SnapshotMapRef> maps,
+                     const SnapshotMetadata& metadata);
+
+struct BoundingBox {
+  Eigen::Vector3d min = Eigen::Vector3d::Zero(), max = Eigen::Vector3d::Zero();
+  bool empty = true;
+};
+
+// A verified snapshot read in place: nothing is copied out of the mapped file except on request.
+// Every accessor is bounds-safe because the constructor verified structure and indices.
+class MapSnapshotView {
+ public:
+  // Maps the file read-only and verifies it. Throws flatslam::Error naming the file and problem.
+  [[nodiscard]] static MapSnapshotView Open(const std::filesystem::path& path, const SnapshotReadOptions& options = {});
+  // Verifies bytes owned by the caller (kept alive while the view is used); name is for messages.
+  [[nodiscard]] static MapSnapshotView FromBytes(std::span<const uint8_t> bytes, const std::string& name,
+                                                 const SnapshotReadOptions& options = {});
+
+  MapSnapshotView(MapSnapshotView&& other) noexcept;
+  MapSnapshotView& operator=(MapSnapshotView&& other) noexcept;
+  MapSnapshotView(const MapSnapshotView&) = delete;
+  MapSnapshotView& operator=(const MapSnapshotView&) = delete;
+  ~MapSnapshotView();
+
+  [[nodiscard]] const std::string& name() const { return name_; }
+  [[nodiscard]] size_t file_size() const { return bytes_.size(); }
+  [[nodiscard]] std::span<const uint8_t> bytes() const { return bytes_; }
+  [[nodiscard]] uint32_t format_version() const;
+  [[nodiscard]] uint64_t vocabulary_checksum() const;
+  [[nodiscard]] uint64_t content_hash() const;
+  [[nodiscard]] Calibration calibration() const;
+  [[nodiscard]] MapScales scales() const;
+
+  [[nodiscard]] size_t map_count() const;
+  [[nodiscard]] uint32_t map_id(size_t m) const;
+  [[nodiscard]] std::span<const uint32_t> agents(size_t m) const;
+  [[nodiscard]] size_t keyframe_count(size_t m) const;
+  [[nodiscard]] size_t point_count(size_t m) const;
+  [[nodiscard]] size_t observation_count(size_t m) const;
+  [[nodiscard]] size_t keypoint_count(size_t m) const;  // summed over the map's keyframes
+  // Of the map points' positions.
+  [[nodiscard]] BoundingBox bounds(size_t m) const;
+  [[nodiscard]] Eigen::Vector3d point_position(size_t m, size_t i) const;
+  // Keyframe poses as T_world_cam, sorted by time.
+  [[nodiscard]] Trajectory KeyFrameTrajectory(size_t m) const;
+
+  // The verified flatbuffers root and segments, for readers that want every field in place.
+  [[nodiscard]] const schema::MapSnapshot& root() const { return *root_; }
+  [[nodiscard]] const schema::MapSegment& segment(size_t m) const;
+
+ private:
+  MapSnapshotView() = default;
+  void Verify(const SnapshotReadOptions& options);
+
+  std::string name_;
+  std::span<const uint8_t> bytes_;
+  void* mapping_ = nullptr;  // mmap'ed region owned by this view, or null
+  size_t mapping_size_ = 0;
+  const schema::MapSnapshot* root_ = nullptr;
+};
+
+// Verifies the file (see MapSnapshotView) and rebuilds every map in fresh arenas: keyframe i and
+// point i of a segment get dense index i, keyframe ids are kept. Map::Validate() must pass, else
+// the file is refused. Throws flatslam::Error naming the file and problem.
+[[nodiscard]] LoadedSnapshot LoadMapSnapshot(const std::filesystem::path& path, const SnapshotReadOptions& options = {});
+[[nodiscard]] LoadedSnapshot LoadMapSnapshotFromBytes(std::span<const uint8_t> bytes, const std::string& name,
+                                                      const SnapshotReadOptions& options = {});
+[[nodiscard]] LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view);
+
+// The hash stored in content_hash: 64-bit, four lanes of multiply-rotate over 32-byte blocks.
+[[nodiscard]] uint64_t SnapshotHash(std::span<const uint8_t> bytes, size_t skip_offset, size_t skip_size);
+
+}  // namespace flatslam
