@@ -15,6 +15,7 @@
 #include "core/error.h"
 #include "io/dataset.h"
 #include "jobs/slam_runner.h"
+#include "storage/snapshot.h"
 #include "systems/vocabulary.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
@@ -24,7 +25,8 @@ namespace flatslam::app {
 const char* const kRunUsage =
     "usage: flatslam run DATASET [--sensor mono|stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
     "                    [--features N] [--mapping-lag N] [--deterministic] [--quiet]\n"
-    "                    [--vocabulary FILE|none] [--no-loop-closing] [--skip A:B,...] [--lose-at N,...]\n\n"
+    "                    [--vocabulary FILE|none] [--no-loop-closing] [--skip A:B,...] [--lose-at N,...]\n"
+    "                    [--save-map FILE]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
     "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
@@ -38,6 +40,7 @@ const char* const kRunUsage =
     "  --no-loop-closing  relocalize, but never close loops\n"
     "  --skip A:B,...   drop frames A..B-1 (the camera seems to jump: a kidnapping test)\n"
     "  --lose-at N,...  declare tracking lost at frame N (a relocalization test)\n"
+    "  --save-map FILE  save the final map as a snapshot (see flatslam map); written atomically\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
 namespace {
@@ -95,7 +98,8 @@ double Median(std::vector<double> v) {
 }  // namespace
 
 int RunRun(const std::vector<std::string>& argv) {
-  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at"},
+  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at",
+                                 "save-map"},
                   {"deterministic", "quiet", "no-loop-closing"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
@@ -139,6 +143,31 @@ int RunRun(const std::vector<std::string>& argv) {
   if (auto skip = args.get("skip")) run.skip = ParseRanges("skip", *skip, true);
   if (auto lose = args.get("lose-at"))
     for (const auto& [n, unused] : ParseRanges("lose-at", *lose, false)) run.lose_at.push_back(n);
+  // The map is saved when every stage has drained; a failed save is reported after the summary.
+  std::optional<std::filesystem::path> save_map;
+  std::string save_error;
+  double save_ms = 0;
+  if (auto m = args.get("save-map")) {
+    save_map = *m;
+    const std::filesystem::path dir = save_map->has_parent_path() ? save_map->parent_path() : ".";
+    FLATSLAM_CHECK(std::filesystem::is_directory(dir), "--save-map ", *save_map, ": directory ", dir,
+                   " does not exist");
+    SnapshotMetadata metadata;
+    metadata.calibration = dataset->calibration();
+    metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
+    // Identity of the vocabulary the map's keyframes were indexed with (0: none).
+    metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;
+    run.on_finished = [&, metadata](const Slam& slam) {
+      const auto start = std::chrono::steady_clock::now();
+      try {
+        const SnapshotMapRef ref{0, &slam.map()};
+        SaveMapSnapshot(*save_map, {&ref, 1}, metadata);
+      } catch (const Error& e) {
+        save_error = e.what();
+      }
+      save_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    };
+  }
   size_t done = 0, keyframes_so_far = 0;
   std::vector<double> rss_mib;  // sampled every frame: long sessions show whether memory stays flat
   rss_mib.reserve(frames);
@@ -223,6 +252,14 @@ int RunRun(const std::vector<std::string>& argv) {
     return 1;
   }
   if (out_dir) std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv}\n", out_dir->c_str());
+  if (save_map) {
+    if (!save_error.empty()) {
+      std::printf("map snapshot  not saved: %s\n", save_error.c_str());
+      return 1;
+    }
+    std::printf("map snapshot  %s (%.2f MiB, saved in %.1f ms)\n", save_map->c_str(),
+                std::filesystem::file_size(*save_map) / 1048576.0, save_ms);
+  }
   return 0;
 }
 

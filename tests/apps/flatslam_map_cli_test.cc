@@ -1,0 +1,168 @@
+// flatslam run --save-map and flatslam map info/verify/export: outputs and exit codes, on a good
+// snapshot and on bad ones (missing, truncated, flipped, wrong type).
+#include <algorithm>
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include "test_data.h"
+
+namespace flatslam {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct Result {
+  int exit_code = -1;
+  std::string output;  // stdout and stderr
+};
+
+Result RunApp(const std::string& arguments) {
+  const std::string command = testing::AppPath() + " " + arguments + " 2>&1";
+  Result result;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return result;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) result.output.append(buffer.data(), n);
+  const int status = pclose(pipe);
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return result;
+}
+
+bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+std::string ReadText(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+void WriteText(const fs::path& path, const std::string& text) {
+  std::ofstream out(path, std::ios::binary);
+  out << text;
+}
+
+class MapCli : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = testing::FreshTempDir("map_cli");
+    run_ = RunApp("run synth:room:duration=6,width=480,height=360 --deterministic --quiet --vocabulary none --save-map " +
+                  (dir_ / "room.fsmap").string());
+  }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
+  static fs::path dir_;
+  static Result run_;
+};
+fs::path MapCli::dir_;
+Result MapCli::run_;
+
+TEST_F(MapCli, RunSavesAMapThatVerifies) {
+  ASSERT_EQ(run_.exit_code, 0) << run_.output;
+  EXPECT_TRUE(Contains(run_.output, "map snapshot")) << run_.output;
+  ASSERT_TRUE(fs::exists(dir_ / "room.fsmap"));
+  const Result r = RunApp("map verify " + (dir_ / "room.fsmap").string());
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "ok")) << r.output;
+}
+
+TEST_F(MapCli, InfoPrintsCountsAgentsBoundsAndVersion) {
+  const Result r = RunApp("map info " + (dir_ / "room.fsmap").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  for (const char* part : {"format        version 1", "vocabulary    checksum 0000000000000000 (none)", "maps          1",
+                           "agents [0]", "keyframes", "map points", "bounding box [", "MiB", "sensor        stereo"})
+    EXPECT_TRUE(Contains(r.output, part)) << part << " missing in:\n" << r.output;
+}
+
+TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
+  const fs::path ply = dir_ / "points.ply", tum = dir_ / "traj.tum", bin = dir_ / "points_bin.ply";
+  Result r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --ply " + ply.string() + " --trajectory " +
+                    tum.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const std::string header = ReadText(ply);
+  ASSERT_TRUE(Contains(header, "ply\nformat ascii 1.0\n")) << header.substr(0, 200);
+  const size_t count_at = header.find("element vertex ");
+  ASSERT_NE(count_at, std::string::npos);
+  const size_t vertices = std::stoul(header.substr(count_at + 15));
+  EXPECT_GT(vertices, 100u);
+  const std::string body = header.substr(header.find("end_header\n") + 11);
+  EXPECT_EQ(static_cast<size_t>(std::count(body.begin(), body.end(), '\n')), vertices);
+
+  std::istringstream lines(ReadText(tum));
+  std::string line;
+  double last_t = -1;
+  size_t poses = 0;
+  while (std::getline(lines, line)) {
+    if (line.empty() || line[0] == '#') continue;
+    std::istringstream fields(line);
+    std::vector<double> v{std::istream_iterator<double>(fields), {}};
+    ASSERT_EQ(v.size(), 8u) << line;
+    EXPECT_GT(v[0], last_t);
+    last_t = v[0];
+    ++poses;
+  }
+  EXPECT_GT(poses, 3u);
+
+  r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --ply " + bin.string() + " --ply-format binary");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const std::string binary = ReadText(bin);
+  const size_t data_at = binary.find("end_header\n") + 11;
+  EXPECT_TRUE(Contains(binary.substr(0, data_at), "binary_little_endian"));
+  EXPECT_EQ(binary.size() - data_at, vertices * 12);
+}
+
+TEST_F(MapCli, BadFilesFailWithTheProblemNamed) {
+  const std::string good = ReadText(dir_ / "room.fsmap");
+  ASSERT_GT(good.size(), 1000u);
+  WriteText(dir_ / "cut.fsmap", good.substr(0, good.size() / 2));
+  std::string flipped = good;
+  flipped[flipped.size() / 3] ^= 0x10;
+  WriteText(dir_ / "flipped.fsmap", flipped);
+  WriteText(dir_ / "notes.txt", "just some text, long enough to have an identifier\n");
+
+  Result r = RunApp("map verify " + (dir_ / "nowhere.fsmap").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, "cannot open")) << r.output;
+  r = RunApp("map verify " + (dir_ / "cut.fsmap").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, "cut.fsmap") && Contains(r.output, "corrupt")) << r.output;
+  r = RunApp("map verify " + (dir_ / "flipped.fsmap").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, "flipped.fsmap")) << r.output;
+  EXPECT_FALSE(Contains(r.output, "ok:")) << r.output;
+  r = RunApp("map info " + (dir_ / "notes.txt").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, "not a flatslam map snapshot")) << r.output;
+  r = RunApp("map verify " + (dir_ / "room.fsmap").string() + " --vocabulary-checksum 5");
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, "vocabulary")) << r.output;
+  r = RunApp("map export " + (dir_ / "cut.fsmap").string() + " --ply " + (dir_ / "x.ply").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_FALSE(fs::exists(dir_ / "x.ply"));
+}
+
+TEST_F(MapCli, UsageErrors) {
+  Result r = RunApp("map");
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  r = RunApp("map frobnicate x");
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  EXPECT_TRUE(Contains(r.output, "unknown map subcommand")) << r.output;
+  r = RunApp("map export " + (dir_ / "room.fsmap").string());
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  r = RunApp("map --help");
+  EXPECT_EQ(r.exit_code, 0);
+  EXPECT_TRUE(Contains(r.output, "usage: flatslam map info FILE")) << r.output;
+  r = RunApp("run synth:room:duration=1 --vocabulary none --save-map " + (dir_ / "missing_dir" / "m.fsmap").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, "does not exist")) << r.output;
+}
+
+}  // namespace
+}  // namespace flatslam
