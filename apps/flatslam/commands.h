@@ -18,12 +18,14 @@ int RunSynth(const std::vector<std::string>& args);
 int RunEval(const std::vector<std::string>& args);
 int RunInfo(const std::vector<std::string>& args);
 int RunRun(const std::vector<std::string>& args);
+int RunVocab(const std::vector<std::string>& args);
 int RunMap(const std::vector<std::string>& args);
 
 extern const char* const kSynthUsage;
 extern const char* const kEvalUsage;
 extern const char* const kInfoUsage;
 extern const char* const kRunUsage;
+extern const char* const kVocabUsage;
 extern const char* const kMapUsage;
 
 }  // namespace flatslam::app

@@ -23,6 +23,8 @@ const Command kCommands[] = {
      flatslam::app::kRunUsage, flatslam::app::RunRun},
     {"eval", "ATE, RPE and KITTI metrics of an estimated trajectory against ground truth",
      flatslam::app::kEvalUsage, flatslam::app::RunEval},
+    {"vocab", "train a bag-of-words vocabulary from images, or describe a vocabulary file",
+     flatslam::app::kVocabUsage, flatslam::app::RunVocab},
     {"map", "describe, verify or export a map snapshot (info, verify, export)",
      flatslam::app::kMapUsage, flatslam::app::RunMap},
 };

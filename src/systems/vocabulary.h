@@ -1,9 +1,10 @@
 // A bag-of-words vocabulary tree for 256-bit ORB descriptors, stored as an implicit tree:
 // nodes in breadth-first order in one contiguous array; for branching B the children of node i
-// are nodes (i+1)*B .. (i+1)*B+B-1 (node 0 is the root; slots where the tree is not full are
-// marked empty). Trained by hierarchical k-majority clustering with k-means++ seeding; words
-// carry IDF weights. Saved as a flatbuffers file (schemas/vocabulary.fbs) that is memory-mapped
-// on load and read in place.
+// are nodes i*B+1 .. i*B+B, contiguous (node 0 is the root, so the first level is 1 .. B; slots
+// where the tree is not full are marked empty, and a node's present children come first).
+// Trained by hierarchical k-majority clustering with k-means++ seeding; words carry IDF
+// weights. Saved as a flatbuffers file (schemas/vocabulary.fbs) that is memory-mapped on load
+// and read in place.
 // Concurrency: a loaded Vocabulary is immutable; Transform and Score may run on many threads.
 #pragma once
 
@@ -25,7 +26,8 @@ struct VocabularyTrainOptions {
   int levels = 6;            // depth of the leaves below the root
   int max_iterations = 10;   // k-majority iterations per cluster
   uint64_t seed = 1;
-  // Called with (clusters done, clusters planned) as training proceeds; may be empty.
+  // Called with (descriptors settled in a word, descriptors in all) as training proceeds, from
+  // worker threads one call at a time; may be empty.
   std::function<void(size_t, size_t)> progress;
   [[nodiscard]] bool Check() const;
 };
@@ -50,6 +52,16 @@ class Vocabulary {
   // Memory-maps and verifies a vocabulary file; throws flatslam::Error naming the file and the
   // problem (missing, truncated, not a vocabulary, unsupported version, inconsistent tree).
   [[nodiscard]] static Vocabulary Load(const std::filesystem::path& path);
+  // A vocabulary from explicit implicit-tree arrays (tests, benchmarks, converters):
+  // node_descriptors and child_counts have one entry per node slot (node_count_for(branching,
+  // levels)); a node's present children come first in its block; leaves get word ids in slot
+  // order; word_weights has one positive weight per leaf. Throws flatslam::Error when the arrays
+  // do not describe a consistent tree.
+  [[nodiscard]] static Vocabulary FromNodes(int branching, int levels, std::span<const Descriptor> node_descriptors,
+                                            std::span<const uint8_t> child_counts,
+                                            std::span<const float> word_weights);
+  // Slots of the implicit array of a tree with this branching and depth: (B^(L+1) - 1) / (B - 1).
+  [[nodiscard]] static size_t node_count_for(int branching, int levels);
 
   [[nodiscard]] bool empty() const;
   [[nodiscard]] int branching() const;
@@ -59,6 +71,19 @@ class Vocabulary {
   // Identity of the vocabulary (a checksum of its content), stored in map snapshots.
   [[nodiscard]] uint64_t checksum() const;
   [[nodiscard]] float weight(WordId word) const;  // IDF
+  // Training statistics stored in the file (0 for FromNodes).
+  [[nodiscard]] uint64_t training_descriptors() const;
+  [[nodiscard]] uint64_t training_images() const;
+  // Size in bytes of the flatbuffers file this vocabulary is (or would be saved as).
+  [[nodiscard]] size_t byte_size() const;
+
+  // The implicit tree, for tests and tools. Node slots are [0, node_count()).
+  static constexpr WordId kInnerNode = 0xFFFFFFFEu;
+  static constexpr WordId kEmptyNode = 0xFFFFFFFFu;
+  // Word id of a leaf slot, kInnerNode or kEmptyNode.
+  [[nodiscard]] WordId node_word(uint32_t node) const;
+  [[nodiscard]] const Descriptor& node_descriptor(uint32_t node) const;
+  [[nodiscard]] int node_children(uint32_t node) const;  // present children, first in the block
 
   // Descends the tree (closest child by Hamming distance at each level) to a word.
   [[nodiscard]] WordId Transform(const Descriptor& descriptor) const;
@@ -75,6 +100,11 @@ class Vocabulary {
  private:
   struct Impl;
   std::unique_ptr<Impl> impl_;
+  explicit Vocabulary(std::unique_ptr<Impl> impl);
 };
+
+// The vocabulary shipped with the sources (data/vocabulary/orb.fsvc in the source tree), or the
+// file named by the environment variable FLATSLAM_VOCABULARY when it is set and not empty.
+[[nodiscard]] std::filesystem::path DefaultVocabularyPath();
 
 }  // namespace flatslam
