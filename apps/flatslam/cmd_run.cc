@@ -26,7 +26,7 @@ const char* const kRunUsage =
     "usage: flatslam run DATASET [--sensor mono|stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
     "                    [--features N] [--mapping-lag N] [--deterministic] [--quiet]\n"
     "                    [--vocabulary FILE|none] [--no-loop-closing] [--skip A:B,...] [--lose-at N,...]\n"
-    "                    [--save-map FILE]\n\n"
+    "                    [--save-map FILE] [--agent N]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
     "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
@@ -40,6 +40,7 @@ const char* const kRunUsage =
     "  --no-loop-closing  relocalize, but never close loops\n"
     "  --skip A:B,...   drop frames A..B-1 (the camera seems to jump: a kidnapping test)\n"
     "  --lose-at N,...  declare tracking lost at frame N (a relocalization test)\n"
+    "  --agent N        agent id stamped on the map's keyframes (for map merge; default 0)\n"
     "  --save-map FILE  save the final map as a snapshot (see flatslam map); written atomically\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
@@ -99,7 +100,7 @@ double Median(std::vector<double> v) {
 
 int RunRun(const std::vector<std::string>& argv) {
   const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at",
-                                 "save-map"},
+                                 "save-map", "agent"},
                   {"deterministic", "quiet", "no-loop-closing"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
@@ -133,6 +134,9 @@ int RunRun(const std::vector<std::string>& argv) {
     options.vocabulary = &vocabulary;
   }
   options.loop_closing = !args.has("no-loop-closing");
+  const int64_t agent = args.get_int("agent", 0);
+  if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
+  options.agent = static_cast<uint32_t>(agent);
   options.orb.features = static_cast<int>(args.get_int("features", options.orb.features));
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);
   SlamRunOptions run;

@@ -10,15 +10,14 @@
 namespace flatslam {
 
 void KeyFrameDatabase::Add(KeyFrameHandle kf, const BowVector& bow) {
-  for (const auto& [w, weight] : bow) {
+  for (const auto& [w, weight] : bow)
     FLATSLAM_CHECK(w < inverted_.size(), "word ", w, " outside the database's ", inverted_.size(), " words");
-    inverted_[w].push_back(kf);
-  }
-  ++size_;
+  if (!members_.insert(kf).second) return;
+  for (const auto& [w, weight] : bow) inverted_[w].push_back(kf);
 }
 
 void KeyFrameDatabase::Erase(KeyFrameHandle kf, const BowVector& bow) {
-  bool found = false;
+  if (members_.erase(kf) == 0) return;  // never added (e.g. culled before local mapping reached it)
   for (const auto& [w, weight] : bow) {
     if (w >= inverted_.size()) continue;
     auto& list = inverted_[w];
@@ -26,15 +25,13 @@ void KeyFrameDatabase::Erase(KeyFrameHandle kf, const BowVector& bow) {
     if (it != list.end()) {
       *it = list.back();
       list.pop_back();
-      found = true;
     }
   }
-  if (found || bow.empty()) size_ -= size_ > 0 ? 1 : 0;
 }
 
 void KeyFrameDatabase::Clear() {
   for (auto& list : inverted_) list.clear();
-  size_ = 0;
+  members_.clear();
 }
 
 std::vector<PlaceCandidate> KeyFrameDatabase::DetectLoopCandidates(const Map& map, KeyFrameHandle query,

@@ -6,6 +6,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <unordered_set>
 #include <vector>
 
 #include "ecs/bow.h"
@@ -23,11 +24,12 @@ class KeyFrameDatabase {
  public:
   explicit KeyFrameDatabase(size_t word_count = 0) : inverted_(word_count) {}
 
-  // Indexes kf under the words of bow (bow must stay as it was for Erase).
+  // Indexes kf under the words of bow (bow must stay as it was for Erase); once per keyframe.
   void Add(KeyFrameHandle kf, const BowVector& bow);
   void Erase(KeyFrameHandle kf, const BowVector& bow);
   void Clear();
-  [[nodiscard]] size_t size() const { return size_; }
+  [[nodiscard]] size_t size() const { return members_.size(); }
+  [[nodiscard]] bool contains(KeyFrameHandle kf) const { return members_.count(kf) > 0; }
   [[nodiscard]] size_t word_count() const { return inverted_.size(); }
   [[nodiscard]] const std::vector<KeyFrameHandle>& keyframes_with(WordId w) const { return inverted_[w]; }
 
@@ -46,7 +48,7 @@ class KeyFrameDatabase {
                                                  float min_score) const;
 
   std::vector<std::vector<KeyFrameHandle>> inverted_;
-  size_t size_ = 0;
+  std::unordered_set<KeyFrameHandle> members_;
 };
 
 }  // namespace flatslam

@@ -393,6 +393,7 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
   KeyFrame kf;
   kf.frame_index = frame.index;
   kf.t_ns = frame.t_ns;
+  kf.agent = options_.agent;
   kf.T_cam_world = frame.T_cam_world;
   kf.uv = frame.keypoints.uv;
   kf.right_u = frame.keypoints.right_u;

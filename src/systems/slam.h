@@ -48,6 +48,7 @@ struct SlamOptions {
   size_t local_keyframes = 10;          // covisible keyframes used for triangulation
   size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
+  uint32_t agent = 0;                   // stamped on every keyframe (multi-agent maps)
   // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
   const Vocabulary* vocabulary = nullptr;  // must outlive the Slam
   bool loop_closing = true;

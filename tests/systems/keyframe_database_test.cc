@@ -64,6 +64,11 @@ TEST_F(KeyFrameDatabaseTest, InvertedIndexFollowsAddAndErase) {
   EXPECT_EQ(db.keyframes_with(2), (std::vector<KeyFrameHandle>{kf3}));
   EXPECT_TRUE(db.keyframes_with(1) == std::vector<KeyFrameHandle>{kf1});
   EXPECT_THROW(db.Add(kf0, {{8, 1.0f}}), Error);  // word outside the vocabulary
+  const KeyFrameHandle never_added = AddKeyFrame(map, {});
+  db.Erase(never_added, {});
+  EXPECT_EQ(db.size(), 3u);
+  db.Add(kf1, map.keyframe(kf1).bow);  // already there: indexed once
+  EXPECT_EQ(db.keyframes_with(1).size(), 1u);
 }
 
 TEST_F(KeyFrameDatabaseTest, UngroupedCandidatesKeepOnlyTheBestGroup) {
