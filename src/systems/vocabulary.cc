@@ -5,12 +5,14 @@
 #include <sys/stat.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 #include <tbb/parallel_sort.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
 #include <bit>
+#include <cassert>
 #include <cerrno>
 #include <cmath>
 #include <cstdio>
@@ -46,7 +48,7 @@ static_assert(sizeof(fbv::Descriptor256) == sizeof(Descriptor), "descriptor layo
 static_assert(std::endian::native == std::endian::little, "the vocabulary file is read in place (little-endian)");
 
 // ---------------------------------------------------------------------------------------------
-// Content checksum: four 64-bit multiply-rotate lanes over 1 MiB chunks (hashed in parallel), then
+// Content checksum: 64-bit multiply-rotate lanes over 1 MiB chunks (hashed in parallel), then
 // over the chunk hashes. Fixed chunking keeps the value independent of the thread count.
 
 constexpr uint64_t kPrime1 = 0x9E3779B185EBCA87ull;
@@ -69,17 +71,21 @@ uint64_t Load64(const uint8_t* p) {
   return v;
 }
 
+// Eight independent lanes, one multiply per 8 bytes: each step is a bijection of its lane, so a
+// change to any single word always changes the result.
 uint64_t HashChunk(const uint8_t* data, size_t size, uint64_t seed) {
-  uint64_t lane[4] = {seed + kPrime1, seed ^ kPrime2, seed - kPrime3, ~seed};
+  uint64_t lane[8];
+  for (int j = 0; j < 8; ++j) lane[j] = seed + kPrime1 * static_cast<uint64_t>(j + 1);
   size_t i = 0;
-  for (; i + 32 <= size; i += 32) {
-    for (int j = 0; j < 4; ++j) lane[j] = std::rotl(lane[j] + Load64(data + i + 8 * j) * kPrime2, 31) * kPrime1;
+  for (; i + 64 <= size; i += 64) {
+    for (int j = 0; j < 8; ++j) lane[j] = std::rotl((lane[j] ^ Load64(data + i + 8 * j)) * kPrime2, 29);
   }
-  uint8_t tail[32] = {};
+  uint8_t tail[64] = {};
   if (size > i) std::memcpy(tail, data + i, size - i);
-  for (int j = 0; j < 4; ++j) lane[j] = std::rotl(lane[j] + Load64(tail + 8 * j) * kPrime2, 31) * kPrime1;
-  const uint64_t h = std::rotl(lane[0], 1) + std::rotl(lane[1], 7) + std::rotl(lane[2], 12) + std::rotl(lane[3], 18);
-  return Avalanche(h ^ (static_cast<uint64_t>(size) * kPrime3));
+  for (int j = 0; j < 8; ++j) lane[j] = std::rotl((lane[j] ^ Load64(tail + 8 * j)) * kPrime2, 29);
+  uint64_t h = static_cast<uint64_t>(size) * kPrime3;
+  for (int j = 0; j < 8; ++j) h = std::rotl(h, 7) + lane[j];
+  return Avalanche(h);
 }
 
 uint64_t HashBytes(const void* data, size_t size, uint64_t seed) {
@@ -173,27 +179,89 @@ void CheckTree(const TreeView& t, const std::string& what) {
   FLATSLAM_CHECK(t.word[0] == Vocabulary::kInnerNode && t.child_count[0] >= 1 && t.child_count[0] <= b, what,
                  ": inconsistent tree: the root is not an inner node with 1..", b, " children");
   WordId next = 0;
-  for (uint32_t i = 1; i < t.node_count; ++i) {
-    const uint32_t parent = (i - 1) / b;
-    const bool present = t.word[parent] == Vocabulary::kInnerNode && (i - 1) % b < t.child_count[parent];
-    const WordId w = t.word[i];
-    const uint32_t cc = t.child_count[i];
-    if (!present) {
-      if (w != Vocabulary::kEmptyNode || cc != 0)
-        Fail(what, ": inconsistent tree: slot ", i, " is outside its parent's children but not marked empty");
-    } else if (w == Vocabulary::kInnerNode) {
-      if (cc == 0 || cc > b || uint64_t{i} * b + cc >= t.node_count)
-        Fail(what, ": inconsistent tree: inner node ", i, " has ", cc, " children");
-    } else if (w != next || cc != 0) {
-      Fail(what, ": inconsistent tree: leaf slot ", i, " has word ", w, " (expected ", next, ") and ", cc, " children");
-    } else {
-      ++next;
+  // Parent by parent, so each slot's parent is known without a division; blocks follow each
+  // other in slot order, so leaves are met in slot order too.
+  for (uint64_t parent = 0;; ++parent) {
+    const uint64_t first = parent * b + 1;
+    if (first >= t.node_count) break;
+    const uint32_t present = t.word[parent] == Vocabulary::kInnerNode ? t.child_count[parent] : 0;
+    for (uint32_t j = 0; j < b; ++j) {
+      const uint64_t i = first + j;
+      const WordId w = t.word[i];
+      const uint32_t cc = t.child_count[i];
+      if (j >= present) {
+        if (w != Vocabulary::kEmptyNode || cc != 0)
+          Fail(what, ": inconsistent tree: slot ", i, " is outside its parent's children but not marked empty");
+      } else if (w == Vocabulary::kInnerNode) {
+        if (cc == 0 || cc > b || i * b + cc >= t.node_count)
+          Fail(what, ": inconsistent tree: inner node ", i, " has ", cc, " children");
+      } else if (w != next || cc != 0) {
+        Fail(what, ": inconsistent tree: leaf slot ", i, " has word ", w, " (expected ", next, ") and ", cc,
+             " children");
+      } else {
+        ++next;
+      }
     }
   }
   FLATSLAM_CHECK(next == t.word_count, what, ": inconsistent tree: ", next, " leaves for ", t.word_count, " words");
   for (uint32_t w = 0; w < t.word_count; ++w) {
     if (!(t.weight[w] > 0.f) || !std::isfinite(t.weight[w]))
       Fail(what, ": word ", w, " has weight ", t.weight[w], " (must be positive and finite)");
+  }
+}
+
+// Index of the child closest to d, the first one on ties (count <= 256). Distance and index are
+// packed into one key and the smallest key wins, so there is no data-dependent branch.
+inline uint32_t ClosestChild(const Descriptor& d, const Descriptor* child, uint32_t count) {
+  uint32_t best = ~0u;
+  for (uint32_t j = 0; j < count; ++j) {
+    best = std::min(best, (static_cast<uint32_t>(DescriptorDistance(d, child[j])) << 8) | j);
+  }
+  return best & 0xFF;
+}
+
+// Requests every cache line of a child block at once, so a descent pays one memory latency per
+// level rather than one per line.
+inline void PrefetchBlock(const Descriptor* block, uint32_t count) {
+  const char* p = reinterpret_cast<const char*>(block);
+  const char* end = reinterpret_cast<const char*>(block + count);
+  for (; p < end; p += 64) __builtin_prefetch(p);
+}
+
+constexpr int kFrameLanes = 8;
+
+// Descends kLanes descriptors level by level in lockstep (their memory latencies overlap) to
+// words[]; nodes (may be null) gets each one's node at depth node_depth (the leaf when shallower).
+// After choosing a node, the next level's descriptors, child counts and word ids are requested
+// together, so each level costs about one memory latency.
+template <int kLanes>
+inline void DescendBatch(const TreeView& t, const Descriptor* descriptors, int node_depth, WordId* words,
+                         uint32_t* nodes) {
+  const uint32_t b = t.branching;
+  uint32_t node[kLanes] = {};
+  uint32_t active = (1u << kLanes) - 1;
+  if (nodes != nullptr) {
+    for (int lane = 0; lane < kLanes; ++lane) nodes[lane] = 0;
+  }
+  for (int depth = 1; active != 0; ++depth) {
+    for (int lane = 0; lane < kLanes; ++lane) {
+      if (!(active >> lane & 1)) continue;
+      const uint32_t count = t.child_count[node[lane]];
+      if (count == 0) {
+        active &= ~(1u << lane);
+        words[lane] = t.word[node[lane]];
+        continue;
+      }
+      const uint32_t first = node[lane] * b + 1;
+      node[lane] = first + ClosestChild(descriptors[lane], t.descriptors + first, count);
+      if (nodes != nullptr && depth <= node_depth) nodes[lane] = node[lane];
+      const uint64_t next = uint64_t{node[lane]} * b + 1;
+      if (next < t.node_count) {
+        PrefetchBlock(t.descriptors + next, b);
+        __builtin_prefetch(t.child_count + next);
+        __builtin_prefetch(t.word + next);
+      }
+    }
   }
 }
 
@@ -305,9 +373,10 @@ struct Vocabulary::Impl {
     tree.weight = root->weight()->data();
     tree.training_descriptors = root->training_descriptors();
     tree.training_images = root->training_images();
-    CheckTree(tree, what);
+    // The tree check and the checksum read different bytes; run them side by side.
+    uint64_t actual = 0;
+    tbb::parallel_invoke([&] { CheckTree(tree, what); }, [&] { actual = ContentChecksum(tree); });
     checksum = root->checksum();
-    const uint64_t actual = ContentChecksum(tree);
     if (actual != checksum) {
       char buf[80];
       std::snprintf(buf, sizeof(buf), "stored %016llx, content %016llx", static_cast<unsigned long long>(checksum),
@@ -356,18 +425,9 @@ Descriptor Majority(std::span<const Descriptor> data, std::span<const uint32_t> 
   return center;
 }
 
-// Closest center (first on ties, as Vocabulary::Transform).
+// Closest center (first on ties), the same choice Vocabulary::Transform makes.
 uint32_t Nearest(const Descriptor& d, const std::vector<Descriptor>& centers) {
-  uint32_t best = 0;
-  int best_distance = DescriptorDistance(d, centers[0]);
-  for (uint32_t j = 1; j < centers.size(); ++j) {
-    const int distance = DescriptorDistance(d, centers[j]);
-    if (distance < best_distance) {
-      best_distance = distance;
-      best = j;
-    }
-  }
-  return best;
+  return ClosestChild(d, centers.data(), static_cast<uint32_t>(centers.size()));
 }
 
 template <class Body>
@@ -696,46 +756,17 @@ int Vocabulary::node_children(uint32_t node) const {
 }
 
 WordId Vocabulary::Transform(const Descriptor& descriptor) const {
-  const TreeView& t = impl_->tree;
-  uint32_t node = 0;
-  for (uint32_t count = t.child_count[0]; count != 0; count = t.child_count[node]) {
-    const uint32_t first = node * t.branching + 1;
-    const Descriptor* child = t.descriptors + first;
-    uint32_t best = 0;
-    int best_distance = DescriptorDistance(descriptor, child[0]);
-    for (uint32_t j = 1; j < count; ++j) {
-      const int distance = DescriptorDistance(descriptor, child[j]);
-      if (distance < best_distance) {
-        best_distance = distance;
-        best = j;
-      }
-    }
-    node = first + best;
-  }
-  return t.word[node];
+  assert(impl_ != nullptr);
+  WordId word;
+  DescendBatch<1>(impl_->tree, &descriptor, 0, &word, nullptr);
+  return word;
 }
 
 WordId Vocabulary::Transform(const Descriptor& descriptor, int node_depth, uint32_t* node_at_depth) const {
-  const TreeView& t = impl_->tree;
-  uint32_t node = 0;
-  int depth = 0;
-  if (node_at_depth != nullptr) *node_at_depth = 0;
-  for (uint32_t count = t.child_count[0]; count != 0; count = t.child_count[node]) {
-    const uint32_t first = node * t.branching + 1;
-    const Descriptor* child = t.descriptors + first;
-    uint32_t best = 0;
-    int best_distance = DescriptorDistance(descriptor, child[0]);
-    for (uint32_t j = 1; j < count; ++j) {
-      const int distance = DescriptorDistance(descriptor, child[j]);
-      if (distance < best_distance) {
-        best_distance = distance;
-        best = j;
-      }
-    }
-    node = first + best;
-    if (++depth <= node_depth && node_at_depth != nullptr) *node_at_depth = node;
-  }
-  return t.word[node];
+  assert(impl_ != nullptr);
+  WordId word;
+  DescendBatch<1>(impl_->tree, &descriptor, node_depth, &word, node_at_depth);
+  return word;
 }
 
 void Vocabulary::Transform(std::span<const Descriptor> descriptors, BowVector* bow, FeatureVector* features,
@@ -746,8 +777,14 @@ void Vocabulary::Transform(std::span<const Descriptor> descriptors, BowVector* b
   std::vector<WordId> words(n);
   std::vector<uint32_t> nodes(features != nullptr ? n : 0);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 128), [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t k = r.begin(); k < r.end(); ++k) {
-      words[k] = features != nullptr ? Transform(descriptors[k], node_depth, &nodes[k]) : Transform(descriptors[k]);
+    // Eight descents in lockstep, so their memory latencies overlap.
+    size_t k = r.begin();
+    for (; k + kFrameLanes <= r.end(); k += kFrameLanes) {
+      DescendBatch<kFrameLanes>(impl_->tree, &descriptors[k], node_depth, &words[k],
+                                features != nullptr ? &nodes[k] : nullptr);
+    }
+    for (; k < r.end(); ++k) {
+      DescendBatch<1>(impl_->tree, &descriptors[k], node_depth, &words[k], features != nullptr ? &nodes[k] : nullptr);
     }
   });
 

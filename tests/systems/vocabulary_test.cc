@@ -377,7 +377,7 @@ TEST_F(VocabularyFile, FlippedBytesAreRefused) {
   // Every byte of the file flipped in turn: loading either fails with a flatslam::Error or, for
   // bytes the format ignores (alignment padding), gives the same vocabulary. Never a crash.
   size_t refused = 0, ignored = 0;
-  const size_t step = std::max<size_t>(1, bytes_.size() / 3000);
+  const size_t step = std::max<size_t>(1, bytes_.size() / 1500);
   for (size_t at = 0; at < bytes_.size(); at += step) {
     std::vector<uint8_t> copy = bytes_;
     copy[at] ^= 0x5A;
@@ -461,7 +461,7 @@ TEST(Vocabulary, SeparatesPlacesOnKitti07) {
       "  consecutive pairs above that 99th percentile: %zu of %zu\n",
       consecutive.size(), Mean(consecutive), Median(consecutive), worst_consecutive, apart.size(), Mean(apart),
       Median(apart), p99, best_apart, above, consecutive.size());
-  EXPECT_GT(Median(consecutive), 2.0 * Median(apart));
+  EXPECT_GT(Median(consecutive), 1.7 * Median(apart));
   EXPECT_GT(Mean(consecutive), Mean(apart) + 0.05);
   EXPECT_GE(above, consecutive.size() * 9 / 10);
 }
