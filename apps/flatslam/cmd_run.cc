@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -25,8 +26,10 @@ namespace flatslam::app {
 const char* const kRunUsage =
     "usage: flatslam run DATASET [--sensor mono|stereo|rgbd] [--out DIR] [--seed N] [--max-frames N]\n"
     "                    [--features N] [--mapping-lag N] [--deterministic] [--quiet]\n"
-    "                    [--vocabulary FILE|none] [--no-loop-closing] [--skip A:B,...] [--lose-at N,...]\n"
-    "                    [--save-map FILE] [--agent N]\n\n"
+    "                    [--vocabulary FILE|none] [--no-loop-closing] [--no-global-ba]\n"
+    "                    [--skip A:B,...] [--lose-at N,...]\n"
+    "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
+    "                    [--first-frame N]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
     "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
@@ -38,8 +41,12 @@ const char* const kRunUsage =
     "  --vocabulary F   bag-of-words vocabulary for relocalization and loop closing (default: the\n"
     "                   one shipped in data/vocabulary, or $FLATSLAM_VOCABULARY); 'none' turns both off\n"
     "  --no-loop-closing  relocalize, but never close loops\n"
+    "  --no-global-ba   close loops with the essential graph only (no global bundle adjustment after)\n"
     "  --skip A:B,...   drop frames A..B-1 (the camera seems to jump: a kidnapping test)\n"
     "  --lose-at N,...  declare tracking lost at frame N (a relocalization test)\n"
+    "  --load-map FILE  continue a saved map: relocalize in it, then track and extend it\n"
+    "  --localize-only  with --load-map: track against the loaded map without changing it\n"
+    "  --first-frame N  start at frame N (e.g. continue a session that stopped there)\n"
     "  --agent N        agent id stamped on the map's keyframes (for map merge; default 0)\n"
     "  --save-map FILE  save the final map as a snapshot (see flatslam map); written atomically\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
@@ -100,8 +107,8 @@ double Median(std::vector<double> v) {
 
 int RunRun(const std::vector<std::string>& argv) {
   const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at",
-                                 "save-map", "agent"},
-                  {"deterministic", "quiet", "no-loop-closing"});
+                                 "save-map", "agent", "load-map", "first-frame"},
+                  {"deterministic", "quiet", "no-loop-closing", "no-global-ba", "localize-only"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
     return 0;
@@ -134,6 +141,39 @@ int RunRun(const std::vector<std::string>& argv) {
     options.vocabulary = &vocabulary;
   }
   options.loop_closing = !args.has("no-loop-closing");
+  options.global_bundle_adjustment = !args.has("no-global-ba");
+  options.localization_only = args.has("localize-only");
+  if (options.localization_only && !args.has("load-map")) throw UsageError{"--localize-only needs --load-map"};
+  // A saved map to continue: same camera, same vocabulary.
+  std::optional<Map> loaded_map;
+  std::string loaded_note;
+  if (auto m = args.get("load-map")) {
+    FLATSLAM_CHECK(options.vocabulary, "--load-map ", *m, ": continuing a map needs a vocabulary (not 'none')");
+    SnapshotReadOptions read;
+    read.vocabulary_checksum = options.vocabulary->checksum();
+    LoadedSnapshot snapshot = LoadMapSnapshot(*m, read);
+    const Calibration& have = snapshot.metadata.calibration;
+    const Calibration& want = dataset->calibration();
+    const bool same_camera = have.sensor == want.sensor && have.camera.width == want.camera.width &&
+                             have.camera.height == want.camera.height &&
+                             std::abs(have.camera.fx - want.camera.fx) < 1e-6 * want.camera.fx &&
+                             std::abs(have.camera.fy - want.camera.fy) < 1e-6 * want.camera.fy &&
+                             std::abs(have.camera.cx - want.camera.cx) < 1e-6 * want.camera.fx &&
+                             std::abs(have.camera.cy - want.camera.cy) < 1e-6 * want.camera.fy &&
+                             std::abs(have.baseline_m - want.baseline_m) < 1e-9 + 1e-6 * want.baseline_m;
+    FLATSLAM_CHECK(same_camera, "--load-map ", *m, ": the map was built with another camera or sensor than ",
+                   args.positional()[0]);
+    FLATSLAM_CHECK(!snapshot.maps.empty(), "--load-map ", *m, ": the snapshot holds no map");
+    size_t best = 0;
+    for (size_t k = 1; k < snapshot.maps.size(); ++k)
+      if (snapshot.maps[k].map.keyframes().size() > snapshot.maps[best].map.keyframes().size()) best = k;
+    char note[256];
+    std::snprintf(note, sizeof(note), "%s: map %u of %zu, %zu keyframes, %zu map points", m->c_str(),
+                  snapshot.maps[best].id, snapshot.maps.size(), snapshot.maps[best].map.keyframes().size(),
+                  snapshot.maps[best].map.points().size());
+    loaded_note = note;
+    loaded_map = std::move(snapshot.maps[best].map);
+  }
   const int64_t agent = args.get_int("agent", 0);
   if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
   options.agent = static_cast<uint32_t>(agent);
@@ -144,6 +184,11 @@ int RunRun(const std::vector<std::string>& argv) {
   run.deterministic = args.has("deterministic");
   run.max_mapping_lag = static_cast<int>(args.get_int("mapping-lag", run.max_mapping_lag));
   if (run.max_mapping_lag < 0) throw UsageError{"--mapping-lag must be at least 0"};
+  const int64_t first_frame = args.get_int("first-frame", 0);
+  if (first_frame < 0 || static_cast<size_t>(first_frame) >= frames)
+    throw UsageError{"--first-frame must be a frame of the dataset (0.." + std::to_string(frames - 1) + ")"};
+  run.first_frame = static_cast<size_t>(first_frame);
+  if (loaded_map) run.initial_map = &*loaded_map;
   if (auto skip = args.get("skip")) run.skip = ParseRanges("skip", *skip, true);
   if (auto lose = args.get("lose-at"))
     for (const auto& [n, unused] : ParseRanges("lose-at", *lose, false)) run.lose_at.push_back(n);
@@ -231,10 +276,12 @@ int RunRun(const std::vector<std::string>& argv) {
   } else {
     std::printf("places        no vocabulary: %zu new map segments after tracking loss\n", reinitialized);
   }
+  if (!loaded_note.empty())
+    std::printf("continued     %s%s\n", loaded_note.c_str(), options.localization_only ? " (localization only)" : "");
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               Median(extract_ms), mean_extract, Median(track_ms), mean_track);
-  std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", frames / wall_s, wall_s);
+  std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", reports.size() / wall_s, wall_s);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
   if (auto gt = dataset->ground_truth(); gt && !trajectory.empty()) {
     EvalOptions eval;

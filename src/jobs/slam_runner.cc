@@ -6,6 +6,7 @@
 
 #include <tbb/task_arena.h>
 
+#include "core/error.h"
 #include "jobs/pipeline.h"
 
 namespace flatslam {
@@ -32,7 +33,9 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
   // The frames SLAM sees, in order.
   std::vector<size_t> order;
-  for (size_t i = 0; i < frames; ++i) {
+  FLATSLAM_CHECK(run.first_frame < frames, "first frame ", run.first_frame, " is past the last frame ", frames - 1);
+  if (run.initial_map) slam.AdoptMap(std::move(*run.initial_map));
+  for (size_t i = run.first_frame; i < frames; ++i) {
     const bool skipped =
         std::any_of(run.skip.begin(), run.skip.end(), [&](const auto& r) { return i >= r.first && i < r.second; });
     if (!skipped) order.push_back(i);

@@ -14,7 +14,9 @@
 namespace flatslam {
 
 struct SlamRunOptions {
-  size_t max_frames = 0;        // 0 = every frame of the dataset
+  size_t max_frames = 0;        // 0 = every frame of the dataset; else frames [first_frame, max_frames)
+  size_t first_frame = 0;       // frames before it are not read (a session continuing a saved map)
+  Map* initial_map = nullptr;   // moved into the SLAM system before the first frame (Slam::AdoptMap)
   bool deterministic = false;   // map each keyframe inline in the track stage: same input, same output
   size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = the pipeline default
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which

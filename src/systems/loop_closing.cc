@@ -43,6 +43,26 @@ void Slam::ForceLost() {
 
 Slam::~Slam() { WaitForBackground(); }
 
+void Slam::AdoptMap(Map&& map) {
+  FLATSLAM_CHECK(options_.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  FLATSLAM_CHECK(state_ == TrackingState::kNotInitialized && map_.keyframes().empty(),
+                 "a map can only be adopted before the first frame");
+  FLATSLAM_CHECK(!map.keyframes().empty(), "the map to continue has no keyframes");
+  map_ = std::move(map);
+  const auto handles = map_.keyframes().handles();
+  const std::vector<KeyFrameHandle> kfs(handles.begin(), handles.end());
+  uint64_t oldest = UINT64_MAX;
+  for (KeyFrameHandle h : kfs) {
+    KeyFrame& kf = map_.keyframe(h);
+    options_.vocabulary->Transform(kf.descriptor, &kf.bow, &kf.bow_features);
+    database_.Add(h, kf.bow);
+    if (kf.id < oldest) oldest = kf.id, first_keyframe_ = h;
+  }
+  state_ = TrackingState::kLost;
+  allow_new_segments_ = false;
+}
+
 void Slam::WaitForBackground() {
   if (global_ba_.joinable()) global_ba_.join();
 }
@@ -328,6 +348,7 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
     map_.UpdatePointStats(p, map_scales_);
   map_.AddLoopEdge(current, m.candidate);
   map_corrected_ = true;
+  ++map_epoch_;
 
   LoopClosure closure;
   closure.frame_index = map_.keyframe(current).frame_index;
@@ -428,6 +449,7 @@ void Slam::GlobalBundleAdjustment(uint64_t loop_id) {
   }
   for (PointHandle p : map_.points().handles()) map_.UpdatePointStats(p, map_scales_);
   map_corrected_ = true;
+  ++map_epoch_;
 }
 
 }  // namespace flatslam

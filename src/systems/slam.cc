@@ -65,6 +65,7 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
                                                                  : 0.0;
   geometry_.bf = baseline * calibration_.camera.fx;
   if (monocular()) options_.motion_search_radius = options_.mono_search_radius;
+  if (options_.localization_only) allow_new_segments_ = false;
   geometry_.pyramid = extractor_.scales();
   map_scales_.scale_factor = geometry_.pyramid.scale_factor;
   map_scales_.levels = geometry_.pyramid.levels;
@@ -133,7 +134,8 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     }
     if (ok) ok = TrackLocalMap(frame, &matches);
     if (!ok) report.relocalized = false;
-    if (!ok && options_.vocabulary && ++lost_frames_ <= options_.relocalization_frames) {
+    if (!ok && ((options_.vocabulary && ++lost_frames_ <= options_.relocalization_frames) || !allow_new_segments_ ||
+                (!monocular() && !last_frame_))) {
       // Lost: relocalize in the same map on the coming frames before starting anew.
       state_ = TrackingState::kLost;
     } else if (!ok && monocular()) {
@@ -163,7 +165,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
       const int inliers = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
                                                          [](PointHandle p) { return !p.is_null(); }));
       report.inliers = inliers;
-      if (NeedKeyFrame(frame, inliers)) *new_keyframe = CreateKeyFrame(frame);
+      if (!options_.localization_only && NeedKeyFrame(frame, inliers)) *new_keyframe = CreateKeyFrame(frame);
     }
   }
 
@@ -351,13 +353,15 @@ bool Slam::TrackLocalMap(TrackedFrame& frame, int* matches) {
   }
   std::vector<PointHandle> visible;
   MatchLocalPoints(frame, map_, local_points_, geometry_, 1.0f, options_.matcher, &visible);
-  for (PointHandle p : visible)
-    if (MapPoint* point = map_.points().try_get(p)) ++point->visible;
+  if (!options_.localization_only)
+    for (PointHandle p : visible)
+      if (MapPoint* point = map_.points().try_get(p)) ++point->visible;
   *matches = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
                                             [](PointHandle p) { return !p.is_null(); }));
   const int inliers = OptimizeFramePose(frame);
-  for (PointHandle p : frame.points)
-    if (MapPoint* point = map_.points().try_get(p)) ++point->found;
+  if (!options_.localization_only)
+    for (PointHandle p : frame.points)
+      if (MapPoint* point = map_.points().try_get(p)) ++point->found;
   return inliers >= options_.min_local_map_inliers;
 }
 
@@ -439,6 +443,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
   std::vector<KeyFrame> snapshot;  // [0] = the new keyframe, then its neighbours
   std::vector<KeyFrameHandle> neighbours;
   std::pair<double, double> depth_range;
+  uint64_t epoch = 0;
   struct Done {
     std::atomic<int>& pending;
     ~Done() { --pending; }
@@ -451,6 +456,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     map_.UpdateCovisibility(keyframe);
     CullRecentPoints(keyframe);
     depth_range = SceneDepthRange(keyframe);
+    epoch = map_epoch_;
     // Copies of the keyframes to triangulate against, so matching runs without the lock.
     snapshot.push_back(map_.keyframe(keyframe));
     for (KeyFrameHandle n : map_.BestCovisible(keyframe, options_.local_keyframes)) {
@@ -467,7 +473,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     if (!map_.keyframes().contains(keyframe)) return;
     map_.keyframe(keyframe).bow = std::move(bow);
     map_.keyframe(keyframe).bow_features = std::move(bow_features);
-    AddNewPoints(keyframe, candidates);
+    if (epoch == map_epoch_) AddNewPoints(keyframe, candidates);  // else triangulated in the old frame
     Fuse(keyframe);
     map_.UpdateCovisibility(keyframe);
   }
@@ -596,12 +602,14 @@ void Slam::Fuse(KeyFrameHandle current) {
 }
 
 void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
+  uint64_t epoch = 0;
   BundleAdjustmentProblem problem;
   std::vector<KeyFrameHandle> pose_handles;
   std::vector<PointHandle> point_handles;
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(current)) return;
+    epoch = map_epoch_;
     problem.camera = geometry_.camera;
     problem.baseline_m = geometry_.bf / geometry_.camera.fx;
     std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
@@ -643,6 +651,7 @@ void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
   if (!result.success) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
+  if (epoch != map_epoch_) return;  // the map moved meanwhile: this solution is in its old frame
   for (size_t k = 0; k < problem.observations.size(); ++k) {
     if (!result.outlier[k]) continue;
     const auto& o = problem.observations[k];

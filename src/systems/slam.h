@@ -49,6 +49,7 @@ struct SlamOptions {
   size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
   uint32_t agent = 0;                   // stamped on every keyframe (multi-agent maps)
+  bool localization_only = false;       // track against the map without changing it (no keyframes)
   // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
   const Vocabulary* vocabulary = nullptr;  // must outlive the Slam
   bool loop_closing = true;
@@ -116,6 +117,10 @@ class Slam {
   void WaitForBackground();
   // Forces tracking lost from the next frame on (tests and the --lose-at option).
   void ForceLost();
+  // Continues a saved map (call before the first frame): its keyframes are indexed for place
+  // recognition and tracking starts by relocalizing in it. Needs a vocabulary. A session on an
+  // adopted map never starts a new map segment: it stays lost until it relocalizes.
+  void AdoptMap(Map&& map);
   ~Slam();
 
  private:
@@ -195,7 +200,11 @@ class Slam {
   KeyFrameDatabase database_;
   int lost_frames_ = 0;
   bool force_lost_ = false;
+  bool allow_new_segments_ = true;  // false on an adopted map and in localization-only mode
   bool map_corrected_ = false;  // a loop correction moved keyframes: refresh the last frame's pose
+  // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
+  // from an older epoch (local BA, new points) is dropped instead of written back.
+  uint64_t map_epoch_ = 0;
   struct ConsistentGroup {
     std::vector<KeyFrameHandle> keyframes;
     int count = 0;
