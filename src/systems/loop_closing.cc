@@ -68,8 +68,26 @@ void Slam::WaitForBackground() {
 }
 
 void Slam::EraseKeyFrame(KeyFrameHandle kf) {
-  if (const KeyFrame* k = map_.keyframes().try_get(kf)) database_.Erase(kf, k->bow);
+  const KeyFrame* k = map_.keyframes().try_get(kf);
+  if (!k) return;
+  database_.Erase(kf, k->bow);
+  // Frames that referred to kf follow its parent from now on (see ResolveFramePose).
+  if (const KeyFrame* parent = map_.keyframes().try_get(k->parent))
+    culled_[kf] = {k->parent, k->T_cam_world * parent->T_cam_world.inverse()};
   map_.EraseKeyFrame(kf);
+}
+
+Eigen::Isometry3d Slam::ResolveFramePose(const FramePose& f) const {
+  Eigen::Isometry3d T_cam_ref = f.T_cam_ref;
+  KeyFrameHandle ref = f.reference;
+  for (int hops = 0; hops < 1000; ++hops) {
+    if (const KeyFrame* kf = map_.keyframes().try_get(ref)) return T_cam_ref * kf->T_cam_world;
+    const auto it = culled_.find(ref);
+    if (it == culled_.end()) break;
+    T_cam_ref = T_cam_ref * it->second.T_kf_parent;
+    ref = it->second.parent;
+  }
+  return f.T_cam_world;  // no live keyframe to follow: the pose as tracked
 }
 
 bool Slam::Relocalize(TrackedFrame& frame) {

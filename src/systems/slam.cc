@@ -117,8 +117,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   } else {
     if (map_corrected_ && last_frame_ && !frame_poses_.empty()) {
       // A loop correction or global BA moved the map: the last frame follows its reference keyframe.
-      if (const KeyFrame* ref = map_.keyframes().try_get(frame_poses_.back().reference))
-        last_frame_->T_cam_world = frame_poses_.back().T_cam_ref * ref->T_cam_world;
+      last_frame_->T_cam_world = ResolveFramePose(frame_poses_.back());
       map_corrected_ = false;
     }
     bool relocalizing = state_ == TrackingState::kLost;
@@ -705,9 +704,7 @@ Trajectory Slam::FrameTrajectory() const {
   for (const FramePose& f : frame_poses_) {
     TimedPose p;
     p.t_ns = f.t_ns;
-    const KeyFrame* ref = map_.keyframes().try_get(f.reference);
-    const Eigen::Isometry3d T_cam_world = ref ? f.T_cam_ref * ref->T_cam_world : f.T_cam_world;
-    p.T_world_cam = T_cam_world.inverse();
+    p.T_world_cam = ResolveFramePose(f).inverse();
     out.push_back(p);
   }
   return out;

@@ -13,6 +13,7 @@
 #include <optional>
 #include <random>
 #include <thread>
+#include <unordered_map>
 #include <vector>
 
 #include "ecs/map.h"
@@ -158,7 +159,9 @@ class Slam {
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
   [[nodiscard]] double CloseDepth() const;
-  void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database
+  void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
+  // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
+  [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const FramePose& f) const;
 
   // Place recognition (loop_closing.cc).
   void ComputeBow(TrackedFrame& frame) const;
@@ -205,6 +208,11 @@ class Slam {
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;
+  struct CulledKeyFrame {
+    KeyFrameHandle parent;
+    Eigen::Isometry3d T_kf_parent;  // culled keyframe's pose relative to its parent
+  };
+  std::unordered_map<KeyFrameHandle, CulledKeyFrame> culled_;
   struct ConsistentGroup {
     std::vector<KeyFrameHandle> keyframes;
     int count = 0;
