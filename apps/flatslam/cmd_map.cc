@@ -1,14 +1,19 @@
-// flatslam map: describe, verify and export map snapshots (files written by `run --save-map`).
+// flatslam map: describe, verify, export and merge map snapshots (files written by `run --save-map`).
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <string>
+#include <system_error>
 
 #include "args.h"
 #include "commands.h"
 #include "core/error.h"
 #include "storage/snapshot.h"
+#include "systems/map_merge.h"
+#include "systems/vocabulary.h"
 #include "trajectory/trajectory_io.h"
 
 namespace flatslam::app {
@@ -16,7 +21,9 @@ namespace flatslam::app {
 const char* const kMapUsage =
     "usage: flatslam map info FILE\n"
     "       flatslam map verify FILE [--vocabulary-checksum N]\n"
-    "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary] [--trajectory traj.tum]\n\n"
+    "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary] [--trajectory traj.tum]\n"
+    "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
+    "                       [--local-weld] [--seed N]\n\n"
     "Map snapshots (.fsmap) hold one or more maps with their keyframes, map points and graph edges.\n"
     "  info     format version, file size, vocabulary checksum, calibration, and per map: id,\n"
     "           agents, keyframes, map points, observations, bounding box (read in place: fast)\n"
@@ -24,7 +31,19 @@ const char* const kMapUsage =
     "           rebuilds consistently; prints 'ok' and exits 0, else the problem and exits 1\n"
     "  export   map points as a PLY point cloud (all maps; ascii by default) and the keyframe\n"
     "           trajectory (T_world_cam, TUM format, sorted by time; with several maps the\n"
-    "           poses of each stay in that map's own frame)\n";
+    "           poses of each stay in that map's own frame)\n"
+    "  merge    joins the maps of several snapshots (same calibration and vocabulary) where they\n"
+    "           overlap: place recognition between keyframes, a verified SE(3) transform (Sim(3)\n"
+    "           for monocular maps) that several keyframe pairs must agree on, duplicate points\n"
+    "           fused, the seam welded (essential graph and bundle adjustment). The first map's\n"
+    "           frame is kept; maps that overlap nothing are written as separate maps, each in\n"
+    "           its own frame. Inputs are never modified; OUT is written atomically.\n"
+    "    --vocabulary F   the vocabulary the maps were built with (default: the shipped one or\n"
+    "                     $FLATSLAM_VOCABULARY); its checksum must match the snapshots'\n"
+    "    --min-matches N  map points a keyframe pair must match (default 40)\n"
+    "    --min-pairs N    agreeing keyframe pairs, no keyframe used twice, needed to merge (default 3)\n"
+    "    --local-weld     bundle-adjust only the seam neighbourhoods (faster); by default every\n"
+    "                     keyframe is free, which also removes drift between separate seams\n";
 
 namespace {
 
@@ -138,21 +157,162 @@ int Export(const std::string& file, const Args& args) {
   return 0;
 }
 
+bool SameCalibration(const Calibration& a, const Calibration& b) {
+  auto near = [](double x, double y) { return std::abs(x - y) <= 1e-9 * std::max(1.0, std::abs(x)); };
+  return a.sensor == b.sensor && a.camera.width == b.camera.width && a.camera.height == b.camera.height &&
+         near(a.camera.fx, b.camera.fx) && near(a.camera.fy, b.camera.fy) && near(a.camera.cx, b.camera.cx) &&
+         near(a.camera.cy, b.camera.cy) && near(a.baseline_m, b.baseline_m);
+}
+
+std::string Agents(const Map& map) {
+  std::vector<uint32_t> agents;
+  for (const KeyFrame& kf : map.keyframes().values()) agents.push_back(kf.agent);
+  std::sort(agents.begin(), agents.end());
+  agents.erase(std::unique(agents.begin(), agents.end()), agents.end());
+  std::string out;
+  for (uint32_t a : agents) out += (out.empty() ? "" : ",") + std::to_string(a);
+  return out;
+}
+
+int Merge(const std::vector<std::string>& inputs, const Args& args) {
+  const auto out = args.get("out");
+  if (!out) throw UsageError{"merge needs -o OUT"};
+  if (inputs.size() < 2) throw UsageError{"merge needs at least two input snapshots"};
+  const std::filesystem::path out_path(*out);
+  for (const std::string& in : inputs) {
+    std::error_code ec;
+    const bool same = std::filesystem::exists(out_path, ec) && std::filesystem::equivalent(out_path, in, ec);
+    if (same || std::filesystem::weakly_canonical(out_path, ec) == std::filesystem::weakly_canonical(in, ec))
+      throw UsageError{"-o " + *out + " is an input; inputs are never modified"};
+  }
+  const std::filesystem::path dir = out_path.has_parent_path() ? out_path.parent_path() : ".";
+  FLATSLAM_CHECK(std::filesystem::is_directory(dir), "-o ", *out, ": directory ", dir, " does not exist");
+  MapMergeOptions options;
+  options.min_matches = static_cast<int>(args.get_int("min-matches", options.min_matches));
+  options.min_consistent_pairs = static_cast<int>(args.get_int("min-pairs", options.min_consistent_pairs));
+  options.global_bundle_adjustment = !args.has("local-weld");
+  options.seed = static_cast<uint64_t>(args.get_int("seed", static_cast<int64_t>(options.seed)));
+  if (!options.Check()) throw UsageError{"--min-matches and --min-pairs must be at least 3 and 1"};
+
+  const auto start = std::chrono::steady_clock::now();
+  // Load everything first: any bad input stops the command before work is done or anything written.
+  std::vector<LoadedSnapshot> snapshots;
+  for (const std::string& in : inputs) {
+    snapshots.push_back(LoadMapSnapshot(in));
+    const SnapshotMetadata& first = snapshots.front().metadata;
+    const SnapshotMetadata& m = snapshots.back().metadata;
+    FLATSLAM_CHECK(SameCalibration(first.calibration, m.calibration), "cannot merge ", in, ": its calibration (",
+                   SensorName(m.calibration.sensor), ", ", m.calibration.camera.width, "x", m.calibration.camera.height,
+                   ", fx ", m.calibration.camera.fx, ") differs from ", inputs.front(), " (",
+                   SensorName(first.calibration.sensor), ", ", first.calibration.camera.width, "x",
+                   first.calibration.camera.height, ", fx ", first.calibration.camera.fx, ")");
+    FLATSLAM_CHECK(first.scales.scale_factor == m.scales.scale_factor && first.scales.levels == m.scales.levels,
+                   "cannot merge ", in, ": its scale pyramid differs from ", inputs.front());
+    auto vocabulary_name = [](uint64_t checksum) {
+      char text[40];
+      std::snprintf(text, sizeof(text), "vocabulary %016llx", static_cast<unsigned long long>(checksum));
+      return checksum == 0 ? std::string("no vocabulary") : std::string(text);
+    };
+    FLATSLAM_CHECK(first.vocabulary_checksum == m.vocabulary_checksum, "cannot merge ", in, ": built with ",
+                   vocabulary_name(m.vocabulary_checksum), ", ", inputs.front(), " with ",
+                   vocabulary_name(first.vocabulary_checksum));
+  }
+  const SnapshotMetadata metadata = snapshots.front().metadata;
+  const std::filesystem::path vocabulary_path =
+      args.get("vocabulary") ? std::filesystem::path(*args.get("vocabulary")) : DefaultVocabularyPath();
+  const Vocabulary vocabulary = Vocabulary::Load(vocabulary_path);
+  if (metadata.vocabulary_checksum != 0) {
+    FLATSLAM_CHECK(vocabulary.checksum() == metadata.vocabulary_checksum, "vocabulary ", vocabulary_path.string(),
+                   " (checksum ", std::hex, vocabulary.checksum(), ") is not the one the maps were built with (",
+                   metadata.vocabulary_checksum, "); pass it with --vocabulary");
+  } else {
+    std::printf("note          the maps record no vocabulary; place recognition uses %s\n", vocabulary_path.c_str());
+  }
+  std::vector<Map> maps;
+  std::vector<std::string> names;
+  for (size_t f = 0; f < snapshots.size(); ++f) {
+    for (LoadedMap& m : snapshots[f].maps) {
+      names.push_back(inputs[f] + "#" + std::to_string(m.id));
+      maps.push_back(std::move(m.map));
+    }
+  }
+  snapshots.clear();
+  for (size_t i = 0; i < maps.size(); ++i)
+    std::printf("input %-7zu %s: agents [%s], %zu keyframes, %zu map points\n", i, names[i].c_str(),
+                Agents(maps[i]).c_str(), maps[i].keyframes().size(), maps[i].points().size());
+  const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+
+  const MergeCamera camera = MergeCamera::FromCalibration(metadata.calibration, metadata.scales);
+  const auto merge_start = std::chrono::steady_clock::now();
+  MultiMapMerge merged = MergeMapsGreedy(std::move(maps), vocabulary, camera, options);
+  const double merge_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - merge_start).count();
+  auto list = [&](const std::vector<size_t>& members) {
+    std::string s;
+    for (size_t m : members) s += (s.empty() ? "" : "+") + std::to_string(m);
+    return s;
+  };
+  for (const MergeAttempt& a : merged.attempts) {
+    const MergeReport& r = a.report;
+    const MapOverlap& o = r.overlap;
+    std::printf("try           %s into %s: %zu keyframes queried, %zu candidates, %zu pairs verified, %zu agree "
+                "(%zu independent), %.0f ms\n",
+                list(a.from).c_str(), list(a.into).c_str(), o.queries, o.candidates, o.verified.size(),
+                o.consistent.size(), o.independent_pairs, r.place_ms);
+    if (!r.merged) {
+      std::printf("              no overlap: fewer than %d independent agreeing pairs\n", options.min_consistent_pairs);
+      continue;
+    }
+    const Similarity3& S = o.S_into_from;
+    const Eigen::AngleAxisd rotation(S.R);
+    std::printf("              transform t [%.3f %.3f %.3f], rotation %.2f deg, scale %.4f (%zu point pairs, "
+                "rms %.3f)\n",
+                S.t.x(), S.t.y(), S.t.z(), rotation.angle() * 180.0 / M_PI, S.s, o.correspondences, o.residual_rms);
+    std::printf("              merged: %zu keyframes and %zu points added, %zu points fused, %zu loop edges, "
+                "%zu keyframes welded (%zu outlier observations), %.0f ms\n",
+                r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes, r.weld_outliers,
+                r.merge_ms);
+  }
+  std::vector<SnapshotMapRef> refs;
+  for (size_t g = 0; g < merged.maps.size(); ++g) {
+    const std::string problem = merged.maps[g].Validate();
+    FLATSLAM_CHECK(problem.empty(), "merged map ", g, " is inconsistent: ", problem);
+    refs.push_back({static_cast<uint32_t>(g), &merged.maps[g]});
+    std::printf("output map %-3zu inputs %s, agents [%s], %zu keyframes, %zu map points%s\n", g,
+                list(merged.members[g]).c_str(), Agents(merged.maps[g]).c_str(), merged.maps[g].keyframes().size(),
+                merged.maps[g].points().size(),
+                merged.members[g].size() == 1 ? " (overlaps no other map: kept separate, in its own frame)" : "");
+  }
+  const auto save_start = std::chrono::steady_clock::now();
+  SaveMapSnapshot(out_path, refs, metadata);
+  const double save_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - save_start).count();
+  std::printf("wrote         %s: %zu map%s (%.2f MiB)\n", out->c_str(), refs.size(), refs.size() == 1 ? "" : "s",
+              std::filesystem::file_size(out_path) / 1048576.0);
+  std::printf("time          load %.0f ms, merge %.0f ms, save %.0f ms\n", load_ms, merge_ms, save_ms);
+  return 0;
+}
+
 }  // namespace
 
 int RunMap(const std::vector<std::string>& argv) {
-  const Args args(argv, {"ply", "ply-format", "trajectory", "vocabulary-checksum"}, {});
+  std::vector<std::string> expanded = argv;  // -o is short for --out
+  for (std::string& a : expanded)
+    if (a == "-o") a = "--out";
+  const Args args(expanded, {"ply", "ply-format", "trajectory", "vocabulary-checksum", "out", "vocabulary", "min-matches",
+                             "min-pairs", "seed"},
+                  {"local-weld"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);
     return 0;
   }
   const auto& pos = args.positional();
-  if (pos.empty()) throw UsageError{"expected a subcommand: info, verify or export"};
+  if (pos.empty()) throw UsageError{"expected a subcommand: info, verify, export or merge"};
+  if (pos[0] == "merge") return Merge(std::vector<std::string>(pos.begin() + 1, pos.end()), args);
   if (pos.size() != 2) throw UsageError{"expected: map " + pos[0] + " FILE"};
   if (pos[0] == "info") return Info(pos[1]);
   if (pos[0] == "verify") return Verify(pos[1], args);
   if (pos[0] == "export") return Export(pos[1], args);
-  throw UsageError{"unknown map subcommand '" + pos[0] + "' (info, verify, export)"};
+  throw UsageError{"unknown map subcommand '" + pos[0] + "' (info, verify, export, merge)"};
 }
 
 }  // namespace flatslam::app

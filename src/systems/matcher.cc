@@ -526,6 +526,15 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a
       [&](uint32_t j) { return map.points().contains(b.points[j]); }, options, ratio);
 }
 
+std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const Map& map_a, const KeyFrame& b,
+                                                               const Map& map_b, const MatcherOptions& options,
+                                                               float ratio) {
+  return MatchDirectIndex(
+      a.bow_features, a.descriptor, a.angle, b.bow_features, b.descriptor, b.angle,
+      [&](uint32_t i) { return map_a.points().contains(a.points[i]); },
+      [&](uint32_t j) { return map_b.points().contains(b.points[j]); }, options, ratio);
+}
+
 }  // namespace flatslam
 
 namespace flatslam {

@@ -89,6 +89,10 @@ int MatchByBow(TrackedFrame& frame, const KeyFrame& kf, const Map& map, const Ma
 // Keypoint pairs (i1 in a, i2 in b) where both keypoints carry live map points.
 std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const KeyFrame& b, const Map& map,
                                                                const MatcherOptions& options, float ratio = 0.75f);
+// Same for keyframes of two different maps (a seen through map_a, b through map_b): map merging.
+std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const Map& map_a, const KeyFrame& b,
+                                                               const Map& map_b, const MatcherOptions& options,
+                                                               float ratio = 0.75f);
 
 // Projects world points through S_cw (X_c = s R X + t; a corrected pose across a loop) into kf
 // and binds each to the best keypoint within radius x level scale at the level predicted from

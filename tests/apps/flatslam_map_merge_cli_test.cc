@@ -1,0 +1,126 @@
+// flatslam map merge: overlapping maps join, a map of another place stays separate, inputs are
+// never modified, and mismatched calibration or vocabulary, a missing vocabulary and an output
+// that is an input are refused with one clear error and nothing written.
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <string>
+
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include "test_data.h"
+
+namespace flatslam {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct Result {
+  int exit_code = -1;
+  std::string output;  // stdout and stderr
+};
+
+Result RunApp(const std::string& arguments) {
+  const std::string command = testing::AppPath() + " " + arguments + " 2>&1";
+  Result result;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return result;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) result.output.append(buffer.data(), n);
+  const int status = pclose(pipe);
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return result;
+}
+
+bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+std::string ReadBytes(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+class MapMergeCli : public ::testing::Test {
+ protected:
+  // Two runs of the room (same path, different image noise: they overlap everywhere), the street
+  // with the room's stereo baseline (same calibration, another place), the room at another
+  // resolution and the room without a vocabulary.
+  static void SetUpTestSuite() {
+    dir_ = testing::FreshTempDir("map_merge_cli");
+    const std::string common = " --deterministic --quiet --save-map ";
+    setup_ = RunApp("run synth:room:duration=6,width=480,height=360 --agent 0" + common + path("room1")).output +
+             RunApp("run synth:room:duration=6,width=480,height=360,seed=2 --agent 1" + common + path("room2")).output +
+             RunApp("run synth:street:duration=6,width=480,height=360,baseline=0.12 --agent 2" + common +
+                    path("street"))
+                 .output +
+             RunApp("run synth:room:duration=3,width=640,height=480" + common + path("room640")).output +
+             RunApp("run synth:room:duration=3,width=480,height=360 --vocabulary none" + common + path("novocab"))
+                 .output;
+  }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
+  static std::string path(const std::string& name) { return (dir_ / (name + ".fsmap")).string(); }
+  static fs::path dir_;
+  static std::string setup_;
+};
+fs::path MapMergeCli::dir_;
+std::string MapMergeCli::setup_;
+
+TEST_F(MapMergeCli, JoinsOverlappingMapsAndKeepsOthersApart) {
+  for (const char* name : {"room1", "room2", "street"}) ASSERT_TRUE(fs::exists(path(name))) << setup_;
+  const std::string before1 = ReadBytes(path("room1")), before2 = ReadBytes(path("room2")),
+                    before3 = ReadBytes(path("street"));
+  const Result r = RunApp("map merge " + path("room1") + " " + path("room2") + " " + path("street") + " -o " +
+                          path("merged"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  for (const char* part : {"pairs verified", "transform", "points fused", "output map 0   inputs 0+1, agents [0,1]",
+                           "output map 1   inputs 2, agents [2]", "kept separate", "2 maps", "time"})
+    EXPECT_TRUE(Contains(r.output, part)) << part << "\n" << r.output;
+  EXPECT_EQ(ReadBytes(path("room1")), before1);
+  EXPECT_EQ(ReadBytes(path("room2")), before2);
+  EXPECT_EQ(ReadBytes(path("street")), before3);
+  const Result verify = RunApp("map verify " + path("merged"));
+  EXPECT_EQ(verify.exit_code, 0) << verify.output;
+  const Result info = RunApp("map info " + path("merged"));
+  EXPECT_TRUE(Contains(info.output, "maps          2")) << info.output;
+  EXPECT_TRUE(Contains(info.output, "agents [0,1]")) << info.output;
+}
+
+TEST_F(MapMergeCli, RefusesAnotherCalibration) {
+  ASSERT_TRUE(fs::exists(path("room640"))) << setup_;
+  const Result r = RunApp("map merge " + path("room1") + " " + path("room640") + " -o " + path("out_calib"));
+  EXPECT_NE(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "calibration")) << r.output;
+  EXPECT_FALSE(fs::exists(path("out_calib")));
+}
+
+TEST_F(MapMergeCli, RefusesAnotherVocabulary) {
+  ASSERT_TRUE(fs::exists(path("novocab"))) << setup_;
+  Result r = RunApp("map merge " + path("room1") + " " + path("novocab") + " -o " + path("out_vocab"));
+  EXPECT_NE(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "vocabulary")) << r.output;
+  EXPECT_FALSE(fs::exists(path("out_vocab")));
+  r = RunApp("map merge " + path("room1") + " " + path("room2") + " --vocabulary " + (dir_ / "none.fsvc").string() +
+             " -o " + path("out_vocab"));
+  EXPECT_NE(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "none.fsvc")) << r.output;
+  EXPECT_FALSE(fs::exists(path("out_vocab")));
+}
+
+TEST_F(MapMergeCli, RefusesToOverwriteAnInput) {
+  const std::string before = ReadBytes(path("room1"));
+  Result r = RunApp("map merge " + path("room1") + " " + path("room2") + " -o " + path("room1"));
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  EXPECT_TRUE(Contains(r.output, "is an input")) << r.output;
+  EXPECT_EQ(ReadBytes(path("room1")), before);
+  r = RunApp("map merge " + path("room1") + " -o " + path("single"));
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  r = RunApp("map merge " + path("room1") + " " + path("room2"));
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  EXPECT_TRUE(Contains(r.output, "-o OUT")) << r.output;
+}
+
+}  // namespace
+}  // namespace flatslam
