@@ -7,6 +7,7 @@
 #include <fstream>
 #include <string>
 #include <system_error>
+#include <thread>
 
 #include "args.h"
 #include "commands.h"
@@ -191,6 +192,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   options.min_matches = static_cast<int>(args.get_int("min-matches", options.min_matches));
   options.min_consistent_pairs = static_cast<int>(args.get_int("min-pairs", options.min_consistent_pairs));
   options.global_bundle_adjustment = !args.has("local-weld");
+  options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   options.seed = static_cast<uint64_t>(args.get_int("seed", static_cast<int64_t>(options.seed)));
   if (!options.Check()) throw UsageError{"--min-matches and --min-pairs must be at least 3 and 1"};
 

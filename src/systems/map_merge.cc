@@ -370,7 +370,9 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   {
     const KeyFrameHandle q = remap(from, seam.front()->from_keyframe), c = seam.front()->into_keyframe;
     std::vector<KeyFrameHandle> path = {q};
-    while (!into.keyframe(path.back()).parent.is_null()) path.push_back(into.keyframe(path.back()).parent);
+    while (!into.keyframe(path.back()).parent.is_null() && path.size() <= from.keyframes().size())
+      path.push_back(into.keyframe(path.back()).parent);
+    FLATSLAM_CHECK(into.keyframe(path.back()).parent.is_null(), "map merge: the spanning tree of the map merged in has a cycle");
     for (size_t i = path.size() - 1; i >= 1; --i) {
       KeyFrame& upper = into.keyframe(path[i]);
       std::erase(upper.children, path[i - 1]);

@@ -29,7 +29,8 @@ struct AgentRun {
   Map map;
   Trajectory gt;
   Calibration calibration;
-  double own_ate_m = 0;  // keyframes of its own map against its ground truth, own SE(3) alignment
+  double own_ate_m = 0;  // keyframes of its own map against its ground truth, own alignment
+  double own_scale = 1;  // of that alignment (monocular maps have an arbitrary scale)
 };
 
 Trajectory KeyFrameTrajectory(const Map& map, uint32_t agent) {
@@ -40,7 +41,7 @@ Trajectory KeyFrameTrajectory(const Map& map, uint32_t agent) {
   return out;
 }
 
-AgentRun RunAgent(const std::string& spec, uint32_t agent) {
+AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment = Alignment::kSE3) {
   const auto dataset = OpenDataset(spec);
   SlamOptions options;
   options.vocabulary = &DefaultVocabulary();
@@ -52,14 +53,17 @@ AgentRun RunAgent(const std::string& spec, uint32_t agent) {
   out.gt = *dataset->ground_truth();
   out.calibration = dataset->calibration();
   EvalOptions eval;
-  eval.alignment = Alignment::kSE3;
-  out.own_ate_m = Evaluate(out.gt, KeyFrameTrajectory(out.map, agent), eval).ate_m.rmse;
+  eval.alignment = alignment;
+  const EvalResult own = Evaluate(out.gt, KeyFrameTrajectory(out.map, agent), eval);
+  out.own_ate_m = own.ate_m.rmse;
+  out.own_scale = own.alignment.scale;
   return out;
 }
 
-// Keyframe ATE of each agent of `maps` (taken as one frame) after ONE SE(3) alignment of all
-// agents' keyframes onto their ground truths.
-std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vector<const AgentRun*>& agents) {
+// Keyframe ATE of each agent of `maps` (taken as one frame) after ONE alignment of all agents'
+// keyframes onto their ground truths. Agent k is the k-th run.
+std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vector<const AgentRun*>& agents,
+                             Alignment kind = Alignment::kSE3) {
   std::vector<Eigen::Vector3d> gt_positions, est_positions;
   std::vector<std::vector<Eigen::Isometry3d>> gt(agents.size()), est(agents.size());
   for (uint32_t k = 0; k < agents.size(); ++k) {
@@ -77,7 +81,7 @@ std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vec
       est_positions.push_back(est[k].back().translation());
     }
   }
-  const AlignmentResult alignment = AlignUmeyama(gt_positions, est_positions, Alignment::kSE3);
+  const AlignmentResult alignment = AlignUmeyama(gt_positions, est_positions, kind);
   std::vector<double> ate;
   for (size_t k = 0; k < agents.size(); ++k) {
     for (Eigen::Isometry3d& T : est[k]) T = alignment.Apply(T);
@@ -196,6 +200,27 @@ TEST(MapMerge, TwoTownAgentsShareOneFrame) {
               "unmerged maps in one frame %.1f / %.1f m\n",
               a0.own_ate_m, ate[0], a1.own_ate_m, ate[1], apart[0], apart[1]);
   EXPECT_GT(std::max(apart[0], apart[1]), 10.0);  // before the merge the frames differ
+  EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
+  EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);
+}
+
+// Two monocular runs of the room with different noise: the maps have different arbitrary scales,
+// so the merge needs Sim(3); the estimated scale is the ratio of the two maps' true scales.
+TEST(MapMerge, MonocularMapsMergeWithScale) {
+  const std::string spec = "synth:room:sensor=mono,duration=12,width=480,height=360,seed=";
+  const AgentRun a0 = RunAgent(spec + "1", 0, Alignment::kSim3);
+  const AgentRun a1 = RunAgent(spec + "2", 1, Alignment::kSim3);
+  const MultiMapMerge merged = MergeMapsGreedy({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
+  ASSERT_EQ(merged.maps.size(), 1u);
+  const MergeReport& report = merged.attempts.at(0).report;
+  EXPECT_EQ(merged.maps[0].Validate(), "");
+  // gt = own_scale_k * map_k, so map_0 = (own_scale_1 / own_scale_0) * map_1.
+  const double expected_scale = a1.own_scale / a0.own_scale;
+  const std::vector<double> ate = JointAte({&merged.maps[0]}, {&a0, &a1}, Alignment::kSim3);
+  std::printf("scale %.4f (expected %.4f); keyframe Sim(3) ATE: agent 0 own %.4f, merged %.4f; agent 1 own %.4f, "
+              "merged %.4f\n",
+              report.overlap.S_into_from.s, expected_scale, a0.own_ate_m, ate[0], a1.own_ate_m, ate[1]);
+  EXPECT_NEAR(report.overlap.S_into_from.s / expected_scale, 1.0, 0.05);
   EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
   EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);
 }
