@@ -270,9 +270,25 @@ int RunRun(const std::vector<std::string>& argv) {
     std::printf("places        vocabulary %zu words (loaded in %.1f ms), %zu relocalizations, %zu new map segments, "
                 "%zu loop closures\n",
                 vocabulary.word_count(), vocabulary_ms, relocalized, reinitialized, result.loop_closures.size());
-    for (const LoopClosure& l : result.loop_closures)
-      std::printf("  loop        frame %zu -> frame %zu: %d points, scale %.4f, moved %.3f m, %.0f ms\n",
-                  l.frame_index, l.matched_frame_index, l.matches, l.scale, l.correction_m, l.correction_ms);
+    const auto gt = dataset->ground_truth();
+    // Position of the ground truth nearest in time (within 50 ms), to tell true loops from false.
+    auto true_position = [&](int64_t t_ns) -> std::optional<Eigen::Vector3d> {
+      if (!gt || gt->empty()) return std::nullopt;
+      const auto it = std::lower_bound(gt->begin(), gt->end(), t_ns,
+                                       [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
+      const TimedPose* best = nullptr;
+      if (it != gt->end()) best = &*it;
+      if (it != gt->begin() && (!best || t_ns - std::prev(it)->t_ns < best->t_ns - t_ns)) best = &*std::prev(it);
+      if (!best || std::llabs(best->t_ns - t_ns) > 50'000'000) return std::nullopt;
+      return best->T_world_cam.translation();
+    };
+    for (const LoopClosure& l : result.loop_closures) {
+      std::printf("  loop        frame %zu -> frame %zu: %d points, scale %.4f, moved %.3f m, %.0f ms", l.frame_index,
+                  l.matched_frame_index, l.matches, l.scale, l.correction_m, l.correction_ms);
+      const auto a = true_position(l.t_ns), b = true_position(l.matched_t_ns);
+      if (a && b) std::printf(", true centres %.2f m apart", (*a - *b).norm());
+      std::printf("\n");
+    }
   } else {
     std::printf("places        no vocabulary: %zu new map segments after tracking loss\n", reinitialized);
   }

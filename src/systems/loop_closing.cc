@@ -52,12 +52,13 @@ void Slam::AdoptMap(Map&& map) {
   map_ = std::move(map);
   const auto handles = map_.keyframes().handles();
   const std::vector<KeyFrameHandle> kfs(handles.begin(), handles.end());
-  uint64_t oldest = UINT64_MAX;
   for (KeyFrameHandle h : kfs) {
     KeyFrame& kf = map_.keyframe(h);
     options_.vocabulary->Transform(kf.descriptor, &kf.bow, &kf.bow_features);
     database_.Add(h, kf.bow);
-    if (kf.id < oldest) oldest = kf.id, first_keyframe_ = h;
+    // A spanning-tree root anchors the map's frame (bundle adjustment holds it fixed).
+    if (first_keyframe_.is_null() || (kf.parent.is_null() && !map_.keyframe(first_keyframe_).parent.is_null()))
+      first_keyframe_ = h;
   }
   state_ = TrackingState::kLost;
   allow_new_segments_ = false;
@@ -78,7 +79,7 @@ void Slam::EraseKeyFrame(KeyFrameHandle kf) {
 }
 
 Eigen::Isometry3d Slam::ResolveFramePose(const FramePose& f) const {
-  Eigen::Isometry3d T_cam_ref = f.T_cam_ref;
+  Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
   KeyFrameHandle ref = f.reference;
   for (int hops = 0; hops < 1000; ++hops) {
     if (const KeyFrame* kf = map_.keyframes().try_get(ref)) return T_cam_ref * kf->T_cam_world;
@@ -87,7 +88,7 @@ Eigen::Isometry3d Slam::ResolveFramePose(const FramePose& f) const {
     T_cam_ref = T_cam_ref * it->second.T_kf_parent;
     ref = it->second.parent;
   }
-  return f.T_cam_world;  // no live keyframe to follow: the pose as tracked
+  return f.T_cam_world.isometry();  // no live keyframe to follow: the pose as tracked
 }
 
 bool Slam::Relocalize(TrackedFrame& frame) {
@@ -149,7 +150,8 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
   const KeyFrame* kf = map_.keyframes().try_get(current);
   if (!kf || kf->bow.empty()) return;
   const bool detect = options_.loop_closing && !global_ba_running_ && map_.keyframes().size() > 10 &&
-                      (loop_closures_.empty() || kf->id >= last_loop_keyframe_id_ + 10);
+                      (loop_closures_.empty() || keyframes_since_loop_ >= 10);
+  ++keyframes_since_loop_;
   std::vector<PlaceCandidate> candidates;
   if (detect) {
     // The loop must score at least as well as the least similar covisible keyframe.
@@ -196,11 +198,11 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
     if (!VerifyLoop(current, candidate, &match)) continue;
     CorrectLoop(current, match);
     consistent_groups_.clear();
-    last_loop_keyframe_id_ = map_.keyframe(current).id;
+    keyframes_since_loop_ = 0;
     if (options_.global_bundle_adjustment) {
       WaitForBackground();
       global_ba_running_ = true;
-      global_ba_ = std::thread([this, id = last_loop_keyframe_id_] { GlobalBundleAdjustment(id); });
+      global_ba_ = std::thread([this, loops = loop_closures_.size()] { GlobalBundleAdjustment(loops); });
     }
     return;
   }
@@ -371,6 +373,8 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
   LoopClosure closure;
   closure.frame_index = map_.keyframe(current).frame_index;
   closure.matched_frame_index = map_.keyframe(m.candidate).frame_index;
+  closure.t_ns = map_.keyframe(current).t_ns;
+  closure.matched_t_ns = map_.keyframe(m.candidate).t_ns;
   closure.matches = m.matches;
   closure.scale = m.S_cw.s;
   closure.correction_m = (map_.keyframe(current).camera_center() - old_center).norm();
@@ -378,7 +382,7 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
   loop_closures_.push_back(closure);
 }
 
-void Slam::GlobalBundleAdjustment(uint64_t loop_id) {
+void Slam::GlobalBundleAdjustment(size_t loops) {
   struct Clear {
     std::atomic<bool>& flag;
     ~Clear() { flag = false; }
@@ -392,13 +396,11 @@ void Slam::GlobalBundleAdjustment(uint64_t loop_id) {
     problem.baseline_m = geometry_.bf / geometry_.camera.fx;
     std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
     const auto kfs = map_.keyframes().handles();
-    KeyFrameHandle oldest;
-    uint64_t oldest_id = UINT64_MAX;
-    for (KeyFrameHandle h : kfs)
-      if (map_.keyframe(h).id < oldest_id) oldest_id = map_.keyframe(h).id, oldest = h;
+    // The gauge: the map's first keyframe (never culled), else any one.
+    const KeyFrameHandle anchor = map_.keyframes().contains(first_keyframe_) ? first_keyframe_ : kfs.front();
     for (KeyFrameHandle h : kfs) {
       pose_index[h] = static_cast<uint32_t>(problem.poses.size());
-      problem.poses.push_back({map_.keyframe(h).T_cam_world, h == oldest});
+      problem.poses.push_back({map_.keyframe(h).T_cam_world, h == anchor});
       pose_handles.push_back(h);
     }
     const auto pts = map_.points().handles();
@@ -427,7 +429,7 @@ void Slam::GlobalBundleAdjustment(uint64_t loop_id) {
   if (!result.success) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
-  if (last_loop_keyframe_id_ != loop_id) return;  // a newer loop moved the map: this solution is stale
+  if (loop_closures_.size() != loops) return;  // a newer loop moved the map: this solution is stale
   // Keyframes in the solution take it; keyframes made since follow their spanning-tree parent.
   std::unordered_map<KeyFrameHandle, Eigen::Isometry3d> before, after;
   for (size_t k = 0; k < pose_handles.size(); ++k) {

@@ -180,10 +180,9 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     FramePose pose;
     pose.t_ns = frame.t_ns;
     pose.reference = reference_keyframe_;
-    pose.T_cam_world = frame.T_cam_world;
-    pose.T_cam_ref = frame.T_cam_world * map_.keyframe(reference_keyframe_).T_cam_world.inverse();
+    pose.T_cam_world = CompactPose(frame.T_cam_world);
+    pose.T_cam_ref = CompactPose(frame.T_cam_world * map_.keyframe(reference_keyframe_).T_cam_world.inverse());
     frame_poses_.push_back(pose);
-    report.T_world_cam = frame.T_cam_world.inverse();
     frame.has_pose = true;
     last_frame_ = std::move(frame);
   }

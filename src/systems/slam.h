@@ -68,6 +68,7 @@ enum class TrackingState { kNotInitialized, kOk, kLost };
 struct LoopClosure {
   size_t frame_index = 0;        // input frame of the keyframe that closed the loop
   size_t matched_frame_index = 0;  // input frame of the keyframe it matched
+  int64_t t_ns = 0, matched_t_ns = 0;  // their timestamps
   int matches = 0;               // map points matched across the loop
   double scale = 1;              // Sim(3) scale of the correction (1 for stereo/RGB-D)
   double correction_m = 0;       // how far the closing keyframe moved
@@ -89,7 +90,6 @@ struct FrameReport {
   int inliers = 0;
   double extract_ms = 0;
   double track_ms = 0;
-  Eigen::Isometry3d T_world_cam = Eigen::Isometry3d::Identity();
 };
 
 class Slam {
@@ -125,11 +125,24 @@ class Slam {
   ~Slam();
 
  private:
+  // A rigid pose in 56 bytes (an Isometry3d takes 128): one is kept per tracked frame.
+  struct CompactPose {
+    Eigen::Quaterniond q = Eigen::Quaterniond::Identity();
+    Eigen::Vector3d t = Eigen::Vector3d::Zero();
+    CompactPose() = default;
+    explicit CompactPose(const Eigen::Isometry3d& T) : q(T.linear()), t(T.translation()) {}
+    [[nodiscard]] Eigen::Isometry3d isometry() const {
+      Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+      T.linear() = q.toRotationMatrix();
+      T.translation() = t;
+      return T;
+    }
+  };
   struct FramePose {
     int64_t t_ns = 0;
     KeyFrameHandle reference;
-    Eigen::Isometry3d T_cam_ref = Eigen::Isometry3d::Identity();
-    Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();  // at tracking time
+    CompactPose T_cam_ref;
+    CompactPose T_cam_world;  // at tracking time
   };
 
   bool Initialize(TrackedFrame& frame);
@@ -171,7 +184,8 @@ class Slam {
   struct LoopMatch;
   bool VerifyLoop(KeyFrameHandle current, KeyFrameHandle candidate, LoopMatch* out);
   void CorrectLoop(KeyFrameHandle current, const LoopMatch& match);
-  void GlobalBundleAdjustment(uint64_t loop_id);
+  // Runs on its own thread after the loops-th loop closure; dropped if another loop came meanwhile.
+  void GlobalBundleAdjustment(size_t loops);
 
   Calibration calibration_;
   SlamOptions options_;
@@ -218,7 +232,7 @@ class Slam {
     int count = 0;
   };
   std::vector<ConsistentGroup> consistent_groups_;
-  uint64_t last_loop_keyframe_id_ = 0;
+  size_t keyframes_since_loop_ = 0;
   std::vector<LoopClosure> loop_closures_;
   std::mt19937_64 loop_rng_;
   std::thread global_ba_;
