@@ -64,6 +64,10 @@ class MapMergeCli : public ::testing::Test {
   static std::string path(const std::string& name) { return (dir_ / (name + ".fsmap")).string(); }
   static fs::path dir_;
   static std::string setup_;
+
+  void RefusesAnotherCalibration();
+  void RefusesAnotherVocabulary();
+  void RefusesToOverwriteAnInput();
 };
 fs::path MapMergeCli::dir_;
 std::string MapMergeCli::setup_;
@@ -88,7 +92,24 @@ TEST_F(MapMergeCli, JoinsOverlappingMapsAndKeepsOthersApart) {
   EXPECT_TRUE(Contains(info.output, "agents [0,1]")) << info.output;
 }
 
-TEST_F(MapMergeCli, RefusesAnotherCalibration) {
+// ctest runs every test in its own process, and the set-up makes five SLAM runs: the refusals
+// share one test so the set-up runs twice in all, not four times.
+TEST_F(MapMergeCli, RefusesMismatchedInputsAndOverwrites) {
+  {
+    SCOPED_TRACE("another calibration");
+    RefusesAnotherCalibration();
+  }
+  {
+    SCOPED_TRACE("another vocabulary");
+    RefusesAnotherVocabulary();
+  }
+  {
+    SCOPED_TRACE("output is an input");
+    RefusesToOverwriteAnInput();
+  }
+}
+
+void MapMergeCli::RefusesAnotherCalibration() {
   ASSERT_TRUE(fs::exists(path("room640"))) << setup_;
   const Result r = RunApp("map merge " + path("room1") + " " + path("room640") + " -o " + path("out_calib"));
   EXPECT_NE(r.exit_code, 0) << r.output;
@@ -96,7 +117,7 @@ TEST_F(MapMergeCli, RefusesAnotherCalibration) {
   EXPECT_FALSE(fs::exists(path("out_calib")));
 }
 
-TEST_F(MapMergeCli, RefusesAnotherVocabulary) {
+void MapMergeCli::RefusesAnotherVocabulary() {
   ASSERT_TRUE(fs::exists(path("novocab"))) << setup_;
   Result r = RunApp("map merge " + path("room1") + " " + path("novocab") + " -o " + path("out_vocab"));
   EXPECT_NE(r.exit_code, 0) << r.output;
@@ -109,7 +130,7 @@ TEST_F(MapMergeCli, RefusesAnotherVocabulary) {
   EXPECT_FALSE(fs::exists(path("out_vocab")));
 }
 
-TEST_F(MapMergeCli, RefusesToOverwriteAnInput) {
+void MapMergeCli::RefusesToOverwriteAnInput() {
   const std::string before = ReadBytes(path("room1"));
   Result r = RunApp("map merge " + path("room1") + " " + path("room2") + " -o " + path("room1"));
   EXPECT_EQ(r.exit_code, 2) << r.output;
