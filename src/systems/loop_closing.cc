@@ -213,18 +213,8 @@ bool Slam::VerifyLoop(KeyFrameHandle current, KeyFrameHandle candidate, LoopMatc
   const KeyFrame& b = map_.keyframe(candidate);
   const auto pairs = MatchKeyFramesByBow(a, b, map_, options_.matcher, 0.75f);
   if (pairs.size() < 20) return false;
-  std::vector<PointCorrespondence> correspondences;
-  correspondences.reserve(pairs.size());
-  for (const auto& [i1, i2] : pairs) {
-    PointCorrespondence c;
-    c.X1 = a.T_cam_world * map_.point(a.points[i1]).position;
-    c.X2 = b.T_cam_world * map_.point(b.points[i2]).position;
-    c.uv1 = a.uv[i1].cast<double>();
-    c.uv2 = b.uv[i2].cast<double>();
-    c.sigma2_1 = geometry_.pyramid.sigma2[a.octave[i1]];
-    c.sigma2_2 = geometry_.pyramid.sigma2[b.octave[i2]];
-    correspondences.push_back(c);
-  }
+  const std::vector<PointCorrespondence> correspondences =
+      CorrespondencesOf(a, map_, b, map_, pairs, geometry_.pyramid);
   SimilarityRansacOptions ransac;
   ransac.fix_scale = !monocular();
   const auto result = EstimateSimilarityRansac(geometry_.camera, correspondences, ransac, loop_rng_);

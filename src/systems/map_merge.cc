@@ -45,19 +45,8 @@ bool VerifyPair(const Map& into, const Map& from, KeyFrameHandle query, KeyFrame
   const KeyFrame& c = into.keyframe(candidate);
   const auto pairs = MatchKeyFramesByBow(q, from, c, into, options.matcher, 0.75f);
   if (static_cast<int>(pairs.size()) < options.min_bow_matches) return false;
-  const ScalePyramid& pyramid = camera.geometry.pyramid;
-  std::vector<PointCorrespondence> correspondences;
-  correspondences.reserve(pairs.size());
-  for (const auto& [i1, i2] : pairs) {
-    PointCorrespondence m;
-    m.X1 = q.T_cam_world * from.point(q.points[i1]).position;
-    m.X2 = c.T_cam_world * into.point(c.points[i2]).position;
-    m.uv1 = q.uv[i1].cast<double>();
-    m.uv2 = c.uv[i2].cast<double>();
-    m.sigma2_1 = pyramid.sigma2[q.octave[i1]];
-    m.sigma2_2 = pyramid.sigma2[c.octave[i2]];
-    correspondences.push_back(m);
-  }
+  const std::vector<PointCorrespondence> correspondences =
+      CorrespondencesOf(q, from, c, into, pairs, camera.geometry.pyramid);
   SimilarityRansacOptions ransac;
   ransac.fix_scale = !camera.monocular;
   ransac.iterations = options.ransac_iterations;

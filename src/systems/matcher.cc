@@ -585,3 +585,26 @@ int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<con
 }
 
 }  // namespace flatslam
+
+namespace flatslam {
+
+std::vector<PointCorrespondence> CorrespondencesOf(const KeyFrame& a, const Map& map_a, const KeyFrame& b,
+                                                   const Map& map_b,
+                                                   std::span<const std::pair<uint32_t, uint32_t>> pairs,
+                                                   const ScalePyramid& pyramid) {
+  std::vector<PointCorrespondence> out;
+  out.reserve(pairs.size());
+  for (const auto& [i, j] : pairs) {
+    PointCorrespondence c;
+    c.X1 = a.T_cam_world * map_a.point(a.points[i]).position;
+    c.X2 = b.T_cam_world * map_b.point(b.points[j]).position;
+    c.uv1 = a.uv[i].cast<double>();
+    c.uv2 = b.uv[j].cast<double>();
+    c.sigma2_1 = pyramid.sigma2[a.octave[i]];
+    c.sigma2_2 = pyramid.sigma2[b.octave[j]];
+    out.push_back(c);
+  }
+  return out;
+}
+
+}  // namespace flatslam

@@ -102,6 +102,13 @@ int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<con
                       const Map& map, const CameraGeometry& geometry, float radius, const MatcherOptions& options,
                       std::vector<PointHandle>* matched);
 
+// 3D-3D correspondences of matched keypoint pairs (i in a, j in b, both with live points): each
+// point in its own keyframe's camera frame, with the observing pixels and level variances.
+std::vector<PointCorrespondence> CorrespondencesOf(const KeyFrame& a, const Map& map_a, const KeyFrame& b,
+                                                   const Map& map_b,
+                                                   std::span<const std::pair<uint32_t, uint32_t>> pairs,
+                                                   const ScalePyramid& pyramid);
+
 // Fundamental matrix mapping pixels of kf1 to epipolar lines in kf2.
 [[nodiscard]] Eigen::Matrix3d FundamentalBetween(const KeyFrame& kf1, const KeyFrame& kf2, const PinholeCamera& camera);
 

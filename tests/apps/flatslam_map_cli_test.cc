@@ -13,6 +13,7 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include "cli.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -20,30 +21,10 @@ namespace {
 
 namespace fs = std::filesystem;
 
-struct Result {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
-
-Result RunApp(const std::string& arguments) {
-  const std::string command = testing::AppPath() + " " + arguments + " 2>&1";
-  Result result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (!pipe) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) result.output.append(buffer.data(), n);
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
-
-bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
-
-std::string ReadText(const fs::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), {});
-}
+using testing::Contains;
+using testing::RunApp;
+using Result = testing::CliResult;
+using testing::ReadBytes;
 
 void WriteText(const fs::path& path, const std::string& text) {
   std::ofstream out(path, std::ios::binary);
@@ -86,7 +67,7 @@ TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
   Result r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --ply " + ply.string() + " --trajectory " +
                     tum.string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  const std::string header = ReadText(ply);
+  const std::string header = ReadBytes(ply);
   ASSERT_TRUE(Contains(header, "ply\nformat ascii 1.0\n")) << header.substr(0, 200);
   const size_t count_at = header.find("element vertex ");
   ASSERT_NE(count_at, std::string::npos);
@@ -95,7 +76,7 @@ TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
   const std::string body = header.substr(header.find("end_header\n") + 11);
   EXPECT_EQ(static_cast<size_t>(std::count(body.begin(), body.end(), '\n')), vertices);
 
-  std::istringstream lines(ReadText(tum));
+  std::istringstream lines(ReadBytes(tum));
   std::string line;
   double last_t = -1;
   size_t poses = 0;
@@ -112,14 +93,14 @@ TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
 
   r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --ply " + bin.string() + " --ply-format binary");
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  const std::string binary = ReadText(bin);
+  const std::string binary = ReadBytes(bin);
   const size_t data_at = binary.find("end_header\n") + 11;
   EXPECT_TRUE(Contains(binary.substr(0, data_at), "binary_little_endian"));
   EXPECT_EQ(binary.size() - data_at, vertices * 12);
 }
 
 TEST_F(MapCli, BadFilesFailWithTheProblemNamed) {
-  const std::string good = ReadText(dir_ / "room.fsmap");
+  const std::string good = ReadBytes(dir_ / "room.fsmap");
   ASSERT_GT(good.size(), 1000u);
   WriteText(dir_ / "cut.fsmap", good.substr(0, good.size() / 2));
   std::string flipped = good;

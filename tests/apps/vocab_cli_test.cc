@@ -11,30 +11,15 @@
 
 #include "io/synthetic.h"
 #include "systems/vocabulary.h"
+#include "cli.h"
 #include "test_data.h"
 
 namespace flatslam {
 namespace {
 
-struct Result {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
-
-Result RunApp(const std::string& arguments) {
-  const std::string command = testing::AppPath() + " " + arguments + " 2>&1";
-  Result result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (!pipe) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) result.output.append(buffer.data(), n);
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
-
-bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+using testing::Contains;
+using testing::RunApp;
+using Result = testing::CliResult;
 
 TEST(VocabCli, TrainThenInfo) {
   const auto dir = testing::FreshTempDir("vocab_cli");
