@@ -74,6 +74,81 @@ int CountInliers(const PinholeCamera& cam, std::span<const PointCorrespondence> 
 
 }  // namespace
 
+namespace {
+
+// Reprojection residuals of one correspondence under S_21 (parameters: quaternion of R (Eigen
+// order x y z w), t, log s): X1 into camera 2 against uv2 and S_21^-1 X2 into camera 1 against
+// uv1, each whitened by its level's sigma.
+struct SimilarityReprojectionCost {
+  SimilarityReprojectionCost(const PinholeCamera& cam, const PointCorrespondence& m)
+      : fx(cam.fx), fy(cam.fy), cx(cam.cx), cy(cam.cy), X1(m.X1), X2(m.X2), uv1(m.uv1), uv2(m.uv2),
+        w1(1.0 / std::sqrt(m.sigma2_1)), w2(1.0 / std::sqrt(m.sigma2_2)) {}
+
+  template <class T>
+  bool operator()(const T* q, const T* t, const T* log_s, T* residual) const {
+    const T qw[4] = {q[3], q[0], q[1], q[2]};
+    const T s = ceres::exp(log_s[0]);
+    const T a[3] = {T(X1.x()), T(X1.y()), T(X1.z())};
+    T Ra[3];
+    ceres::UnitQuaternionRotatePoint(qw, a, Ra);
+    const T p2[3] = {s * Ra[0] + t[0], s * Ra[1] + t[1], s * Ra[2] + t[2]};
+    // X1' = R^T (X2 - t) / s
+    const T q_inv[4] = {q[3], -q[0], -q[1], -q[2]};
+    const T b[3] = {T(X2.x()) - t[0], T(X2.y()) - t[1], T(X2.z()) - t[2]};
+    T Rb[3];
+    ceres::UnitQuaternionRotatePoint(q_inv, b, Rb);
+    const T p1[3] = {Rb[0] / s, Rb[1] / s, Rb[2] / s};
+    if (p2[2] <= T(1e-6) || p1[2] <= T(1e-6)) {
+      for (int k = 0; k < 4; ++k) residual[k] = T(0);
+      return true;
+    }
+    residual[0] = T(w2) * (T(fx) * p2[0] / p2[2] + T(cx) - T(uv2.x()));
+    residual[1] = T(w2) * (T(fy) * p2[1] / p2[2] + T(cy) - T(uv2.y()));
+    residual[2] = T(w1) * (T(fx) * p1[0] / p1[2] + T(cx) - T(uv1.x()));
+    residual[3] = T(w1) * (T(fy) * p1[1] / p1[2] + T(cy) - T(uv1.y()));
+    return true;
+  }
+
+  double fx, fy, cx, cy;
+  Eigen::Vector3d X1, X2;
+  Eigen::Vector2d uv1, uv2;
+  double w1, w2;
+};
+
+// Refines S_21 on the inliers by reprojection error in both images (robust Huber loss).
+Similarity3 RefineSimilarity(const PinholeCamera& cam, std::span<const PointCorrespondence> matches,
+                             const std::vector<bool>& inlier, const Similarity3& S_21, bool fix_scale,
+                             double chi2) {
+  Eigen::Quaterniond q(S_21.R);
+  q.normalize();
+  Eigen::Vector3d t = S_21.t;
+  double log_s = std::log(S_21.s);
+  ceres::Problem problem;
+  for (size_t k = 0; k < matches.size(); ++k) {
+    if (!inlier[k]) continue;
+    auto* cost = new ceres::AutoDiffCostFunction<SimilarityReprojectionCost, 4, 4, 3, 1>(
+        new SimilarityReprojectionCost(cam, matches[k]));
+    problem.AddResidualBlock(cost, new ceres::HuberLoss(std::sqrt(chi2)), q.coeffs().data(), t.data(), &log_s);
+  }
+  if (problem.NumResidualBlocks() == 0) return S_21;
+  problem.SetManifold(q.coeffs().data(), new ceres::EigenQuaternionManifold());
+  if (fix_scale) problem.SetParameterBlockConstant(&log_s);
+  ceres::Solver::Options solver;
+  solver.linear_solver_type = ceres::DENSE_QR;
+  solver.max_num_iterations = 10;
+  solver.num_threads = 1;
+  ceres::Solver::Summary summary;
+  ceres::Solve(solver, &problem, &summary);
+  if (!summary.IsSolutionUsable()) return S_21;
+  Similarity3 out;
+  out.R = q.normalized().toRotationMatrix();
+  out.t = t;
+  out.s = fix_scale ? 1.0 : std::exp(log_s);
+  return out;
+}
+
+}  // namespace
+
 std::optional<SimilarityRansacResult> EstimateSimilarityRansac(const PinholeCamera& camera,
                                                                std::span<const PointCorrespondence> matches,
                                                                const SimilarityRansacOptions& options,
@@ -115,6 +190,11 @@ std::optional<SimilarityRansacResult> EstimateSimilarityRansac(const PinholeCame
     best = {*S, inlier, count};
     if (!grew) break;
   }
+  // The closed form weighs 3D errors, which grow with depth; reprojection errors are what the
+  // keypoints measure. Kept when it holds at least as many inliers.
+  const Similarity3 refined = RefineSimilarity(camera, matches, best.inlier, best.S_21, options.fix_scale, options.chi2);
+  const int count = CountInliers(camera, matches, refined, options.chi2, &inlier);
+  if (count >= best.num_inliers) best = {refined, inlier, count};
   return best;
 }
 
