@@ -136,6 +136,22 @@ void Map::ReplacePoint(PointHandle from, PointHandle into) {
   }
 }
 
+void Map::BindMatchedPoints(KeyFrameHandle kf, std::span<const PointHandle> matched) {
+  for (uint32_t i = 0; i < matched.size(); ++i) {
+    const PointHandle p = matched[i];
+    if (!points_.contains(p)) continue;
+    const PointHandle mine = keyframes_.get(kf).points[i];
+    if (mine == p) continue;
+    if (points_.contains(mine)) {
+      ReplacePoint(mine, p);
+    } else {
+      const auto& obs = points_.get(p).observations;
+      if (std::none_of(obs.begin(), obs.end(), [&](const Observation& o) { return o.keyframe == kf; }))
+        AddObservation(p, kf, i);
+    }
+  }
+}
+
 void Map::AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b) {
   FLATSLAM_CHECK(a != b, "loop edge from ", a, " to itself");
   KeyFrame& ka = keyframes_.get(a);

@@ -103,6 +103,10 @@ class Map {
   // already sees `into`; `from` is erased. Visible/found counters add up.
   void ReplacePoint(PointHandle from, PointHandle into);
 
+  // Binds keypoints of kf to matched points (matched[k] for keypoint k; null or erased entries
+  // skipped): a point kf already has at k is merged into the matched one (ReplacePoint), a free
+  // keypoint observes it unless kf already sees it elsewhere. Used where two places are joined.
+  void BindMatchedPoints(KeyFrameHandle kf, std::span<const PointHandle> matched);
   // Joins a and b by a loop edge (both directions; once).
   void AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b);
   // Recomputes kf's covisibility (keyframes sharing >= min_shared points; if none reach it,

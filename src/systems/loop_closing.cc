@@ -265,19 +265,7 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
   for (KeyFrameHandle k : connected) map_.keyframe(k).T_cam_world = corrected[k].ToIsometry();
 
   // 2. Fuse the loop: the current keyframe takes the loop-side points, its neighbours too.
-  for (uint32_t i = 0; i < m.matched.size(); ++i) {
-    const PointHandle p = m.matched[i];
-    if (!map_.points().contains(p)) continue;
-    const PointHandle mine = map_.keyframe(current).points[i];
-    if (mine == p) continue;
-    if (map_.points().contains(mine)) {
-      map_.ReplacePoint(mine, p);
-    } else {
-      const auto& obs = map_.point(p).observations;
-      const bool seen = std::any_of(obs.begin(), obs.end(), [&](const Observation& o) { return o.keyframe == current; });
-      if (!seen) map_.AddObservation(p, current, i);
-    }
-  }
+  map_.BindMatchedPoints(current, m.matched);
   for (KeyFrameHandle k : connected)
     if (map_.keyframes().contains(k)) FusePoints(map_, k, m.loop_points, geometry_, options_.matcher);
 

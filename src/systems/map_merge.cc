@@ -378,19 +378,7 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   std::unordered_set<KeyFrameHandle> seam_set;
   for (const MergePair* pair : seam) {
     const KeyFrameHandle q = remap(from, pair->from_keyframe);
-    for (uint32_t i = 0; i < pair->matched.size(); ++i) {
-      const PointHandle p = pair->matched[i];
-      if (!into.points().contains(p)) continue;
-      const PointHandle mine = into.keyframe(q).points[i];
-      if (mine == p) continue;
-      if (into.points().contains(mine)) {
-        into.ReplacePoint(mine, p);
-      } else {
-        const auto& obs = into.point(p).observations;
-        if (std::none_of(obs.begin(), obs.end(), [&](const Observation& o) { return o.keyframe == q; }))
-          into.AddObservation(p, q, i);
-      }
-    }
+    into.BindMatchedPoints(q, pair->matched);
     into.AddLoopEdge(pair->into_keyframe, q);
     ++report.loop_edges;
     auto add = [&](KeyFrameHandle h, std::vector<KeyFrameHandle>* side) {

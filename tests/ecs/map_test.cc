@@ -119,6 +119,29 @@ TEST(Map, ReplacePointMergesObservations) {
   EXPECT_EQ(map.Validate(), "");
 }
 
+TEST(Map, BindMatchedPointsFusesOrObserves) {
+  // Keyframes 0 and 1 see points 0..5 at keypoints 0..5; a third keyframe joins that place.
+  Fixture f(2, 6);
+  const KeyFrameHandle kf = f.map.AddKeyFrame(MakeKeyFrame(6, 3.0));
+  const PointHandle own = f.map.AddPoint(Eigen::Vector3d(1, 0, 5), kf);  // its own copy of point 0
+  f.map.AddObservation(own, kf, 0);
+  f.map.AddObservation(f.pts[3], kf, 4);  // already sees point 3, at another keypoint
+  const PointHandle gone = f.map.AddPoint(Eigen::Vector3d(2, 0, 5), kf);
+  f.map.ErasePoint(gone);
+  const std::vector<PointHandle> matched = {f.pts[0], f.pts[1], PointHandle::null(), f.pts[3], PointHandle::null(),
+                                            gone};
+  f.map.BindMatchedPoints(kf, matched);
+  const KeyFrame& k = f.map.keyframe(kf);
+  EXPECT_FALSE(f.map.points().contains(own));  // fused into point 0
+  EXPECT_EQ(k.points[0], f.pts[0]);
+  EXPECT_EQ(k.points[1], f.pts[1]);           // a free keypoint now observes point 1
+  EXPECT_TRUE(k.points[3].is_null());         // point 3 is seen at keypoint 4 already
+  EXPECT_EQ(k.points[4], f.pts[3]);
+  EXPECT_TRUE(k.points[5].is_null());         // an erased match binds nothing
+  EXPECT_EQ(f.map.point(f.pts[0]).observations.size(), 3u);
+  EXPECT_EQ(f.map.Validate(), "");
+}
+
 TEST(Map, PointStatsFromObservations) {
   Fixture f(3, 5);
   MapScales scales;
