@@ -34,7 +34,7 @@ struct SlamRunOptions {
 };
 
 struct SlamRunResult {
-  std::vector<FrameReport> reports;  // one per input frame, in order
+  std::vector<FrameReport> reports;  // one per frame given to SLAM (see skip), in order
   Trajectory trajectory;             // tracked frames, T_world_cam, refined through keyframes
   Trajectory keyframes;
   size_t keyframe_count = 0, point_count = 0;

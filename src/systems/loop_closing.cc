@@ -297,26 +297,19 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
     const auto it = uncorrected.find(nodes[i]);
     return it != uncorrected.end() ? it->second : S[i];
   };
-  std::vector<PoseGraphEdge> edges;
-  std::unordered_set<uint64_t> have;
-  auto add_edge = [&](uint32_t i, uint32_t j, const Similarity3& S_ij) {
-    if (i == j) return;
-    const uint64_t key = (uint64_t{std::min(i, j)} << 32) | std::max(i, j);
-    if (!have.insert(key).second) return;
-    edges.push_back({i, j, S_ij, 1.0});
-  };
+  PoseGraphEdgeSet edges;
   for (const auto& [k, n] : loop_links) {
     const uint32_t i = index.at(k), j = index.at(n);
     const auto& cov = map_.keyframe(k).covisible;
     const auto w = std::find_if(cov.begin(), cov.end(), [&](const auto& l) { return l.first == n; });
     if (k != current && n != m.candidate && (w == cov.end() || w->second < 100)) continue;
-    add_edge(i, j, S[i] * S[j].inverse());
+    edges.Add(i, j, S[i] * S[j].inverse());
   }
   for (uint32_t i = 0; i < nodes.size(); ++i) {
     const KeyFrame& kf = map_.keyframe(nodes[i]);
     auto relative = [&](KeyFrameHandle other) {
       const uint32_t j = index.at(other);
-      add_edge(i, j, measured(i) * measured(j).inverse());
+      edges.Add(i, j, measured(i) * measured(j).inverse());
     };
     if (map_.keyframes().contains(kf.parent)) relative(kf.parent);
     for (KeyFrameHandle l : kf.loop_edges) relative(l);
@@ -325,11 +318,11 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
   }
   {
     const uint32_t i = index.at(current), j = index.at(m.candidate);
-    add_edge(i, j, S[i] * S[j].inverse());
+    edges.Add(i, j, S[i] * S[j].inverse());
   }
   PoseGraphOptions graph;
   graph.fix_scale = !monocular();
-  OptimizePoseGraph(S, fixed, edges, graph);
+  OptimizePoseGraph(S, fixed, edges.edges(), graph);
 
   // 5. Write back: keyframes take the optimized poses; points follow the keyframe that moved them.
   for (uint32_t i = 0; i < nodes.size(); ++i) map_.keyframe(nodes[i]).T_cam_world = S[i].ToIsometry();

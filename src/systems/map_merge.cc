@@ -423,26 +423,19 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
     S[i] = S_before[i] = Similarity3::FromIsometry(into.keyframe(nodes[i]).T_cam_world);
     fixed[i] = nodes[i] == anchor;
   }
-  std::vector<PoseGraphEdge> edges;
-  std::unordered_set<uint64_t> have;
-  auto add_edge = [&](uint32_t i, uint32_t j, const Similarity3& S_ij) {
-    if (i == j) return;
-    const uint64_t key = (uint64_t{std::min(i, j)} << 32) | std::max(i, j);
-    if (!have.insert(key).second) return;
-    edges.push_back({i, j, S_ij, 1.0});
-  };
+  PoseGraphEdgeSet edges;
   for (const MergePair* pair : seam) {
     const uint32_t i = index.at(pair->into_keyframe), j = index.at(remap(from, pair->from_keyframe));
     const Similarity3 S_q = PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) *
                                    pair->S_into_from.inverse());
-    add_edge(i, j, S[i] * S_q.inverse());
+    edges.Add(i, j, S[i] * S_q.inverse());
   }
   for (uint32_t i = 0; i < nodes.size(); ++i) {
     const KeyFrame& kf = into.keyframe(nodes[i]);
     auto relative = [&](KeyFrameHandle other) {
       if (appended(nodes[i]) != appended(other)) return;  // across the seam: only the pairs above
       const uint32_t j = index.at(other);
-      add_edge(i, j, S[i] * S[j].inverse());
+      edges.Add(i, j, S[i] * S[j].inverse());
     };
     if (into.keyframes().contains(kf.parent)) relative(kf.parent);
     for (KeyFrameHandle l : kf.loop_edges) relative(l);
@@ -452,7 +445,7 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   PoseGraphOptions graph;
   graph.fix_scale = !camera.monocular;
   graph.iterations = options.pose_graph_iterations;
-  if (options.pose_graph_iterations > 0) OptimizePoseGraph(S, fixed, edges, graph);
+  if (options.pose_graph_iterations > 0) OptimizePoseGraph(S, fixed, edges.edges(), graph);
   for (uint32_t i = 0; i < nodes.size(); ++i) into.keyframe(nodes[i]).T_cam_world = S[i].ToIsometry();
   for (size_t k = 0; k < into.points().size(); ++k) {
     MapPoint& point = into.points().values()[k];

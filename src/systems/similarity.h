@@ -5,10 +5,12 @@
 // Concurrency: pure functions; each call is single-threaded.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <optional>
 #include <random>
 #include <span>
+#include <unordered_set>
 #include <vector>
 
 #include <Eigen/Core>
@@ -75,6 +77,21 @@ struct PoseGraphEdge {
   uint32_t i = 0, j = 0;
   Similarity3 S_ij;
   double weight = 1.0;
+};
+
+// Edges of an essential graph, each node pair at most once (the first measurement wins).
+class PoseGraphEdgeSet {
+ public:
+  void Add(uint32_t i, uint32_t j, const Similarity3& S_ij) {
+    if (i == j) return;
+    const uint64_t key = (uint64_t{std::min(i, j)} << 32) | std::max(i, j);
+    if (have_.insert(key).second) edges_.push_back({i, j, S_ij, 1.0});
+  }
+  [[nodiscard]] const std::vector<PoseGraphEdge>& edges() const { return edges_; }
+
+ private:
+  std::vector<PoseGraphEdge> edges_;
+  std::unordered_set<uint64_t> have_;
 };
 
 struct PoseGraphOptions {
