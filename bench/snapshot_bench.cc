@@ -84,6 +84,7 @@ void BM_Serialize(benchmark::State& state) {
 BENCHMARK(BM_Serialize)->Unit(benchmark::kMillisecond)->Iterations(5);
 
 // The full atomic save: serialize, write a temporary, fsync, rename, fsync the directory.
+// Each iteration replaces the file the previous one wrote (a periodic save).
 void BM_Save(benchmark::State& state) {
   const Map& map = KittiSizedMap();
   const SnapshotMapRef ref{0, &map};
@@ -92,6 +93,23 @@ void BM_Save(benchmark::State& state) {
   SetMapCounters(state, path);
 }
 BENCHMARK(BM_Save)->Unit(benchmark::kMillisecond)->Iterations(5);
+
+// The same save to a path where no file exists yet (the previous one is removed untimed).
+void BM_SaveNewFile(benchmark::State& state) {
+  const Map& map = KittiSizedMap();
+  const SnapshotMapRef ref{0, &map};
+  auto path = SnapshotPath();
+  path += ".new";
+  for (auto _ : state) {
+    state.PauseTiming();
+    std::filesystem::remove(path);
+    state.ResumeTiming();
+    SaveMapSnapshot(path, {&ref, 1}, Metadata());
+  }
+  SetMapCounters(state, path);
+  std::filesystem::remove(path);
+}
+BENCHMARK(BM_SaveNewFile)->Unit(benchmark::kMillisecond)->Iterations(5);
 
 // Read-only open: mmap + verification of structure and every index (file in the page cache).
 void BM_OpenReadOnly(benchmark::State& state) {

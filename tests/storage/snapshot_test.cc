@@ -456,6 +456,29 @@ TEST_F(MapSnapshotBadInput, FailedSaveKeepsTheOldFileAndLeavesNoTemporary) {
   // A good save replaces the file.
   SaveMapSnapshot(good, {&ref, 1}, TestMetadata(7));
   EXPECT_EQ(MapSnapshotView::Open(good).vocabulary_checksum(), 7u);
+  EXPECT_EQ(ReadBytes(good), SerializeMapSnapshot({&ref, 1}, TestMetadata(7)));
+  fs::remove_all(dir);
+}
+
+// A file of several write chunks (16 MiB each), written while its hash is computed, saved over an
+// existing one: the bytes on disk are exactly the serialized snapshot, content hash included.
+TEST(MapSnapshot, LargeSaveOverAnExistingFileIsByteExact) {
+  testing::RandomMapOptions o;
+  o.keyframes = 320;
+  o.keypoints = 2000;
+  o.points = 20000;
+  const Map map = testing::RandomMap(o);
+  const SnapshotMapRef ref{0, &map};
+  const auto dir = testing::FreshTempDir("snapshot_large");
+  const fs::path path = dir / "map.fsmap";
+  SaveMapSnapshot(path, {&ref, 1}, TestMetadata(1));
+  SaveMapSnapshot(path, {&ref, 1}, TestMetadata(2));
+  const std::vector<uint8_t> expected = SerializeMapSnapshot({&ref, 1}, TestMetadata(2));
+  ASSERT_GT(expected.size(), size_t{32} << 20);
+  EXPECT_TRUE(ReadBytes(path) == expected);
+  const MapSnapshotView view = MapSnapshotView::Open(path);  // checks the content hash
+  EXPECT_EQ(view.vocabulary_checksum(), 2u);
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir), fs::directory_iterator()), 1);
   fs::remove_all(dir);
 }
 
