@@ -55,7 +55,9 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // One worker cannot both wait in the track stage and run mapping: map inline then.
   const bool inline_mapping = run.deterministic || tbb::this_task_arena::max_concurrency() < 2;
   pipeline.add_serial_stage("track", [&](Item& item) {
-    while (!inline_mapping && slam.pending_keyframes() > run.max_mapping_lag)
+    // Mapping may run behind by max_mapping_lag keyframes, none while tracking wants one.
+    while (!inline_mapping && (slam.pending_keyframes() > run.max_mapping_lag ||
+                               (slam.keyframe_wanted() && slam.pending_keyframes() > 0)))
       std::this_thread::sleep_for(std::chrono::microseconds(200));
     std::optional<KeyFrameHandle> keyframe;
     if (std::find(run.lose_at.begin(), run.lose_at.end(), item.index) != run.lose_at.end()) slam.ForceLost();

@@ -105,7 +105,7 @@ std::optional<ObservationError> EvaluateObservation(const PinholeCamera& camera,
 // Runs one Ceres pass over the active observations; returns the summary's usability.
 bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
                const std::vector<uint8_t>& active, bool robust, int iterations, std::vector<PoseBlock>* poses,
-               std::vector<Eigen::Vector3d>* points, int* iterations_done) {
+               std::vector<Eigen::Vector3d>* points, int* iterations_done, bool* stopped) {
   const double bf = input.camera.fx * input.baseline_m;
   ceres::Problem::Options problem_options;
   problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
@@ -157,8 +157,17 @@ bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptio
   solver_options.num_threads = options.num_threads;
   solver_options.logging_type = ceres::SILENT;
   solver_options.minimizer_progress_to_stdout = false;
+  struct StopEarly final : ceres::IterationCallback {
+    const std::function<bool()>* stop;
+    explicit StopEarly(const std::function<bool()>* s) : stop(s) {}
+    ceres::CallbackReturnType operator()(const ceres::IterationSummary&) override {
+      return (*stop)() ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
+    }
+  } stop_early(&options.stop_early);
+  if (options.stop_early) solver_options.callbacks.push_back(&stop_early);
   ceres::Solver::Summary summary;
   ceres::Solve(solver_options, &problem, &summary);
+  if (options.stop_early && options.stop_early()) *stopped = true;
   *iterations_done += static_cast<int>(summary.iterations.size());
   return summary.IsSolutionUsable();
 }
@@ -218,11 +227,11 @@ BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, c
   };
 
   bool usable = SolvePass(problem, options, active, /*robust=*/true, options.first_pass_iterations, &poses, &points,
-                          &result.iterations);
-  if (usable && options.second_pass_iterations > 0) {
+                          &result.iterations, &result.stopped_early);
+  if (usable && options.second_pass_iterations > 0 && !result.stopped_early) {
     classify();
     usable = SolvePass(problem, options, active, options.robust_second_pass, options.second_pass_iterations, &poses,
-                       &points, &result.iterations);
+                       &points, &result.iterations, &result.stopped_early);
   }
   classify();
 

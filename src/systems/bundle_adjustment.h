@@ -5,6 +5,7 @@
 
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include <Eigen/Core>
@@ -49,6 +50,9 @@ struct BundleAdjustmentOptions {
   LinearSolver linear_solver = LinearSolver::kAuto;
   int dense_schur_max_poses = 40;  // kAuto: dense Schur up to this many free poses, else sparse
   int num_threads = 1;             // Ceres threads; 1 keeps the call single-threaded
+  // Asked after every solver iteration; true ends the solve at the current iterate (the
+  // outlier classification still runs). Local mapping uses it to yield to a waiting keyframe.
+  std::function<bool()> stop_early;
 
   [[nodiscard]] bool Check() const;
 };
@@ -61,6 +65,7 @@ struct BundleAdjustmentResult {
   double final_rmse_px = 0;        // per-coordinate RMSE of left-image errors, inliers
   double final_mean_error_px = 0;  // mean left-image reprojection error (norm), inliers
   int iterations = 0;              // solver iterations over both passes
+  bool stopped_early = false;      // options.stop_early ended it
 };
 
 // Optimizes the free poses and all observed points of `problem` in place.

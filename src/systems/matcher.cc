@@ -300,43 +300,66 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
   std::vector<int> matched_in_2(kf2.size(), -1);
   std::vector<int> best_distance_2(kf2.size(), 257);
   RotationHistogram histogram;
+  const Eigen::Isometry3d T_2_1 = kf2.T_cam_world * kf1.T_cam_world.inverse();
+  // Monocular keyframes with both bags of words: candidates are the kf2 keypoints under the same
+  // vocabulary node (tested below for lying near the epipolar segment); else a grid search
+  // along the segment. The grid finds more matches, the words far fewer candidates: on monocular
+  // KITTI 07 local mapping takes a third of the time; with stereo or depth, where most rays have
+  // a short search, the fuller grid search gave the lower trajectory error on KITTI 06 and the
+  // synthetic town.
+  const bool by_words = g.bf <= 0 && !kf1.bow_features.empty() && !kf2.bow_features.empty();
   FeatureGrid grid2;
   grid2.Build(kf2.uv, g.camera.width, g.camera.height);
-  std::vector<uint32_t> candidates, stamp(kf2.size(), 0);
+  std::vector<uint32_t> candidates, stamp(by_words ? 0 : kf2.size(), 0);
   uint32_t stamp_value = 0;
-  const Eigen::Isometry3d T_2_1 = kf2.T_cam_world * kf1.T_cam_world.inverse();
-  for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
-    if (!kf1.points[i1].is_null()) continue;
-    const bool stereo1 = kf1.right_u[i1] >= 0;
-    const Eigen::Vector3d line = F_2_1 * Eigen::Vector3d(kf1.uv[i1].x(), kf1.uv[i1].y(), 1.0);
-    const double line_norm2 = line.x() * line.x() + line.y() * line.y();
-    if (line_norm2 <= 0) continue;
-    // With a depth, the match must lie near the projection of the measured point; without
-    // one, anywhere on the epipolar line.
-    const std::vector<uint32_t>* pool = &candidates;
-    candidates.clear();
-    if (!(stereo1 && kf1.depth[i1] > 0)) {
-      // Only keypoints near the epipolar segment of the plausible depth range.
-      const Eigen::Vector3d ray1((kf1.uv[i1].x() - g.camera.cx) / g.camera.fx,
-                                 (kf1.uv[i1].y() - g.camera.cy) / g.camera.fy, 1.0);
-      Eigen::Vector2d p, q;
-      if (!EpipolarSegment(ray1, depth_range.first, depth_range.second, T_2_1, g, &p, &q)) continue;
-      SegmentBand(p, q, grid2, kf2.uv, &candidates, &stamp, ++stamp_value);
-      pool = &candidates;
-    } else {
+  constexpr double kBand = 12.0;  // pixels around the epipolar segment of the depth range
+
+  // Where i1 may land in kf2: a disc around the projection of its measured depth (stereo/RGB-D),
+  // else the epipolar segment of the depth range. False when it cannot land in the image.
+  struct Region {
+    bool disc = false;
+    Eigen::Vector2d p, q;  // disc: centre p; segment: from p to q
+    double radius = 0;
+    Eigen::Vector3d line;  // epipolar line of i1 in kf2
+    double line_norm2 = 0;
+  };
+  auto region_of = [&](uint32_t i1, Region* r) {
+    r->line = F_2_1 * Eigen::Vector3d(kf1.uv[i1].x(), kf1.uv[i1].y(), 1.0);
+    r->line_norm2 = r->line.x() * r->line.x() + r->line.y() * r->line.y();
+    if (r->line_norm2 <= 0) return false;
+    if (kf1.right_u[i1] >= 0 && kf1.depth[i1] > 0) {
       const float z = kf1.depth[i1];
       const Eigen::Vector3d X1((kf1.uv[i1].x() - g.camera.cx) / g.camera.fx * z,
                                (kf1.uv[i1].y() - g.camera.cy) / g.camera.fy * z, z);
       double u, v;
-      if (!g.Project(T_2_1 * X1, &u, &v)) continue;
+      if (!g.Project(T_2_1 * X1, &u, &v)) return false;
+      r->disc = true;
+      r->p = {u, v};
       // Stereo depth is uncertain far away: search a radius that grows with disparity error.
-      const float radius = 10.0f * g.pyramid.scale[kf1.octave[i1]];
-      grid2.Query(static_cast<float>(u), static_cast<float>(v), radius, kf2.uv, &candidates);
-      pool = &candidates;
+      r->radius = 10.0 * g.pyramid.scale[kf1.octave[i1]];
+      return true;
     }
+    const Eigen::Vector3d ray1((kf1.uv[i1].x() - g.camera.cx) / g.camera.fx,
+                               (kf1.uv[i1].y() - g.camera.cy) / g.camera.fy, 1.0);
+    r->disc = false;
+    r->radius = kBand;
+    return EpipolarSegment(ray1, depth_range.first, depth_range.second, T_2_1, g, &r->p, &r->q);
+  };
+  auto inside = [](const Region& r, double u, double v) {
+    const Eigen::Vector2d x(u, v);
+    if (r.disc) return (x - r.p).cwiseAbs().maxCoeff() <= r.radius;
+    const Eigen::Vector2d d = r.q - r.p;
+    const double len2 = d.squaredNorm();
+    const double t = len2 > 0 ? std::clamp((x - r.p).dot(d) / len2, 0.0, 1.0) : 0.0;
+    return (x - (r.p + t * d)).norm() <= r.radius;
+  };
+  // The best kf2 keypoint among the candidates; one kf2 keypoint per kf1 keypoint, the closer
+  // descriptor wins.
+  auto consider = [&](uint32_t i1, const Region& r, std::span<const uint32_t> pool, bool check_region) {
+    const bool stereo1 = kf1.right_u[i1] >= 0;
     int best = options.max_distance_strict + 1;
     int best_index = -1;
-    for (uint32_t i2 : *pool) {
+    for (uint32_t i2 : pool) {
       if (!kf2.points[i2].is_null()) continue;
       const int d = Hamming(kf1.descriptor[i1], kf2.descriptor[i2]);
       if (d >= best) continue;
@@ -346,16 +369,64 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
         const double de = (u2 - eu) * (u2 - eu) + (v2 - ev) * (v2 - ev);
         if (de < 100.0 * g.pyramid.scale[kf2.octave[i2]]) continue;
       }
-      const double num = line.x() * u2 + line.y() * v2 + line.z();
-      if (num * num / line_norm2 >= 3.84 * g.pyramid.sigma2[kf2.octave[i2]]) continue;
+      const double num = r.line.x() * u2 + r.line.y() * v2 + r.line.z();
+      if (num * num / r.line_norm2 >= 3.84 * g.pyramid.sigma2[kf2.octave[i2]]) continue;
+      if (check_region && !inside(r, u2, v2)) continue;
       best = d;
       best_index = static_cast<int>(i2);
     }
-    if (best_index < 0) continue;
-    // One kf2 keypoint per kf1 keypoint: the closer descriptor wins.
-    if (matched_in_2[best_index] >= 0 && best_distance_2[best_index] <= best) continue;
+    if (best_index < 0) return;
+    if (matched_in_2[best_index] >= 0 && best_distance_2[best_index] <= best) return;
     matched_in_2[best_index] = static_cast<int>(i1);
     best_distance_2[best_index] = best;
+  };
+
+  Region region;
+  // A measured depth bounds the search to a small disc: the grid finds it cheaply and completely.
+  // Rays without depth search a long epipolar segment: the vocabulary narrows it when it can.
+  for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
+    if (!kf1.points[i1].is_null() || !(kf1.right_u[i1] >= 0 && kf1.depth[i1] > 0)) continue;
+    if (!region_of(i1, &region)) continue;
+    candidates.clear();
+    grid2.Query(static_cast<float>(region.p.x()), static_cast<float>(region.p.y()), static_cast<float>(region.radius),
+                kf2.uv, &candidates);
+    consider(i1, region, candidates, false);
+  }
+  auto without_depth = [&](uint32_t i1) { return !(kf1.right_u[i1] >= 0 && kf1.depth[i1] > 0); };
+  if (by_words) {
+    const FeatureVector& f1 = kf1.bow_features;
+    const FeatureVector& f2 = kf2.bow_features;
+    size_t a = 0, b = 0;
+    while (a < f1.size() && b < f2.size()) {
+      if (f1[a].first < f2[b].first) {
+        ++a;
+        continue;
+      }
+      if (f2[b].first < f1[a].first) {
+        ++b;
+        continue;
+      }
+      const uint32_t node = f1[a].first;
+      size_t ea = a, eb = b;
+      while (ea < f1.size() && f1[ea].first == node) ++ea;
+      while (eb < f2.size() && f2[eb].first == node) ++eb;
+      candidates.clear();
+      for (size_t y = b; y < eb; ++y) candidates.push_back(f2[y].second);
+      for (size_t x = a; x < ea; ++x) {
+        const uint32_t i1 = f1[x].second;
+        if (!kf1.points[i1].is_null() || !without_depth(i1) || !region_of(i1, &region)) continue;
+        consider(i1, region, candidates, true);
+      }
+      a = ea;
+      b = eb;
+    }
+  } else {
+    for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
+      if (!kf1.points[i1].is_null() || !without_depth(i1) || !region_of(i1, &region)) continue;
+      candidates.clear();
+      SegmentBand(region.p, region.q, grid2, kf2.uv, &candidates, &stamp, ++stamp_value);
+      consider(i1, region, candidates, false);
+    }
   }
   std::vector<std::pair<uint32_t, uint32_t>> out;
   for (uint32_t i2 = 0; i2 < kf2.size(); ++i2) {

@@ -387,6 +387,10 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   const bool weak = !monocular() && (inliers < 0.25 * reference_points || need_close);
   const double ratio = monocular() ? 0.9 : 0.75;
   const bool thin = (inliers < ratio * reference_points || need_close) && inliers > 15;
+  // Busy mapping with tracking fading (a monocular frame keeping under half the reference
+  // keyframe's points): ask local mapping to finish early.
+  const bool fading = monocular() && (inliers < 0.5 * reference_points || inliers < 100);
+  keyframe_wanted_ = thin && !idle && (timeout || weak || fading);
   if (!((timeout || idle || weak) && thin)) return false;
   return idle || pending_keyframes_ < 3;
 }
@@ -462,10 +466,12 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
       snapshot.push_back(map_.keyframe(n));
     }
   }
+  // The words come first: monocular triangulation searches keypoints under the same node.
+  if (options_.vocabulary)
+    options_.vocabulary->Transform(snapshot[0].descriptor, &snapshot[0].bow, &snapshot[0].bow_features);
   const std::vector<NewPoint> candidates = FindNewPoints(snapshot, neighbours, depth_range);
-  BowVector bow;
-  FeatureVector bow_features;
-  if (options_.vocabulary) options_.vocabulary->Transform(snapshot[0].descriptor, &bow, &bow_features);
+  BowVector bow = std::move(snapshot[0].bow);
+  FeatureVector bow_features = std::move(snapshot[0].bow_features);
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(keyframe)) return;
@@ -645,7 +651,11 @@ void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
   }
   if (problem.observations.empty()) return;
   // Solved on a copy, without the lock: tracking goes on meanwhile.
-  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, options_.bundle_adjustment);
+  // A keyframe waiting behind this one ends the adjustment early (tracking goes on meanwhile):
+  // the next keyframe's adjustment covers the same neighbourhood.
+  BundleAdjustmentOptions ba_options = options_.bundle_adjustment;
+  ba_options.stop_early = [this] { return pending_keyframes_ > 1 || keyframe_wanted_; };
+  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba_options);
   if (!result.success) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);

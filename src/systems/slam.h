@@ -111,6 +111,9 @@ class Slam {
   // Direct map access when no stage is running.
   [[nodiscard]] const Map& map() const { return map_; }
   [[nodiscard]] int pending_keyframes() const { return pending_keyframes_; }
+  // Tracking wanted a keyframe on the last frame but local mapping was busy; local BA stops early
+  // while it is set, and a batch run waits for mapping instead of tracking on.
+  [[nodiscard]] bool keyframe_wanted() const { return keyframe_wanted_; }
   // Loop closures so far (call when no stage is running).
   [[nodiscard]] const std::vector<LoopClosure>& loop_closures() const { return loop_closures_; }
   [[nodiscard]] size_t database_size() const { return database_.size(); }
@@ -212,6 +215,7 @@ class Slam {
   // Mapping bookkeeping (under map_mutex_).
   std::vector<PointHandle> recent_points_;
   std::atomic<int> pending_keyframes_{0};
+  mutable std::atomic<bool> keyframe_wanted_{false};
 
   // Place recognition (database under map_mutex_; loop state used by local mapping only).
   KeyFrameDatabase database_;

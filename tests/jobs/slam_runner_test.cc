@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include "core/error.h"
+#include "systems/vocabulary.h"
 #include "test_data.h"
 #include "trajectory/metrics.h"
 
@@ -87,6 +88,38 @@ TEST(SlamRun, KittiMonocularSnippet) {
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size() - first_tracked);  // nothing lost after that
   // Bar: 0.28 m after Sim(3) (ORB-SLAM2 0.283 m); measured 0.282 m, guarded with a margin.
   EXPECT_LT(o.sim3.ate_m.rmse, 0.33);
+}
+
+// Local mapping running behind tracking (up to 3 keyframes): tracking outruns mapping on this
+// snippet and used to lose the map around frame 40 in some runs. Tracking now waits while it
+// wants a keyframe that mapping is too busy to take, and local BA ends early for it. The timing
+// differs from run to run, so the bound on the error is looser than in the waiting mode.
+TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
+  const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "07";
+  const auto dataset = OpenDataset(seq.string());
+  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
+  SlamOptions options;
+  options.orb.features = 2000;
+  options.vocabulary = &vocabulary;  // monocular triangulation matches under vocabulary nodes
+  SlamRunOptions run;
+  run.max_mapping_lag = 3;
+  for (int attempt = 0; attempt < 3; ++attempt) {
+    const SlamRunResult r = RunSlam(*dataset, options, run);
+    size_t first_tracked = r.reports.size(), lost_after = 0;
+    for (const FrameReport& f : r.reports) {
+      if (f.state == TrackingState::kOk) first_tracked = std::min(first_tracked, f.index);
+      else if (f.index > first_tracked) ++lost_after;
+    }
+    EvalOptions eval;
+    eval.alignment = Alignment::kSim3;
+    const double ate = Evaluate(*dataset->ground_truth(), r.trajectory, eval).ate_m.rmse;
+    std::printf("run %d: first tracked frame %zu, %zu lost after it, %zu keyframes, Sim(3) ATE %.4f m\n", attempt,
+                first_tracked, lost_after, r.keyframe_count, ate);
+    EXPECT_LE(first_tracked, 10u);
+    EXPECT_EQ(lost_after, 0u);
+    EXPECT_EQ(r.trajectory.size(), r.reports.size() - first_tracked);
+    EXPECT_LT(ate, 0.5);
+  }
 }
 
 TEST(SlamRun, MonocularRoomAfterSim3) {

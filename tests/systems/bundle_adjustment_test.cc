@@ -161,6 +161,28 @@ TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
     EXPECT_LT((dense.poses[k].T_cam_world.matrix() - sparse.poses[k].T_cam_world.matrix()).norm(), 1e-6);
 }
 
+// stop_early ends the solve after the iteration where it first answers true; the partial solution
+// is kept and classified, and the refining pass is skipped.
+TEST(LocalBundleAdjustment, StopEarlyEndsTheSolveAndKeepsItsProgress) {
+  const BaScene scene = MakeScene(8, 600, 0.5, false, 42);
+  BundleAdjustmentProblem full = Perturbed(scene.truth, 11);
+  BundleAdjustmentProblem stopped = full;
+  const BundleAdjustmentResult rf = LocalBundleAdjustment(full, BundleAdjustmentOptions{});
+  BundleAdjustmentOptions options;
+  int asked = 0;
+  options.stop_early = [&asked] { return ++asked >= 2; };
+  const BundleAdjustmentResult rs = LocalBundleAdjustment(stopped, options);
+  ASSERT_TRUE(rf.success && rs.success);
+  EXPECT_FALSE(rf.stopped_early);
+  EXPECT_TRUE(rs.stopped_early);
+  EXPECT_LE(rs.iterations, 2);
+  EXPECT_GT(rf.iterations, rs.iterations);
+  EXPECT_EQ(rs.outlier.size(), stopped.observations.size());
+  // Progress made before the stop is kept: the error fell well below its start.
+  EXPECT_LT(rs.final_rmse_px, 0.5 * rs.initial_rmse_px);
+  EXPECT_LE(rf.final_rmse_px, rs.final_rmse_px);
+}
+
 TEST(LocalBundleAdjustment, NoiseFreeIsExact) {
   BaScene scene = MakeScene(5, 200, 0.0, true, 41);
   // Re-project without noise.
