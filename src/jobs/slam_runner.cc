@@ -24,7 +24,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   Slam slam(dataset.calibration(), options);
   const size_t frames = run.max_frames == 0 ? dataset.size() : std::min(run.max_frames, dataset.size());
   SlamRunResult result;
-  result.reports.reserve(frames);
+  if (run.keep_reports) result.reports.reserve(frames);
 
   PipelineOptions pipeline_options;
   if (run.max_in_flight > 0) pipeline_options.max_in_flight = run.max_in_flight;
@@ -68,7 +68,8 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       else mapping.post(*keyframe);
     }
     if (run.on_frame) run.on_frame(report);
-    result.reports.push_back(report);
+    ++result.frames;
+    if (run.keep_reports) result.reports.push_back(report);
   });
   const auto start = std::chrono::steady_clock::now();
   pipeline.run();

@@ -26,15 +26,20 @@ struct SlamRunOptions {
   std::vector<std::pair<size_t, size_t>> skip;
   // Tracking is declared lost at these frames (relocalization tests).
   std::vector<size_t> lose_at;
-  // Called from the track stage after every frame (progress display); may be empty.
+  // Called from the track stage after every frame (progress display, streamed statistics); may
+  // be empty.
   std::function<void(const FrameReport&)> on_frame;
+  // Keep every frame's report in SlamRunResult::reports. A caller that consumes them in on_frame
+  // can turn this off, so that a session of any length holds no per-frame record but its pose.
+  bool keep_reports = true;
   // Called once after every stage has drained, before RunSlam returns (e.g. to save the map);
   // may be empty.
   std::function<void(const Slam&)> on_finished;
 };
 
 struct SlamRunResult {
-  std::vector<FrameReport> reports;  // one per frame given to SLAM (see skip), in order
+  std::vector<FrameReport> reports;  // one per frame given to SLAM (see skip), in order; keep_reports
+  size_t frames = 0;                 // frames given to SLAM
   Trajectory trajectory;             // tracked frames, T_world_cam, refined through keyframes
   Trajectory keyframes;
   size_t keyframe_count = 0, point_count = 0;
