@@ -1,4 +1,5 @@
 // flatslam run: the SLAM pipeline over a dataset, writing trajectories, per-frame stats and a summary.
+#include <mimalloc.h>
 #include <sys/resource.h>
 #include <unistd.h>
 
@@ -17,6 +18,7 @@
 #include "io/dataset.h"
 #include "jobs/slam_runner.h"
 #include "storage/snapshot.h"
+#include "systems/slam_config.h"
 #include "systems/vocabulary.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
@@ -29,7 +31,7 @@ const char* const kRunUsage =
     "                    [--vocabulary FILE|none] [--no-loop-closing] [--no-global-ba]\n"
     "                    [--skip A:B,...] [--lose-at N,...]\n"
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
-    "                    [--first-frame N]\n\n"
+    "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
     "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
     "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
@@ -51,6 +53,9 @@ const char* const kRunUsage =
     "  --first-frame N  start at frame N (e.g. continue a session that stopped there)\n"
     "  --agent N        agent id stamped on the map's keyframes (for map merge; default 0)\n"
     "  --save-map FILE  save the final map as a snapshot (see flatslam map); written atomically\n"
+    "  --config FILE    SLAM options as 'key = value' lines (# comments); see --list-options\n"
+    "  --set K=V,...    set options by name after --config and the flags above\n"
+    "  --list-options   print every option with its value for this dataset, in the config format\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
 namespace {
@@ -59,6 +64,13 @@ double PeakRssMiB() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return usage.ru_maxrss / 1024.0;
+}
+
+// Memory the allocator has committed now (the heap, without code, stacks and mapped files).
+double HeapCommittedMiB() {
+  size_t elapsed = 0, user = 0, system = 0, rss = 0, peak_rss = 0, commit = 0, peak_commit = 0, faults = 0;
+  mi_process_info(&elapsed, &user, &system, &rss, &peak_rss, &commit, &peak_commit, &faults);
+  return static_cast<double>(commit) / (1024.0 * 1024.0);
 }
 
 // Resident set size now, from /proc/self/statm (0 where unavailable).
@@ -109,8 +121,8 @@ double Median(std::vector<float> v) {
 
 int RunRun(const std::vector<std::string>& argv) {
   const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at",
-                                 "save-map", "agent", "load-map", "first-frame"},
-                  {"deterministic", "quiet", "no-loop-closing", "no-global-ba", "localize-only"});
+                                 "save-map", "agent", "load-map", "first-frame", "config", "set"},
+                  {"deterministic", "quiet", "no-loop-closing", "no-global-ba", "localize-only", "list-options"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
     return 0;
@@ -180,6 +192,19 @@ int RunRun(const std::vector<std::string>& argv) {
   if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
   options.agent = static_cast<uint32_t>(agent);
   options.orb.features = static_cast<int>(args.get_int("features", options.orb.features));
+  options.seed = dataset_options.seed;
+  if (auto config = args.get("config")) LoadSlamConfig(*config, &options);
+  if (auto settings = args.get("set")) {
+    for (size_t pos = 0; pos <= settings->size();) {
+      const size_t comma = std::min(settings->find(',', pos), settings->size());
+      ApplySlamSetting(&options, std::string_view(*settings).substr(pos, comma - pos));
+      pos = comma + 1;
+    }
+  }
+  if (args.has("list-options")) {
+    for (const std::string& line : DescribeSlamOptions(options)) std::printf("%s\n", line.c_str());
+    return 0;
+  }
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);
   SlamRunOptions run;
   run.max_frames = frames;
@@ -226,7 +251,7 @@ int RunRun(const std::vector<std::string>& argv) {
     csv.open(*out_dir / "stats.csv");
     FLATSLAM_CHECK(csv.is_open(), "cannot write ", (*out_dir / "stats.csv"));
     csv << "frame,t_ns,state,keyframe,reinitialized,relocalized,features,stereo_points,matches,inliers,extract_ms,"
-           "track_ms,rss_mib\n";
+           "track_ms,rss_mib,heap_mib,map_keyframes,map_points\n";
   }
   size_t done = 0, keyframes_so_far = 0, lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
   std::vector<float> track_ms, extract_ms;
@@ -242,12 +267,13 @@ int RunRun(const std::vector<std::string>& argv) {
     reinitialized += r.reinitialized;
     track_ms.push_back(static_cast<float>(r.track_ms));
     extract_ms.push_back(static_cast<float>(r.extract_ms));
-    // The resident set sampled every frame: long sessions show whether memory stays flat.
+    // Resident set and committed heap sampled every frame: long sessions show whether memory
+    // stays flat.
     if (csv.is_open())
       csv << r.index << "," << r.t_ns << "," << TrackingStateName(r.state) << "," << r.keyframe << ","
           << r.reinitialized << "," << r.relocalized << "," << r.features << "," << r.stereo_points << ","
           << r.matches << "," << r.inliers << "," << r.extract_ms << "," << r.track_ms << "," << CurrentRssMiB()
-          << "\n";
+          << "," << HeapCommittedMiB() << "," << r.map_keyframes << "," << r.map_points << "\n";
     if (!quiet && (done % 10 == 0 || done == frames))
       std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", done, frames,
                    TrackingStateName(r.state), keyframes_so_far);
@@ -304,6 +330,13 @@ int RunRun(const std::vector<std::string>& argv) {
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               Median(extract_ms), mean_extract, Median(track_ms), mean_track);
+  if (const MappingTimes& m = result.mapping; m.keyframes > 0) {
+    const double n = static_cast<double>(m.keyframes);
+    std::printf("mapping       %zu keyframes mapped, ms per keyframe: prepare %.1f, triangulate %.1f, fuse %.1f, "
+                "local BA %.1f (%zu ended early), cull %.1f, places %.1f\n",
+                m.keyframes, m.prepare_ms / n, m.triangulate_ms / n, m.fuse_ms / n, m.local_ba_ms / n,
+                m.local_ba_stopped_early, m.cull_ms / n, m.place_ms / n);
+  }
   std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", result.frames / wall_s, wall_s);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
   if (auto gt = dataset->ground_truth(); gt && !trajectory.empty()) {

@@ -27,7 +27,12 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   if (run.keep_reports) result.reports.reserve(frames);
 
   PipelineOptions pipeline_options;
-  if (run.max_in_flight > 0) pipeline_options.max_in_flight = run.max_in_flight;
+  // Frames extracted ahead of tracking: a keyframe holds the track stage for its local mapping
+  // (tens of milliseconds), and a deep buffer lets extraction run on meanwhile. An item is a
+  // frame's keypoints (about 130 KiB at 2000 features), never its images.
+  pipeline_options.max_in_flight =
+      run.max_in_flight > 0 ? run.max_in_flight
+                            : std::max<size_t>(16, 4 * static_cast<size_t>(tbb::this_task_arena::max_concurrency()));
   FramePipeline<Item> pipeline(pipeline_options);
   auto mapping =
       pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
@@ -80,6 +85,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   result.keyframe_count = slam.map().keyframes().size();
   result.point_count = slam.map().points().size();
   result.loop_closures = slam.loop_closures();
+  result.mapping = slam.mapping_times();
   if (run.on_finished) run.on_finished(slam);
   return result;
 }

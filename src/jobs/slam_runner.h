@@ -18,7 +18,7 @@ struct SlamRunOptions {
   size_t first_frame = 0;       // frames before it are not read (a session continuing a saved map)
   Map* initial_map = nullptr;   // moved into the SLAM system before the first frame (Slam::AdoptMap)
   bool deterministic = false;   // map each keyframe inline in the track stage: same input, same output
-  size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = the pipeline default
+  size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = max(16, 4 x cores)
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which
   // reads faster than real time, never tracks against a map that mapping has fallen behind on.
   int max_mapping_lag = 0;
@@ -44,6 +44,7 @@ struct SlamRunResult {
   Trajectory keyframes;
   size_t keyframe_count = 0, point_count = 0;
   std::vector<LoopClosure> loop_closures;
+  MappingTimes mapping;  // local mapping's time per stage
   double wall_s = 0;
 };
 

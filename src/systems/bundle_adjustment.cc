@@ -8,6 +8,7 @@
 #include <ceres/ceres.h>
 
 #include "core/error.h"
+#include "systems/bundle_adjustment_lm.h"
 #include "systems/pose_optimizer.h"
 
 namespace flatslam {
@@ -82,11 +83,10 @@ struct ObservationError {
   double chi2 = 0;    // (left + right) squared error * inv_sigma2
 };
 
-std::optional<ObservationError> EvaluateObservation(const PinholeCamera& camera, double bf, const PoseBlock& pose,
-                                                    const Eigen::Vector3d& X, const BundleAdjustmentObservation& obs) {
-  const Eigen::Map<const Eigen::Quaterniond> q(pose.data());
-  const Eigen::Map<const Eigen::Vector3d> t(pose.data() + 4);
-  const Eigen::Vector3d xc = q * X + t;
+std::optional<ObservationError> EvaluateObservation(const PinholeCamera& camera, double bf,
+                                                    const Eigen::Isometry3d& T_cam_world, const Eigen::Vector3d& X,
+                                                    const BundleAdjustmentObservation& obs) {
+  const Eigen::Vector3d xc = T_cam_world * X;
   if (xc.z() <= kMinDepth) return std::nullopt;
   const double inv_z = 1.0 / xc.z();
   const double u = camera.fx * xc.x() * inv_z + camera.cx;
@@ -103,9 +103,13 @@ std::optional<ObservationError> EvaluateObservation(const PinholeCamera& camera,
 }
 
 // Runs one Ceres pass over the active observations; returns the summary's usability.
-bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
-               const std::vector<uint8_t>& active, bool robust, int iterations, std::vector<PoseBlock>* poses,
-               std::vector<Eigen::Vector3d>* points, int* iterations_done, bool* stopped) {
+bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
+                    const std::vector<uint8_t>& active, bool robust, int iterations, bool dense,
+                    std::vector<Eigen::Isometry3d>* isometries, std::vector<Eigen::Vector3d>* points,
+                    int* iterations_done, bool* stopped, detail::SchurWorkspace* /*unused*/) {
+  std::vector<PoseBlock> blocks(isometries->size());
+  for (size_t k = 0; k < blocks.size(); ++k) detail::PoseToParameters((*isometries)[k], blocks[k].data());
+  std::vector<PoseBlock>* poses = &blocks;
   const double bf = input.camera.fx * input.baseline_m;
   ceres::Problem::Options problem_options;
   problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
@@ -119,7 +123,7 @@ bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptio
   const size_t num_poses = poses->size();
   std::vector<uint8_t> pose_added(num_poses, 0), point_added(points->size(), 0);
   auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
-  int free_poses = 0, residuals = 0;
+  int residuals = 0;
   for (size_t i = 0; i < input.observations.size(); ++i) {
     if (!active[i]) continue;
     const BundleAdjustmentObservation& obs = input.observations[i];
@@ -128,10 +132,7 @@ bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptio
     if (!pose_added[obs.pose_index]) {
       pose_added[obs.pose_index] = 1;
       problem.AddParameterBlock(pose, detail::kPoseParameterSize, manifold.get());
-      if (input.poses[obs.pose_index].fixed)
-        problem.SetParameterBlockConstant(pose);
-      else
-        ++free_poses;
+      if (input.poses[obs.pose_index].fixed) problem.SetParameterBlockConstant(pose);
       ordering->AddElementToGroup(pose, 1);
     }
     if (!point_added[obs.point_index]) {
@@ -148,9 +149,6 @@ bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptio
   if (residuals == 0) return true;
 
   ceres::Solver::Options solver_options;
-  const bool dense = options.linear_solver == BundleAdjustmentOptions::LinearSolver::kDenseSchur ||
-                     (options.linear_solver == BundleAdjustmentOptions::LinearSolver::kAuto &&
-                      free_poses <= options.dense_schur_max_poses);
   solver_options.linear_solver_type = dense ? ceres::DENSE_SCHUR : ceres::SPARSE_SCHUR;
   solver_options.linear_solver_ordering = ordering;
   solver_options.max_num_iterations = iterations;
@@ -169,6 +167,9 @@ bool SolvePass(const BundleAdjustmentProblem& input, const BundleAdjustmentOptio
   ceres::Solve(solver_options, &problem, &summary);
   if (options.stop_early && options.stop_early()) *stopped = true;
   *iterations_done += static_cast<int>(summary.iterations.size());
+  // Ceres leaves the parameters at the last accepted iterate even when it reports failure.
+  for (size_t k = 0; k < blocks.size(); ++k)
+    if (!input.poses[k].fixed) (*isometries)[k] = detail::ParametersToPose(blocks[k].data());
   return summary.IsSolutionUsable();
 }
 
@@ -179,7 +180,10 @@ bool BundleAdjustmentOptions::Check() const {
          huber_mono > 0 && huber_stereo > 0 && dense_schur_max_poses >= 0 && num_threads >= 1;
 }
 
-BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, const BundleAdjustmentOptions& options) {
+BundleAdjustmentWorkspace::BundleAdjustmentWorkspace() : schur_(detail::MakeSchurWorkspace()) {}
+
+BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, const BundleAdjustmentOptions& options,
+                                             BundleAdjustmentWorkspace* workspace) {
   FLATSLAM_CHECK(options.Check(), "LocalBundleAdjustment: invalid BundleAdjustmentOptions");
   FLATSLAM_CHECK(problem.camera.fx > 0 && problem.camera.fy > 0, "LocalBundleAdjustment: camera has no focal length");
   const size_t num_obs = problem.observations.size();
@@ -194,9 +198,18 @@ BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, c
                    " but baseline_m = ", problem.baseline_m);
   }
 
-  std::vector<PoseBlock> poses(problem.poses.size());
-  for (size_t k = 0; k < poses.size(); ++k) detail::PoseToParameters(problem.poses[k].T_cam_world, poses[k].data());
+  std::vector<Eigen::Isometry3d> poses(problem.poses.size());
+  size_t free_poses = 0;
+  for (size_t k = 0; k < poses.size(); ++k) {
+    poses[k] = problem.poses[k].T_cam_world;
+    free_poses += !problem.poses[k].fixed;
+  }
   std::vector<Eigen::Vector3d> points = problem.points;
+  const bool dense = options.linear_solver == BundleAdjustmentOptions::LinearSolver::kDenseSchur ||
+                     (options.linear_solver == BundleAdjustmentOptions::LinearSolver::kAuto &&
+                      free_poses <= static_cast<size_t>(options.dense_schur_max_poses));
+  const auto solve_pass = options.solver == BundleAdjustmentOptions::Solver::kCeres ? SolvePassCeres
+                                                                                     : detail::SolvePassSchurLm;
   const double bf = problem.camera.fx * problem.baseline_m;
 
   BundleAdjustmentResult result;
@@ -226,18 +239,18 @@ BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, c
     }
   };
 
-  bool usable = SolvePass(problem, options, active, /*robust=*/true, options.first_pass_iterations, &poses, &points,
-                          &result.iterations, &result.stopped_early);
+  detail::SchurWorkspace* schur = workspace ? workspace->schur() : nullptr;
+  bool usable = solve_pass(problem, options, active, /*robust=*/true, options.first_pass_iterations, dense, &poses,
+                           &points, &result.iterations, &result.stopped_early, schur);
   if (usable && options.second_pass_iterations > 0 && !result.stopped_early) {
     classify();
-    usable = SolvePass(problem, options, active, options.robust_second_pass, options.second_pass_iterations, &poses,
-                       &points, &result.iterations, &result.stopped_early);
+    usable = solve_pass(problem, options, active, options.robust_second_pass, options.second_pass_iterations, dense,
+                        &poses, &points, &result.iterations, &result.stopped_early, schur);
   }
   classify();
 
-  // Ceres leaves the parameters at the last accepted iterate even when it reports failure.
   for (size_t k = 0; k < poses.size(); ++k)
-    if (!problem.poses[k].fixed) problem.poses[k].T_cam_world = detail::ParametersToPose(poses[k].data());
+    if (!problem.poses[k].fixed) problem.poses[k].T_cam_world = poses[k];
   problem.points = points;
 
   double sum_norm = 0;

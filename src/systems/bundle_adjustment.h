@@ -1,11 +1,14 @@
 // Local bundle adjustment over keyframe poses and map points given as plain arrays: a robust
-// pass, chi-square outlier removal, then a refining pass (Ceres, Schur complement on points).
+// pass, chi-square outlier removal, then a refining pass, each a Levenberg-Marquardt solve with
+// the points eliminated (Schur complement). Two solvers: flatslam's own (the default: structure
+// built once per pass, no per-iteration allocation) and Ceres (the reference it is tested against).
 // Concurrency: stateless; one call owns its problem; Ceres threads only if num_threads > 1.
 #pragma once
 
 #include <cmath>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <vector>
 
 #include <Eigen/Core>
@@ -39,6 +42,7 @@ struct BundleAdjustmentProblem {
 
 struct BundleAdjustmentOptions {
   enum class LinearSolver { kAuto, kDenseSchur, kSparseSchur };
+  enum class Solver { kSchurLm, kCeres };
 
   int first_pass_iterations = 5;         // robust pass before outlier classification (ORB-SLAM2: 5)
   int second_pass_iterations = 10;       // pass on inliers only (ORB-SLAM2: 10); 0 skips it
@@ -47,6 +51,7 @@ struct BundleAdjustmentOptions {
   double huber_mono = std::sqrt(5.991);  // Huber delta on the whitened residual
   double huber_stereo = std::sqrt(7.815);
   bool robust_second_pass = false;  // ORB-SLAM2 drops the robust kernel in the second pass
+  Solver solver = Solver::kSchurLm;  // kCeres: the same passes through Ceres (reference path)
   LinearSolver linear_solver = LinearSolver::kAuto;
   int dense_schur_max_poses = 40;  // kAuto: dense Schur up to this many free poses, else sparse
   int num_threads = 1;             // Ceres threads; 1 keeps the call single-threaded
@@ -68,10 +73,29 @@ struct BundleAdjustmentResult {
   bool stopped_early = false;      // options.stop_early ended it
 };
 
+namespace detail {
+struct SchurWorkspace;
+struct SchurWorkspaceDeleter {
+  void operator()(SchurWorkspace* w) const;
+};
+}  // namespace detail
+
+// Buffers that a caller adjusting often (local mapping) keeps between calls, so that a long
+// session does not reallocate them per keyframe. One workspace serves one call at a time.
+class BundleAdjustmentWorkspace {
+ public:
+  BundleAdjustmentWorkspace();
+  [[nodiscard]] detail::SchurWorkspace* schur() const { return schur_.get(); }
+
+ private:
+  std::unique_ptr<detail::SchurWorkspace, detail::SchurWorkspaceDeleter> schur_;
+};
+
 // Optimizes the free poses and all observed points of `problem` in place.
 // Throws flatslam::Error on out-of-range indices, inv_sigma2 <= 0, stereo without baseline,
 // an invalid camera or invalid options.
 [[nodiscard]] BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem,
-                                                           const BundleAdjustmentOptions& options);
+                                                           const BundleAdjustmentOptions& options,
+                                                           BundleAdjustmentWorkspace* workspace = nullptr);
 
 }  // namespace flatslam

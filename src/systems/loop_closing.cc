@@ -387,7 +387,7 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
         obs.pose_index = pose_index.at(o.keyframe);
         obs.point_index = j;
         obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = kf.right_u[o.keypoint];
+        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint]);
         obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
         problem.observations.push_back(obs);
       }

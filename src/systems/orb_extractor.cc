@@ -392,15 +392,21 @@ std::vector<uint16_t> GaussianTaps(int size, double sigma) {
 }
 
 // Per-level scratch, owned by one work item.
-struct Scratch {
+}  // namespace
+
+struct ExtractorScratch {
   std::vector<uint8_t> scores;
   std::vector<uint8_t> cell_has_strong;
   std::vector<Candidate> kept;
   std::vector<Node> nodes, next_nodes;
   std::vector<Candidate> sort_buffer;
+  std::vector<uint8_t> blurred_pixels;  // backs `blurred` for any level size
   cv::Mat blurred;
   std::vector<uint8_t> blur_row;
 };
+
+namespace {
+using Scratch = ExtractorScratch;
 
 // FAST corners in [m, cols-m) x [m, rows-m) of a level, after 3x3 non-maximum suppression
 // (ties go to the first in raster order): those above the high threshold, then, cell by cell,
@@ -872,6 +878,7 @@ OrbExtractor::OrbExtractor(const OrbOptions& options)
     }
   }
   blur_taps_ = GaussianTaps(options.blur_kernel, options.blur_sigma);
+  scratch_ = std::make_shared<ObjectPool<ExtractorScratch>>();
 }
 
 void OrbExtractor::BuildPyramid(const cv::Mat& gray, ImagePyramid* pyramid) const {
@@ -914,9 +921,9 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
 
   // 1. Candidates per level.
   tbb::parallel_for(tbb::blocked_range<int>(0, levels, 1), [&](const tbb::blocked_range<int>& range) {
-    Scratch scratch;
+    const auto scratch = scratch_->Acquire();
     for (int l = range.begin(); l != range.end(); ++l) {
-      DetectCorners(avx2, pyramid->levels[l], options_, &scratch, &results[l].corners);
+      DetectCorners(avx2, pyramid->levels[l], options_, scratch.get(), &results[l].corners);
     }
   });
 
@@ -947,7 +954,8 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
   }
   const int m = options_.edge_margin;
   tbb::parallel_for(tbb::blocked_range<int>(0, levels, 1), [&](const tbb::blocked_range<int>& range) {
-    Scratch scratch;
+    const auto lease = scratch_->Acquire();
+    Scratch& scratch = *lease;
     std::vector<Candidate>& kept = scratch.kept;
     for (int l = range.begin(); l != range.end(); ++l) {
       LevelResult& r = results[l];
@@ -961,6 +969,10 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
       if (r.corners.empty()) continue;
       cv::Mat blurred = img;
       if (blur_taps_.size() > 1) {
+        // A header over pooled pixels: Blur's create() then finds the size it needs in place.
+        const size_t pixels = static_cast<size_t>(img.rows) * img.cols;
+        if (scratch.blurred_pixels.size() < pixels) scratch.blurred_pixels.resize(pixels);
+        scratch.blurred = cv::Mat(img.rows, img.cols, CV_8UC1, scratch.blurred_pixels.data());
         Blur(avx2, img, blur_taps_, &scratch.blurred, &scratch.blur_row);
         blurred = scratch.blurred;
       }

@@ -6,11 +6,13 @@
 
 #include <array>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include <Eigen/Core>
 #include <opencv2/core/mat.hpp>
 
+#include "core/object_pool.h"
 #include "systems/features.h"
 
 namespace flatslam {
@@ -71,6 +73,8 @@ struct ImagePyramid {
   [[nodiscard]] Eigen::Vector2f FromLevel(const Eigen::Vector2f& uv, int level) const;
 };
 
+struct ExtractorScratch;  // per-level work buffers (orb_extractor.cc)
+
 class OrbExtractor {
  public:
   // Throws flatslam::Error when !options.Check().
@@ -103,6 +107,8 @@ class OrbExtractor {
   BriefPattern pattern_;
   std::vector<int8_t> orientation_weights_;  // per disc row: column weights u, then membership
   std::vector<uint16_t> blur_taps_;          // integer Gaussian, sum 256
+  // Work buffers reused across calls and threads (copies of the extractor share them).
+  std::shared_ptr<ObjectPool<ExtractorScratch>> scratch_;
 };
 
 }  // namespace flatslam

@@ -40,8 +40,8 @@ const char* TrackingStateName(TrackingState state) {
 bool SlamOptions::Check() const {
   return orb.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
          rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && min_init_points > 0 && min_motion_inliers > 0 &&
-         min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 &&
-         local_keyframes > 0 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 &&
+         min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 && min_frames_between_keyframes >= -1 &&
+         local_keyframes > 0 && min_parallax_deg >= 0 && min_parallax_deg < 90 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 &&
          relocalization_frames >= 0 && loop_consistency >= 1 && min_loop_matches >= 3;
 }
 
@@ -65,6 +65,8 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
                                                                  : 0.0;
   geometry_.bf = baseline * calibration_.camera.fx;
   if (monocular()) options_.motion_search_radius = options_.mono_search_radius;
+  if (options_.min_frames_between_keyframes < 0) options_.min_frames_between_keyframes = monocular() ? 2 : 0;
+  if (options_.min_parallax_deg == 0) options_.min_parallax_deg = monocular() ? 2.0 : 1.146;
   if (options_.localization_only) allow_new_segments_ = false;
   geometry_.pyramid = extractor_.scales();
   map_scales_.scale_factor = geometry_.pyramid.scale_factor;
@@ -73,6 +75,11 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
 
 double Slam::CloseDepth() const {
   return monocular() ? 0.0 : options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx;
+}
+
+double Slam::OptimizedRightU(float right_u, float depth) const {
+  if (options_.far_stereo_as_mono && calibration_.sensor == Sensor::kStereo && depth > CloseDepth()) return -1;
+  return right_u;
 }
 
 void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
@@ -84,16 +91,23 @@ void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
   if (calibration_.sensor == Sensor::kStereo) {
     FLATSLAM_CHECK(!frame.right.empty(), "frame ", frame.index, " has no right image");
     Keypoints right;
-    ImagePyramid left_pyramid, right_pyramid;
-    tbb::parallel_invoke([&] { extractor_.Extract(frame.left, &out->keypoints, &left_pyramid); },
-                         [&] { extractor_.Extract(frame.right, &right, &right_pyramid); });
-    MatchStereo(right, left_pyramid, right_pyramid, extractor_.scales(), cam.fx, calibration_.baseline_m,
+    const auto left_pyramid = pyramids_.Acquire();
+    const auto right_pyramid = pyramids_.Acquire();
+    tbb::parallel_invoke([&] { extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get()); },
+                         [&] { extractor_.Extract(frame.right, &right, right_pyramid.get()); });
+    MatchStereo(right, *left_pyramid, *right_pyramid, extractor_.scales(), cam.fx, calibration_.baseline_m,
                 options_.stereo, &out->keypoints);
+    left_pyramid->levels[0].release();  // level 0 shares the input image: do not keep it alive
+    right_pyramid->levels[0].release();
   } else if (calibration_.sensor == Sensor::kMonocular) {
-    extractor_.Extract(frame.left, &out->keypoints);
+    const auto pyramid = pyramids_.Acquire();
+    extractor_.Extract(frame.left, &out->keypoints, pyramid.get());
+    pyramid->levels[0].release();
   } else {
     FLATSLAM_CHECK(!frame.depth.empty(), "frame ", frame.index, " has no depth image");
-    extractor_.Extract(frame.left, &out->keypoints);
+    const auto pyramid = pyramids_.Acquire();
+    extractor_.Extract(frame.left, &out->keypoints, pyramid.get());
+    pyramid->levels[0].release();
     DepthFromImage(frame.depth, cam.fx, options_.rgbd_virtual_baseline_m, &out->keypoints);
   }
   out->Prepare(cam.width, cam.height);
@@ -187,6 +201,8 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     last_frame_ = std::move(frame);
   }
   report.keyframe = new_keyframe->has_value();
+  report.map_keyframes = map_.keyframes().size();
+  report.map_points = map_.points().size();
   if (report.keyframe) ++pending_keyframes_;
   report.track_ms = MsSince(start);
   return report;
@@ -268,7 +284,7 @@ int Slam::OptimizeFramePose(TrackedFrame& frame) {
     PoseObservation o;
     o.X_world = point->position;
     o.uv = frame.keypoints.uv[i].cast<double>();
-    o.right_u = frame.keypoints.right_u[i];
+    o.right_u = OptimizedRightU(frame.keypoints.right_u[i], frame.keypoints.depth[i]);
     o.inv_sigma2 = geometry_.pyramid.inv_sigma2[frame.keypoints.octave[i]];
     observations.push_back(o);
     index.push_back(i);
@@ -382,7 +398,7 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   }
   const bool need_close = tracked_close < 100 && untracked_close > 70;
   const size_t since = frame.index - last_keyframe_frame_;
-  const bool idle = pending_keyframes_ == 0;
+  const bool idle = pending_keyframes_ == 0 && since >= static_cast<size_t>(options_.min_frames_between_keyframes);
   const bool timeout = since >= static_cast<size_t>(options_.max_frames_between_keyframes);
   const bool weak = !monocular() && (inliers < 0.25 * reference_points || need_close);
   const double ratio = monocular() ? 0.9 : 0.75;
@@ -442,7 +458,7 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
 }
 
 void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
-  std::vector<KeyFrame> snapshot;  // [0] = the new keyframe, then its neighbours
+  std::vector<KeyFrame>& snapshot = mapping_snapshot_;  // [0] = the new keyframe, then its neighbours
   std::vector<KeyFrameHandle> neighbours;
   std::pair<double, double> depth_range;
   uint64_t epoch = 0;
@@ -450,6 +466,12 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     std::atomic<int>& pending;
     ~Done() { --pending; }
   } done{pending_keyframes_};
+  auto stage_start = std::chrono::steady_clock::now();
+  auto lap = [&stage_start](double* total) {
+    const auto now = std::chrono::steady_clock::now();
+    *total += std::chrono::duration<double, std::milli>(now - stage_start).count();
+    stage_start = now;
+  };
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(keyframe)) return;
@@ -459,19 +481,22 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     CullRecentPoints(keyframe);
     depth_range = SceneDepthRange(keyframe);
     epoch = map_epoch_;
-    // Copies of the keyframes to triangulate against, so matching runs without the lock.
-    snapshot.push_back(map_.keyframe(keyframe));
-    for (KeyFrameHandle n : map_.BestCovisible(keyframe, options_.local_keyframes)) {
-      neighbours.push_back(n);
-      snapshot.push_back(map_.keyframe(n));
-    }
+    // Copies of the keyframes to triangulate against, so matching runs without the lock;
+    // assigned over the last keyframe's copies, whose buffers they reuse.
+    neighbours = map_.BestCovisible(keyframe, options_.local_keyframes);
+    snapshot.resize(neighbours.size() + 1);
+    snapshot[0] = map_.keyframe(keyframe);
+    for (size_t k = 0; k < neighbours.size(); ++k) snapshot[k + 1] = map_.keyframe(neighbours[k]);
   }
+  ++mapping_times_.keyframes;
+  lap(&mapping_times_.prepare_ms);
   // The words come first: monocular triangulation searches keypoints under the same node.
   if (options_.vocabulary)
     options_.vocabulary->Transform(snapshot[0].descriptor, &snapshot[0].bow, &snapshot[0].bow_features);
   const std::vector<NewPoint> candidates = FindNewPoints(snapshot, neighbours, depth_range);
   BowVector bow = std::move(snapshot[0].bow);
   FeatureVector bow_features = std::move(snapshot[0].bow_features);
+  lap(&mapping_times_.triangulate_ms);
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(keyframe)) return;
@@ -481,12 +506,16 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     Fuse(keyframe);
     map_.UpdateCovisibility(keyframe);
   }
+  lap(&mapping_times_.fuse_ms);
   LocalBundleAdjustment(keyframe);
+  lap(&mapping_times_.local_ba_ms);
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (map_.keyframes().contains(keyframe)) CullKeyFrames(keyframe);
   }
+  lap(&mapping_times_.cull_ms);
   DetectAndCloseLoop(keyframe);
+  lap(&mapping_times_.place_ms);
 }
 
 void Slam::CullRecentPoints(KeyFrameHandle current) {
@@ -515,6 +544,7 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
   TriangulationOptions tri;
   tri.max_reprojection_error_px = 2.0;
   tri.min_parallax_deg = 0.0;
+  const double max_ray_cos = std::cos(options_.min_parallax_deg * M_PI / 180.0);
   const KeyFrame& a = snapshot[0];
   for (size_t k = 0; k < neighbours.size(); ++k) {
     const KeyFrame& b = snapshot[k + 1];
@@ -527,7 +557,7 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
       Eigen::Vector3d X;
       // Low parallax: a close stereo depth is more reliable than a triangulated one.
       const double ray_cos = std::cos(t.parallax_deg * M_PI / 180.0);
-      if (t.ok() && ray_cos < 0.9998) {
+      if (t.ok() && ray_cos < max_ray_cos) {
         X = t.X_world;
       } else if (a.depth[i1] > 0 && a.depth[i1] < close) {
         X = Unproject(geometry_.camera, a.T_cam_world, a.uv[i1], a.depth[i1]);
@@ -607,7 +637,10 @@ void Slam::Fuse(KeyFrameHandle current) {
 
 void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
   uint64_t epoch = 0;
-  BundleAdjustmentProblem problem;
+  BundleAdjustmentProblem& problem = local_ba_problem_;  // buffers reused from the last keyframe
+  problem.poses.clear();
+  problem.points.clear();
+  problem.observations.clear();
   std::vector<KeyFrameHandle> pose_handles;
   std::vector<PointHandle> point_handles;
   {
@@ -643,7 +676,7 @@ void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
         obs.pose_index = pose_index[o.keyframe];
         obs.point_index = static_cast<uint32_t>(j);
         obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = kf.right_u[o.keypoint];
+        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint]);
         obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
         problem.observations.push_back(obs);
       }
@@ -655,7 +688,8 @@ void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
   // the next keyframe's adjustment covers the same neighbourhood.
   BundleAdjustmentOptions ba_options = options_.bundle_adjustment;
   ba_options.stop_early = [this] { return pending_keyframes_ > 1 || keyframe_wanted_; };
-  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba_options);
+  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba_options, &local_ba_workspace_);
+  if (result.stopped_early) ++mapping_times_.local_ba_stopped_early;
   if (!result.success) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);

@@ -16,6 +16,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "core/object_pool.h"
 #include "ecs/map.h"
 #include "io/types.h"
 #include "systems/bundle_adjustment.h"
@@ -37,7 +38,12 @@ struct SlamOptions {
   PoseOptimizerOptions pose;
   BundleAdjustmentOptions bundle_adjustment;
   double rgbd_virtual_baseline_m = 0.08;  // RGB-D depth becomes a stereo measurement with this baseline
-  double close_depth_baselines = 40;    // "close" points (reliable stereo depth) are nearer than this x baseline
+  double close_depth_baselines = 35;    // "close" points (reliable stereo depth) are nearer than this x baseline
+  // Stereo keypoints beyond the close depth count as monocular observations in pose optimization
+  // and bundle adjustment: their disparity is a few pixels, where a tenth of a pixel of
+  // rectification error is a percent of depth, and it biased the trajectory's scale (KITTI 06:
+  // 0.4% too long with it). They still give rotation, and depth once triangulated over keyframes.
+  bool far_stereo_as_mono = true;
   int min_init_points = 150;            // keypoints with depth needed to start a map (stereo/RGB-D)
   int min_init_matches = 100;           // monocular: matches between the two initial frames
   float mono_search_radius = 15;        // monocular: projection search radius, pixels x level scale
@@ -46,7 +52,15 @@ struct SlamOptions {
   int min_local_map_inliers = 30;       // after tracking the local map
   float motion_search_radius = 7;       // pixels (x level scale) around the predicted position
   int max_frames_between_keyframes = 0; // 0 = the frame rate (one second)
+  // An idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor
+  // (2 monocular: forward motion thins the tracked points every frame; 0 with depth).
+  int min_frames_between_keyframes = -1;
   size_t local_keyframes = 10;          // covisible keyframes used for triangulation
+  // Least angle between the rays of a point triangulated from two keyframes; 0 = by sensor: 2 deg
+  // monocular (depth within about 4% at a pixel of noise; on KITTI 07 it also keeps out cars
+  // driving ahead, whose features look like points at infinity), 1.146 deg (ORB-SLAM2's cos 0.9998)
+  // with depth, where close points come from the stereo or depth measurement.
+  double min_parallax_deg = 0;
   size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
   uint32_t agent = 0;                   // stamped on every keyframe (multi-agent maps)
@@ -88,8 +102,22 @@ struct FrameReport {
   int stereo_points = 0;       // keypoints with depth
   int matches = 0;             // map points matched before the final pose optimization
   int inliers = 0;
+  size_t map_keyframes = 0;    // keyframes in the map after this frame
+  size_t map_points = 0;       // map points after this frame
   double extract_ms = 0;
   double track_ms = 0;
+};
+
+// Where local mapping spends its time, summed over the keyframes it mapped (milliseconds).
+struct MappingTimes {
+  size_t keyframes = 0;        // keyframes mapped
+  double prepare_ms = 0;       // point statistics, covisibility, recent-point culling, copies
+  double triangulate_ms = 0;   // bag of words and new points against the neighbours (no lock)
+  double fuse_ms = 0;          // adding the new points, fusing duplicates
+  double local_ba_ms = 0;      // local bundle adjustment (solved without the lock)
+  double cull_ms = 0;          // redundant keyframes
+  double place_ms = 0;         // keyframe database, loop detection and correction
+  size_t local_ba_stopped_early = 0;  // adjustments ended early for a waiting keyframe
 };
 
 class Slam {
@@ -117,6 +145,8 @@ class Slam {
   // Loop closures so far (call when no stage is running).
   [[nodiscard]] const std::vector<LoopClosure>& loop_closures() const { return loop_closures_; }
   [[nodiscard]] size_t database_size() const { return database_.size(); }
+  // Local mapping's time per stage (call when no stage is running).
+  [[nodiscard]] const MappingTimes& mapping_times() const { return mapping_times_; }
   // Blocks until background work (global bundle adjustment) has finished.
   void WaitForBackground();
   // Forces tracking lost from the next frame on (tests and the --lose-at option).
@@ -181,6 +211,9 @@ class Slam {
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
   [[nodiscard]] double CloseDepth() const;
+  // The right-image coordinate an optimization uses for a keypoint: none beyond the close depth
+  // when far_stereo_as_mono (stereo sensors only).
+  [[nodiscard]] double OptimizedRightU(float right_u, float depth) const;
   void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
   // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
   [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const FramePose& f) const;
@@ -199,6 +232,8 @@ class Slam {
   Calibration calibration_;
   SlamOptions options_;
   OrbExtractor extractor_;
+  // Stereo matching reads both pyramids; pooled so their levels are not reallocated per frame.
+  mutable ObjectPool<ImagePyramid> pyramids_;
   CameraGeometry geometry_;
   MapScales map_scales_;
 
@@ -220,6 +255,11 @@ class Slam {
 
   // Mapping bookkeeping (under map_mutex_).
   std::vector<PointHandle> recent_points_;
+  MappingTimes mapping_times_;  // written by local mapping only
+  // Local mapping's buffers, kept between keyframes so their capacity is reused (mapping only).
+  std::vector<KeyFrame> mapping_snapshot_;
+  BundleAdjustmentProblem local_ba_problem_;
+  BundleAdjustmentWorkspace local_ba_workspace_;
   std::atomic<int> pending_keyframes_{0};
   mutable std::atomic<bool> keyframe_wanted_{false};
 

@@ -1,0 +1,106 @@
+#include "systems/slam_config.h"
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+
+namespace flatslam {
+namespace {
+
+std::filesystem::path WriteFile(const std::string& name, const std::string& text) {
+  const auto path = std::filesystem::temp_directory_path() / ("flatslam_config_test_" + name);
+  std::ofstream(path) << text;
+  return path;
+}
+
+std::string ErrorOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(SlamConfig, SetsEveryKindOfOptionByName) {
+  SlamOptions o;
+  SetSlamOption(&o, "orb.features", "2500");
+  SetSlamOption(&o, " stereo.outlier_factor ", " 1.5 ");
+  SetSlamOption(&o, "close_depth_baselines", "30");
+  SetSlamOption(&o, "matcher.check_orientation", "false");
+  SetSlamOption(&o, "local_keyframes", "12");
+  SetSlamOption(&o, "seed", "18446744073709551615");
+  SetSlamOption(&o, "bundle_adjustment.solver", "ceres");
+  EXPECT_EQ(o.orb.features, 2500);
+  EXPECT_FLOAT_EQ(o.stereo.outlier_factor, 1.5f);
+  EXPECT_DOUBLE_EQ(o.close_depth_baselines, 30);
+  EXPECT_FALSE(o.matcher.check_orientation);
+  EXPECT_EQ(o.local_keyframes, 12u);
+  EXPECT_EQ(o.seed, 18446744073709551615ull);
+  EXPECT_EQ(o.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kCeres);
+  ApplySlamSetting(&o, "bundle_adjustment.solver=schur_lm");
+  EXPECT_EQ(o.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kSchurLm);
+}
+
+TEST(SlamConfig, ErrorsNameTheKeyAndWhatWasExpected) {
+  SlamOptions o;
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "orb.featurez", "1"); }).find("unknown option 'orb.featurez'"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "orb.features", "12x"); }).find("orb.features needs an integer, got '12x'"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "local_keyframes", "-3"); }).find("non-negative integer"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "loop_closing", "maybe"); }).find("true or false"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "pose.chi2_mono", "nan"); }).find("a real number"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features"); }).find("expected KEY=VALUE"), std::string::npos);
+  // A value that parses but breaks an option's range is refused as a whole.
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features=0"); }).find("no longer valid"), std::string::npos);
+  EXPECT_EQ(o.orb.features, 0);  // the caller's options are not used after a throw
+}
+
+TEST(SlamConfig, FileErrorsNameTheFileAndLine) {
+  const auto path = WriteFile("bad.conf", "# tuned for KITTI\norb.features = 2000\n\nmatcher.nn_ratio 0.7\n");
+  SlamOptions o;
+  const std::string error = ErrorOf([&] { LoadSlamConfig(path, &o); });
+  EXPECT_NE(error.find(path.string() + ":4"), std::string::npos) << error;
+  EXPECT_NE(error.find("expected 'key = value'"), std::string::npos) << error;
+  const auto unknown = WriteFile("unknown.conf", "orb.features = 2000\nno_such_option = 1\n");
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig(unknown, &o); }).find(unknown.string() + ":2: unknown option"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig("/nonexistent/flatslam.conf", &o); }).find("cannot read config file"),
+            std::string::npos);
+  const auto range = WriteFile("range.conf", "redundant_keyframe_ratio = 1.5\n");
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig(range, &o); }).find("not valid together"), std::string::npos);
+  std::filesystem::remove(path);
+  std::filesystem::remove(unknown);
+  std::filesystem::remove(range);
+}
+
+// What --list-options prints reads back as the same options.
+TEST(SlamConfig, DescriptionRoundTripsThroughAConfigFile) {
+  SlamOptions changed;
+  changed.orb.features = 1234;
+  changed.stereo.outlier_factor = 1.75f;
+  changed.pose.huber_mono = 2.5;
+  changed.far_stereo_as_mono = false;
+  changed.bundle_adjustment.solver = BundleAdjustmentOptions::Solver::kCeres;
+  std::string text;
+  for (const std::string& line : DescribeSlamOptions(changed)) text += line + "\n";
+  const auto path = WriteFile("roundtrip.conf", text);
+  SlamOptions loaded;
+  LoadSlamConfig(path, &loaded);
+  EXPECT_EQ(DescribeSlamOptions(loaded), DescribeSlamOptions(changed));
+  EXPECT_EQ(loaded.orb.features, 1234);
+  EXPECT_FLOAT_EQ(loaded.stereo.outlier_factor, 1.75f);
+  EXPECT_DOUBLE_EQ(loaded.pose.huber_mono, 2.5);
+  EXPECT_FALSE(loaded.far_stereo_as_mono);
+  EXPECT_EQ(loaded.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kCeres);
+  std::filesystem::remove(path);
+}
+
+}  // namespace
+}  // namespace flatslam
