@@ -31,7 +31,7 @@ for entry in "${runs[@]}"; do
   summary=$("$app" run "$spec" $extra --quiet --out "$out")
   frames=$(awk '/^frames/{print $2}' <<<"$summary")
   lost=$(awk '/^frames/{print $4}' <<<"$summary")
-  kfs=$(awk '/^map/{print $2}' <<<"$summary")
+  kfs=$(awk '/^map /{print $2}' <<<"$summary")
   fps=$(awk '/^throughput/{print $2}' <<<"$summary")
   extract=$(awk '/^time/{print $4}' <<<"$summary")
   track=$(awk '/^time/{print $10}' <<<"$summary")

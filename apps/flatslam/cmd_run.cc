@@ -202,7 +202,8 @@ int RunRun(const std::vector<std::string>& argv) {
     }
   }
   if (args.has("list-options")) {
-    for (const std::string& line : DescribeSlamOptions(options)) std::printf("%s\n", line.c_str());
+    for (const std::string& line : DescribeSlamOptions(ResolvedOptions(options, dataset->calibration())))
+      std::printf("%s\n", line.c_str());
     return 0;
   }
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);

@@ -39,15 +39,27 @@ const char* TrackingStateName(TrackingState state) {
 
 bool SlamOptions::Check() const {
   return orb.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
-         rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && min_init_points > 0 && min_motion_inliers > 0 &&
+         rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && far_stereo_baselines >= 0 && min_init_points > 0 && min_motion_inliers > 0 &&
          min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 && min_frames_between_keyframes >= -1 &&
          local_keyframes > 0 && min_parallax_deg >= 0 && min_parallax_deg < 90 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 &&
          relocalization_frames >= 0 && loop_consistency >= 1 && min_loop_matches >= 3;
 }
 
+SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration) {
+  SlamOptions o = options;
+  const bool mono = calibration.sensor == Sensor::kMonocular;
+  if (o.max_frames_between_keyframes == 0)
+    o.max_frames_between_keyframes =
+        calibration.frame_rate_hz > 0 ? static_cast<int>(std::lround(calibration.frame_rate_hz)) : 10;
+  if (mono) o.motion_search_radius = o.mono_search_radius;
+  if (o.min_frames_between_keyframes < 0) o.min_frames_between_keyframes = mono ? 2 : 0;
+  if (o.min_parallax_deg == 0) o.min_parallax_deg = mono ? 2.0 : 1.146;
+  return o;
+}
+
 Slam::Slam(const Calibration& calibration, const SlamOptions& options)
     : calibration_(calibration),
-      options_(options),
+      options_(ResolvedOptions(options, calibration)),
       extractor_(options.orb),
       rng_(options.seed),
       database_(options.vocabulary ? options.vocabulary->word_count() : 0),
@@ -56,17 +68,11 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
   FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
   FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
                  "stereo calibration without a baseline");
-  if (options_.max_frames_between_keyframes == 0)
-    options_.max_frames_between_keyframes =
-        calibration_.frame_rate_hz > 0 ? static_cast<int>(std::lround(calibration_.frame_rate_hz)) : 10;
   geometry_.camera = calibration_.camera;
   const double baseline = calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m
                           : calibration_.sensor == Sensor::kRgbd ? options_.rgbd_virtual_baseline_m
                                                                  : 0.0;
   geometry_.bf = baseline * calibration_.camera.fx;
-  if (monocular()) options_.motion_search_radius = options_.mono_search_radius;
-  if (options_.min_frames_between_keyframes < 0) options_.min_frames_between_keyframes = monocular() ? 2 : 0;
-  if (options_.min_parallax_deg == 0) options_.min_parallax_deg = monocular() ? 2.0 : 1.146;
   if (options_.localization_only) allow_new_segments_ = false;
   geometry_.pyramid = extractor_.scales();
   map_scales_.scale_factor = geometry_.pyramid.scale_factor;
@@ -78,7 +84,9 @@ double Slam::CloseDepth() const {
 }
 
 double Slam::OptimizedRightU(float right_u, float depth) const {
-  if (options_.far_stereo_as_mono && calibration_.sensor == Sensor::kStereo && depth > CloseDepth()) return -1;
+  if (options_.far_stereo_baselines > 0 && calibration_.sensor == Sensor::kStereo &&
+      depth > options_.far_stereo_baselines * calibration_.baseline_m)
+    return -1;
   return right_u;
 }
 
@@ -372,10 +380,28 @@ bool Slam::TrackLocalMap(TrackedFrame& frame, int* matches) {
       if (MapPoint* point = map_.points().try_get(p)) ++point->visible;
   *matches = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
                                             [](PointHandle p) { return !p.is_null(); }));
-  const int inliers = OptimizeFramePose(frame);
+  int inliers = OptimizeFramePose(frame);
+  // Far fewer inliers than the last frame had: the predicted pose was off (a sudden turn) and the
+  // narrow search missed most points. Search again, three times as wide, from the refined pose,
+  // before accepting a weak pose (or making a keyframe of it).
+  if (inliers >= 3 && inliers < last_inliers_ / 2) {
+    const Eigen::Isometry3d refined = frame.T_cam_world;
+    const std::vector<PointHandle> kept = frame.points;
+    MatchLocalPoints(frame, map_, local_points_, geometry_, 3.0f, options_.matcher, nullptr);
+    const int retried = OptimizeFramePose(frame);
+    if (retried > inliers) {
+      inliers = retried;
+      *matches = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
+                                                [](PointHandle p) { return !p.is_null(); }));
+    } else {
+      frame.T_cam_world = refined;
+      frame.points = kept;
+    }
+  }
   if (!options_.localization_only)
     for (PointHandle p : frame.points)
       if (MapPoint* point = map_.points().try_get(p)) ++point->found;
+  last_inliers_ = inliers;
   return inliers >= options_.min_local_map_inliers;
 }
 

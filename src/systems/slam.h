@@ -38,12 +38,15 @@ struct SlamOptions {
   PoseOptimizerOptions pose;
   BundleAdjustmentOptions bundle_adjustment;
   double rgbd_virtual_baseline_m = 0.08;  // RGB-D depth becomes a stereo measurement with this baseline
-  double close_depth_baselines = 35;    // "close" points (reliable stereo depth) are nearer than this x baseline
-  // Stereo keypoints beyond the close depth count as monocular observations in pose optimization
-  // and bundle adjustment: their disparity is a few pixels, where a tenth of a pixel of
-  // rectification error is a percent of depth, and it biased the trajectory's scale (KITTI 06:
-  // 0.4% too long with it). They still give rotation, and depth once triangulated over keyframes.
-  bool far_stereo_as_mono = true;
+  // "Close" points (reliable stereo depth) are nearer than this x baseline: created from one frame,
+  // counted for keyframe decisions and culling. ORB-SLAM2 uses 35 for KITTI and EuRoC, 40 for TUM.
+  double close_depth_baselines = 35;
+  // Stereo keypoints deeper than this x baseline count as monocular observations in pose
+  // optimization and bundle adjustment (0: never): their disparity is a few pixels, where a tenth
+  // of a pixel of rectification error is a percent of depth, and it biased the trajectory's scale
+  // (KITTI 06: 0.4% too long with them). They still give rotation, and depth once triangulated
+  // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC.
+  double far_stereo_baselines = 35;
   int min_init_points = 150;            // keypoints with depth needed to start a map (stereo/RGB-D)
   int min_init_matches = 100;           // monocular: matches between the two initial frames
   float mono_search_radius = 15;        // monocular: projection search radius, pixels x level scale
@@ -75,6 +78,10 @@ struct SlamOptions {
 
   [[nodiscard]] bool Check() const;
 };
+
+// The options a Slam for this calibration runs with: values left to the sensor (0 or -1 above)
+// filled in, the monocular search radius in place of the motion one.
+[[nodiscard]] SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration);
 
 enum class TrackingState { kNotInitialized, kOk, kLost };
 
@@ -211,8 +218,8 @@ class Slam {
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
   [[nodiscard]] double CloseDepth() const;
-  // The right-image coordinate an optimization uses for a keypoint: none beyond the close depth
-  // when far_stereo_as_mono (stereo sensors only).
+  // The right-image coordinate an optimization uses for a keypoint: none beyond
+  // far_stereo_baselines (stereo sensors only).
   [[nodiscard]] double OptimizedRightU(float right_u, float depth) const;
   void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
   // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
@@ -248,6 +255,7 @@ class Slam {
   size_t last_keyframe_frame_ = 0;
   std::vector<KeyFrameHandle> local_keyframes_;
   std::vector<PointHandle> local_points_;
+  int last_inliers_ = 0;  // of the last frame's local-map tracking
   std::vector<FramePose> frame_poses_;
   KeyFrameHandle first_keyframe_;
   std::optional<TrackedFrame> init_frame_;  // monocular: first frame of the two-view initialization

@@ -73,7 +73,7 @@ const std::vector<Entry>& Entries() {
       {"bundle_adjustment.num_threads", [](SlamOptions& o) -> Field { return &o.bundle_adjustment.num_threads; }},
       {"rgbd_virtual_baseline_m", [](SlamOptions& o) -> Field { return &o.rgbd_virtual_baseline_m; }},
       {"close_depth_baselines", [](SlamOptions& o) -> Field { return &o.close_depth_baselines; }},
-      {"far_stereo_as_mono", [](SlamOptions& o) -> Field { return &o.far_stereo_as_mono; }},
+      {"far_stereo_baselines", [](SlamOptions& o) -> Field { return &o.far_stereo_baselines; }},
       {"min_init_points", [](SlamOptions& o) -> Field { return &o.min_init_points; }},
       {"min_init_matches", [](SlamOptions& o) -> Field { return &o.min_init_matches; }},
       {"mono_search_radius", [](SlamOptions& o) -> Field { return &o.mono_search_radius; }},

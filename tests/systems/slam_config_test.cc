@@ -86,7 +86,7 @@ TEST(SlamConfig, DescriptionRoundTripsThroughAConfigFile) {
   changed.orb.features = 1234;
   changed.stereo.outlier_factor = 1.75f;
   changed.pose.huber_mono = 2.5;
-  changed.far_stereo_as_mono = false;
+  changed.far_stereo_baselines = 0;
   changed.bundle_adjustment.solver = BundleAdjustmentOptions::Solver::kCeres;
   std::string text;
   for (const std::string& line : DescribeSlamOptions(changed)) text += line + "\n";
@@ -97,7 +97,7 @@ TEST(SlamConfig, DescriptionRoundTripsThroughAConfigFile) {
   EXPECT_EQ(loaded.orb.features, 1234);
   EXPECT_FLOAT_EQ(loaded.stereo.outlier_factor, 1.75f);
   EXPECT_DOUBLE_EQ(loaded.pose.huber_mono, 2.5);
-  EXPECT_FALSE(loaded.far_stereo_as_mono);
+  EXPECT_EQ(loaded.far_stereo_baselines, 0);
   EXPECT_EQ(loaded.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kCeres);
   std::filesystem::remove(path);
 }
