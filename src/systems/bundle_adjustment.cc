@@ -177,7 +177,8 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
 
 bool BundleAdjustmentOptions::Check() const {
   return first_pass_iterations >= 1 && second_pass_iterations >= 0 && chi2_mono > 0 && chi2_stereo > 0 &&
-         huber_mono > 0 && huber_stereo > 0 && dense_schur_max_poses >= 0 && num_threads >= 1;
+         huber_mono > 0 && huber_stereo > 0 && dense_schur_max_poses >= 0 && schur_lm_max_poses >= 0 &&
+         num_threads >= 1;
 }
 
 BundleAdjustmentWorkspace::BundleAdjustmentWorkspace() : schur_(detail::MakeSchurWorkspace()) {}
@@ -208,8 +209,9 @@ BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, c
   const bool dense = options.linear_solver == BundleAdjustmentOptions::LinearSolver::kDenseSchur ||
                      (options.linear_solver == BundleAdjustmentOptions::LinearSolver::kAuto &&
                       free_poses <= static_cast<size_t>(options.dense_schur_max_poses));
-  const auto solve_pass = options.solver == BundleAdjustmentOptions::Solver::kCeres ? SolvePassCeres
-                                                                                     : detail::SolvePassSchurLm;
+  const bool ceres = options.solver == BundleAdjustmentOptions::Solver::kCeres ||
+                     free_poses > static_cast<size_t>(options.schur_lm_max_poses);
+  const auto solve_pass = ceres ? SolvePassCeres : detail::SolvePassSchurLm;
   const double bf = problem.camera.fx * problem.baseline_m;
 
   BundleAdjustmentResult result;

@@ -54,6 +54,10 @@ struct BundleAdjustmentOptions {
   Solver solver = Solver::kSchurLm;  // kCeres: the same passes through Ceres (reference path)
   LinearSolver linear_solver = LinearSolver::kAuto;
   int dense_schur_max_poses = 40;  // kAuto: dense Schur up to this many free poses, else sparse
+  // kSchurLm hands problems with more free poses than this to Ceres, whose sparse Schur runs on
+  // CHOLMOD's supernodal factorization (Eigen's simplicial LDLT took 60% of a 1,125-keyframe
+  // merge weld); local BA windows stay well below it.
+  int schur_lm_max_poses = 150;
   int num_threads = 1;             // Ceres threads; 1 keeps the call single-threaded
   // Asked after every solver iteration; true ends the solve at the current iterate (the
   // outlier classification still runs). Local mapping uses it to yield to a waiting keyframe.

@@ -70,6 +70,8 @@ const std::vector<Entry>& Entries() {
        [](SlamOptions& o) -> Field { return &o.bundle_adjustment.robust_second_pass; }},
       {"bundle_adjustment.dense_schur_max_poses",
        [](SlamOptions& o) -> Field { return &o.bundle_adjustment.dense_schur_max_poses; }},
+      {"bundle_adjustment.schur_lm_max_poses",
+       [](SlamOptions& o) -> Field { return &o.bundle_adjustment.schur_lm_max_poses; }},
       {"bundle_adjustment.num_threads", [](SlamOptions& o) -> Field { return &o.bundle_adjustment.num_threads; }},
       {"rgbd_virtual_baseline_m", [](SlamOptions& o) -> Field { return &o.rgbd_virtual_baseline_m; }},
       {"close_depth_baselines", [](SlamOptions& o) -> Field { return &o.close_depth_baselines; }},
