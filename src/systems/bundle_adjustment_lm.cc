@@ -55,19 +55,19 @@ inline void Huber(double s, double delta, bool robust, double* rho, double* weig
 
 // Buffers of one solve, kept between solves so that their capacity is reused.
 struct SchurWorkspace {
-  std::vector<int> free_id_, point_id_;
-  std::vector<uint32_t> free_poses_, points_;  // free pose -> problem pose, point id -> problem point
-  std::vector<uint32_t> obs_start_, obs_;      // observations by point (CSR over point ids)
-  std::vector<uint32_t> fill_;
-  std::vector<uint32_t> block_rows_, block_cols_, pair_blocks_;
-  std::unordered_map<uint64_t, uint32_t> block_of_;
-  std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks_, U_;
-  std::vector<Mat63, Eigen::aligned_allocator<Mat63>> W_;
-  std::vector<Eigen::Matrix3d> V_, V_inv_;
-  std::vector<Eigen::Vector3d> b_point_, delta_point_;
-  std::vector<Vec6, Eigen::aligned_allocator<Vec6>> b_pose_, delta_pose_, g_;
-  std::vector<PoseState> state_, trial_poses_;
-  std::vector<Eigen::Vector3d> trial_points_;
+  std::vector<int> free_id, point_id;
+  std::vector<uint32_t> free_poses, points;  // free pose -> problem pose, point id -> problem point
+  std::vector<uint32_t> obs_start, obs;      // observations by point (CSR over point ids)
+  std::vector<uint32_t> fill;
+  std::vector<uint32_t> block_rows, block_cols, pair_blocks;
+  std::unordered_map<uint64_t, uint32_t> block_of;
+  std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks, U;
+  std::vector<Mat63, Eigen::aligned_allocator<Mat63>> W;
+  std::vector<Eigen::Matrix3d> V, V_inv;
+  std::vector<Eigen::Vector3d> b_point, delta_point;
+  std::vector<Vec6, Eigen::aligned_allocator<Vec6>> b_pose, delta_pose, g;
+  std::vector<PoseState> state, trial_poses;
+  std::vector<Eigen::Vector3d> trial_points;
 };
 
 namespace {
@@ -81,104 +81,84 @@ class Solver {
         robust_(robust),
         dense_(dense),
         bf_(input.camera.fx * input.baseline_m),
-        free_id_(w->free_id_),
-        point_id_(w->point_id_),
-        free_poses_(w->free_poses_),
-        points_(w->points_),
-        obs_start_(w->obs_start_),
-        obs_(w->obs_),
-        block_rows_(w->block_rows_),
-        block_cols_(w->block_cols_),
-        pair_blocks_(w->pair_blocks_),
-        blocks_(w->blocks_),
-        U_(w->U_),
-        W_(w->W_),
-        V_(w->V_),
-        V_inv_(w->V_inv_),
-        b_point_(w->b_point_),
-        delta_point_(w->delta_point_),
-        b_pose_(w->b_pose_),
-        delta_pose_(w->delta_pose_),
-        g_(w->g_),
-        trial_poses_(w->trial_poses_),
-        trial_points_(w->trial_points_) {
-    free_poses_.clear();
-    points_.clear();
-    block_rows_.clear();
-    block_cols_.clear();
-    pair_blocks_.clear();
+        w_(*w) {
+    w_.free_poses.clear();
+    w_.points.clear();
+    w_.block_rows.clear();
+    w_.block_cols.clear();
+    w_.pair_blocks.clear();
     // Free poses and points that take part, observations grouped by point.
-    free_id_.assign(input.poses.size(), -1);
-    point_id_.assign(input.points.size(), -1);
+    w_.free_id.assign(input.poses.size(), -1);
+    w_.point_id.assign(input.points.size(), -1);
     for (size_t i = 0; i < input.observations.size(); ++i) {
       if (!active[i]) continue;
       const BundleAdjustmentObservation& o = input.observations[i];
-      if (point_id_[o.point_index] < 0) {
-        point_id_[o.point_index] = static_cast<int>(points_.size());
-        points_.push_back(o.point_index);
+      if (w_.point_id[o.point_index] < 0) {
+        w_.point_id[o.point_index] = static_cast<int>(w_.points.size());
+        w_.points.push_back(o.point_index);
       }
-      if (!input.poses[o.pose_index].fixed && free_id_[o.pose_index] < 0) {
-        free_id_[o.pose_index] = static_cast<int>(free_poses_.size());
-        free_poses_.push_back(o.pose_index);
+      if (!input.poses[o.pose_index].fixed && w_.free_id[o.pose_index] < 0) {
+        w_.free_id[o.pose_index] = static_cast<int>(w_.free_poses.size());
+        w_.free_poses.push_back(o.pose_index);
       }
     }
-    obs_start_.assign(points_.size() + 1, 0);
+    w_.obs_start.assign(w_.points.size() + 1, 0);
     for (size_t i = 0; i < input.observations.size(); ++i)
-      if (active[i]) ++obs_start_[point_id_[input.observations[i].point_index] + 1];
-    for (size_t j = 0; j < points_.size(); ++j) obs_start_[j + 1] += obs_start_[j];
-    obs_.resize(obs_start_.back());
+      if (active[i]) ++w_.obs_start[w_.point_id[input.observations[i].point_index] + 1];
+    for (size_t j = 0; j < w_.points.size(); ++j) w_.obs_start[j + 1] += w_.obs_start[j];
+    w_.obs.resize(w_.obs_start.back());
     {
-      std::vector<uint32_t>& fill = w->fill_;
-      fill.assign(obs_start_.begin(), obs_start_.end() - 1);
+      std::vector<uint32_t>& fill = w_.fill;
+      fill.assign(w_.obs_start.begin(), w_.obs_start.end() - 1);
       for (size_t i = 0; i < input.observations.size(); ++i)
-        if (active[i]) obs_[fill[point_id_[input.observations[i].point_index]]++] = static_cast<uint32_t>(i);
+        if (active[i]) w_.obs[fill[w_.point_id[input.observations[i].point_index]]++] = static_cast<uint32_t>(i);
     }
     // Blocks of the reduced camera system: the diagonal, then every pair of free poses that
     // share a point, in the order the elimination visits them.
-    const size_t nf = free_poses_.size();
-    std::unordered_map<uint64_t, uint32_t>& block_of = w->block_of_;
+    const size_t nf = w_.free_poses.size();
+    std::unordered_map<uint64_t, uint32_t>& block_of = w_.block_of;
     block_of.clear();
     auto block = [&](uint32_t a, uint32_t b) {
       const uint64_t key = (static_cast<uint64_t>(a) << 32) | b;
-      const auto [it, inserted] = block_of.try_emplace(key, static_cast<uint32_t>(block_rows_.size()));
+      const auto [it, inserted] = block_of.try_emplace(key, static_cast<uint32_t>(w_.block_rows.size()));
       if (inserted) {
-        block_rows_.push_back(a);
-        block_cols_.push_back(b);
+        w_.block_rows.push_back(a);
+        w_.block_cols.push_back(b);
       }
       return it->second;
     };
     for (uint32_t f = 0; f < nf; ++f) block(f, f);
-    for (size_t j = 0; j < points_.size(); ++j) {
-      for (uint32_t a = obs_start_[j]; a < obs_start_[j + 1]; ++a) {
-        const int fa = free_id_[input.observations[obs_[a]].pose_index];
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const int fa = w_.free_id[input.observations[w_.obs[a]].pose_index];
         if (fa < 0) continue;
-        for (uint32_t b = a + 1; b < obs_start_[j + 1]; ++b) {
-          const int fb = free_id_[input.observations[obs_[b]].pose_index];
+        for (uint32_t b = a + 1; b < w_.obs_start[j + 1]; ++b) {
+          const int fb = w_.free_id[input.observations[w_.obs[b]].pose_index];
           if (fb < 0 || fb == fa) continue;
-          pair_blocks_.push_back(block(std::min(fa, fb), std::max(fa, fb)));
+          w_.pair_blocks.push_back(block(std::min(fa, fb), std::max(fa, fb)));
         }
       }
     }
-    blocks_.resize(block_rows_.size());
-    W_.resize(obs_.size());
-    V_.resize(points_.size());
-    b_point_.resize(points_.size());
-    U_.resize(nf);
-    b_pose_.resize(nf);
-    delta_pose_.resize(nf);
-    delta_point_.resize(points_.size());
+    w_.blocks.resize(w_.block_rows.size());
+    w_.W.resize(w_.obs.size());
+    w_.V.resize(w_.points.size());
+    w_.b_point.resize(w_.points.size());
+    w_.U.resize(nf);
+    w_.b_pose.resize(nf);
+    w_.delta_pose.resize(nf);
+    w_.delta_point.resize(w_.points.size());
   }
 
   // Runs up to `iterations` LM iterations on poses/points; returns false on numerical failure.
   bool Run(std::vector<PoseState>* poses, std::vector<Eigen::Vector3d>* points, int iterations, int* iterations_done,
            bool* stopped) {
-    if (obs_.empty()) return true;
+    if (w_.obs.empty()) return true;
     double cost = 0;
     if (!Cost(*poses, *points, &cost)) return false;
     double radius = 1e4;  // trust region radius; the damping is 1 / radius (Ceres' defaults)
     double nu = 2;
-    std::vector<PoseState>& trial_poses = trial_poses_;
-    std::vector<Eigen::Vector3d>& trial_points = trial_points_;
+    std::vector<PoseState>& trial_poses = w_.trial_poses;
+    std::vector<Eigen::Vector3d>& trial_points = w_.trial_points;
     trial_poses = *poses;
     trial_points = *points;
     for (int it = 0; it < iterations; ++it) {
@@ -188,13 +168,13 @@ class Solver {
       bool solved = Solve(lambda);
       double trial_cost = std::numeric_limits<double>::infinity();
       if (solved) {
-        for (size_t f = 0; f < free_poses_.size(); ++f) {
-          const uint32_t k = free_poses_[f];
-          const Eigen::Matrix3d dR = ExpSo3(delta_pose_[f].head<3>());
+        for (size_t f = 0; f < w_.free_poses.size(); ++f) {
+          const uint32_t k = w_.free_poses[f];
+          const Eigen::Matrix3d dR = ExpSo3(w_.delta_pose[f].head<3>());
           trial_poses[k].R = dR * (*poses)[k].R;
-          trial_poses[k].t = dR * (*poses)[k].t + delta_pose_[f].tail<3>();
+          trial_poses[k].t = dR * (*poses)[k].t + w_.delta_pose[f].tail<3>();
         }
-        for (size_t j = 0; j < points_.size(); ++j) trial_points[points_[j]] = (*points)[points_[j]] + delta_point_[j];
+        for (size_t j = 0; j < w_.points.size(); ++j) trial_points[w_.points[j]] = (*points)[w_.points[j]] + w_.delta_point[j];
         solved = Cost(trial_poses, trial_points, &trial_cost);
       }
       // Gain ratio against the decrease the damped linear model predicts.
@@ -202,8 +182,8 @@ class Solver {
       const double gain = predicted > 0 ? (cost - trial_cost) / predicted : -1;
       if (solved && gain > 0 && std::isfinite(trial_cost)) {
         const double relative_decrease = (cost - trial_cost) / std::max(cost, 1e-300);
-        for (size_t f = 0; f < free_poses_.size(); ++f) (*poses)[free_poses_[f]] = trial_poses[free_poses_[f]];
-        for (size_t j = 0; j < points_.size(); ++j) (*points)[points_[j]] = trial_points[points_[j]];
+        for (size_t f = 0; f < w_.free_poses.size(); ++f) (*poses)[w_.free_poses[f]] = trial_poses[w_.free_poses[f]];
+        for (size_t j = 0; j < w_.points.size(); ++j) (*points)[w_.points[j]] = trial_points[w_.points[j]];
         cost = trial_cost;
         radius /= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * gain - 1.0, 3));
         radius = std::min(radius, 1e16);
@@ -253,7 +233,7 @@ class Solver {
   // Half the robust cost, as Ceres reports it; false when a point falls behind a camera.
   bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points, double* cost) const {
     double sum = 0;
-    for (uint32_t i : obs_) {
+    for (uint32_t i : w_.obs) {
       const BundleAdjustmentObservation& o = in_.observations[i];
       Eigen::Vector3d xc;
       double s = 0;
@@ -298,68 +278,68 @@ class Solver {
     Jp.col(0) = J.col(1) * -xc.z() + J.col(2) * xc.y();
     Jp.col(1) = J.col(0) * xc.z() - J.col(2) * xc.x();
     Jp.col(2) = J.col(1) * xc.x() - J.col(0) * xc.y();
-    U_[free].noalias() += w * Jp.transpose() * Jp;
-    b_pose_[free].noalias() += w * Jp.transpose() * r;
+    w_.U[free].noalias() += w * Jp.transpose() * Jp;
+    w_.b_pose[free].noalias() += w * Jp.transpose() * r;
     W->noalias() = w * Jp.transpose() * Jl;
   }
 
   void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
-    for (size_t f = 0; f < free_poses_.size(); ++f) {
-      U_[f].setZero();
-      b_pose_[f].setZero();
+    for (size_t f = 0; f < w_.free_poses.size(); ++f) {
+      w_.U[f].setZero();
+      w_.b_pose[f].setZero();
     }
-    for (size_t j = 0; j < points_.size(); ++j) {
+    for (size_t j = 0; j < w_.points.size(); ++j) {
       Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
       Eigen::Vector3d bl = Eigen::Vector3d::Zero();
-      const Eigen::Vector3d& X = points[points_[j]];
-      for (uint32_t a = obs_start_[j]; a < obs_start_[j + 1]; ++a) {
-        const BundleAdjustmentObservation& o = in_.observations[obs_[a]];
-        const int free = free_id_[o.pose_index];
-        if (o.right_u >= 0) Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, &W_[a]);
-        else Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, &W_[a]);
+      const Eigen::Vector3d& X = points[w_.points[j]];
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
+        const int free = w_.free_id[o.pose_index];
+        if (o.right_u >= 0) Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+        else Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
       }
-      V_[j] = V;
-      b_point_[j] = bl;
+      w_.V[j] = V;
+      w_.b_point[j] = bl;
     }
   }
 
   // Damped Schur complement, its solution and the back-substitution; false if not positive definite.
   bool Solve(double lambda) {
-    const size_t nf = free_poses_.size();
-    for (Mat6& b : blocks_) b.setZero();
-    std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = g_;
-    g.assign(b_pose_.begin(), b_pose_.end());
+    const size_t nf = w_.free_poses.size();
+    for (Mat6& b : w_.blocks) b.setZero();
+    std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = w_.g;
+    g.assign(w_.b_pose.begin(), w_.b_pose.end());
     for (size_t f = 0; f < nf; ++f) {
-      Mat6 damped = U_[f];
-      for (int d = 0; d < 6; ++d) damped(d, d) += lambda * std::clamp(U_[f](d, d), kMinDiagonal, kMaxDiagonal);
-      blocks_[f] = damped;
+      Mat6 damped = w_.U[f];
+      for (int d = 0; d < 6; ++d) damped(d, d) += lambda * std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal);
+      w_.blocks[f] = damped;
     }
-    V_inv_.resize(points_.size());
+    w_.V_inv.resize(w_.points.size());
     size_t pair = 0;
-    for (size_t j = 0; j < points_.size(); ++j) {
-      Eigen::Matrix3d V = V_[j];
-      for (int d = 0; d < 3; ++d) V(d, d) += lambda * std::clamp(V_[j](d, d), kMinDiagonal, kMaxDiagonal);
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      Eigen::Matrix3d V = w_.V[j];
+      for (int d = 0; d < 3; ++d) V(d, d) += lambda * std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal);
       const Eigen::LDLT<Eigen::Matrix3d> ldlt(V);
       if (ldlt.info() != Eigen::Success || !ldlt.isPositive() || ldlt.vectorD().minCoeff() <= 0) return false;
-      V_inv_[j] = ldlt.solve(Eigen::Matrix3d::Identity());
-      const Eigen::Vector3d Vb = V_inv_[j] * b_point_[j];
-      const uint32_t begin = obs_start_[j], end = obs_start_[j + 1];
+      w_.V_inv[j] = ldlt.solve(Eigen::Matrix3d::Identity());
+      const Eigen::Vector3d Vb = w_.V_inv[j] * w_.b_point[j];
+      const uint32_t begin = w_.obs_start[j], end = w_.obs_start[j + 1];
       for (uint32_t a = begin; a < end; ++a) {
-        const int fa = free_id_[in_.observations[obs_[a]].pose_index];
+        const int fa = w_.free_id[in_.observations[w_.obs[a]].pose_index];
         if (fa < 0) continue;
-        const Mat63 Y = W_[a] * V_inv_[j];
-        g[fa].noalias() -= W_[a] * Vb;
-        blocks_[fa].noalias() -= Y * W_[a].transpose();
+        const Mat63 Y = w_.W[a] * w_.V_inv[j];
+        g[fa].noalias() -= w_.W[a] * Vb;
+        w_.blocks[fa].noalias() -= Y * w_.W[a].transpose();
         for (uint32_t b = a + 1; b < end; ++b) {
-          const int fb = free_id_[in_.observations[obs_[b]].pose_index];
+          const int fb = w_.free_id[in_.observations[w_.obs[b]].pose_index];
           if (fb < 0) continue;
           if (fb == fa) {  // two observations in one keyframe: both cross terms on its diagonal
-            blocks_[fa].noalias() -= Y * W_[b].transpose() + W_[b] * Y.transpose();
+            w_.blocks[fa].noalias() -= Y * w_.W[b].transpose() + w_.W[b] * Y.transpose();
             continue;
           }
           // The block is stored once, as (min, max).
-          if (fa < fb) blocks_[pair_blocks_[pair]].noalias() -= Y * W_[b].transpose();
-          else blocks_[pair_blocks_[pair]].noalias() -= W_[b] * Y.transpose();
+          if (fa < fb) w_.blocks[w_.pair_blocks[pair]].noalias() -= Y * w_.W[b].transpose();
+          else w_.blocks[w_.pair_blocks[pair]].noalias() -= w_.W[b] * Y.transpose();
           ++pair;
         }
       }
@@ -369,19 +349,19 @@ class Solver {
     if (nf > 0) {
       if (dense_) {
         Eigen::MatrixXd S = Eigen::MatrixXd::Zero(6 * nf, 6 * nf);
-        for (size_t k = 0; k < blocks_.size(); ++k)
-          S.block<6, 6>(6 * block_rows_[k], 6 * block_cols_[k]) = blocks_[k];
+        for (size_t k = 0; k < w_.blocks.size(); ++k)
+          S.block<6, 6>(6 * w_.block_rows[k], 6 * w_.block_cols[k]) = w_.blocks[k];
         const Eigen::LLT<Eigen::MatrixXd, Eigen::Upper> llt(S);
         if (llt.info() != Eigen::Success) return false;
         x = llt.solve(rhs);
       } else {
         std::vector<Eigen::Triplet<double>> triplets;
-        triplets.reserve(blocks_.size() * 36);
-        for (size_t k = 0; k < blocks_.size(); ++k) {
-          const bool diagonal = block_rows_[k] == block_cols_[k];
+        triplets.reserve(w_.blocks.size() * 36);
+        for (size_t k = 0; k < w_.blocks.size(); ++k) {
+          const bool diagonal = w_.block_rows[k] == w_.block_cols[k];
           for (int r = 0; r < 6; ++r)
             for (int c = diagonal ? r : 0; c < 6; ++c)
-              triplets.emplace_back(6 * block_rows_[k] + r, 6 * block_cols_[k] + c, blocks_[k](r, c));
+              triplets.emplace_back(6 * w_.block_rows[k] + r, 6 * w_.block_cols[k] + c, w_.blocks[k](r, c));
         }
         Eigen::SparseMatrix<double> S(6 * nf, 6 * nf);
         S.setFromTriplets(triplets.begin(), triplets.end());
@@ -395,26 +375,26 @@ class Solver {
       }
       if (!x.allFinite()) return false;
     }
-    for (size_t f = 0; f < nf; ++f) delta_pose_[f] = x.segment<6>(6 * f);
-    for (size_t j = 0; j < points_.size(); ++j) {
-      Eigen::Vector3d b = b_point_[j];
-      for (uint32_t a = obs_start_[j]; a < obs_start_[j + 1]; ++a) {
-        const int fa = free_id_[in_.observations[obs_[a]].pose_index];
-        if (fa >= 0) b.noalias() -= W_[a].transpose() * delta_pose_[fa];
+    for (size_t f = 0; f < nf; ++f) w_.delta_pose[f] = x.segment<6>(6 * f);
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      Eigen::Vector3d b = w_.b_point[j];
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const int fa = w_.free_id[in_.observations[w_.obs[a]].pose_index];
+        if (fa >= 0) b.noalias() -= w_.W[a].transpose() * w_.delta_pose[fa];
       }
-      delta_point_[j] = V_inv_[j] * b;
+      w_.delta_point[j] = w_.V_inv[j] * b;
     }
     gradient_dot_delta_ = 0;
     damping_term_ = 0;
     for (size_t f = 0; f < nf; ++f) {
-      gradient_dot_delta_ += b_pose_[f].dot(delta_pose_[f]);
+      gradient_dot_delta_ += w_.b_pose[f].dot(w_.delta_pose[f]);
       for (int d = 0; d < 6; ++d)
-        damping_term_ += std::clamp(U_[f](d, d), kMinDiagonal, kMaxDiagonal) * delta_pose_[f](d) * delta_pose_[f](d);
+        damping_term_ += std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_pose[f](d) * w_.delta_pose[f](d);
     }
-    for (size_t j = 0; j < points_.size(); ++j) {
-      gradient_dot_delta_ += b_point_[j].dot(delta_point_[j]);
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      gradient_dot_delta_ += w_.b_point[j].dot(w_.delta_point[j]);
       for (int d = 0; d < 3; ++d)
-        damping_term_ += std::clamp(V_[j](d, d), kMinDiagonal, kMaxDiagonal) * delta_point_[j](d) * delta_point_[j](d);
+        damping_term_ += std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_point[j](d) * w_.delta_point[j](d);
     }
     return true;
   }
@@ -429,18 +409,7 @@ class Solver {
   const BundleAdjustmentOptions& options_;
   const bool robust_, dense_;
   const double bf_;
-  // Views of the workspace's buffers.
-  std::vector<int>&free_id_, &point_id_;
-  std::vector<uint32_t>&free_poses_, &points_;
-  std::vector<uint32_t>&obs_start_, &obs_;
-  std::vector<uint32_t>&block_rows_, &block_cols_, &pair_blocks_;
-  std::vector<Mat6, Eigen::aligned_allocator<Mat6>>&blocks_, &U_;
-  std::vector<Mat63, Eigen::aligned_allocator<Mat63>>& W_;
-  std::vector<Eigen::Matrix3d>&V_, &V_inv_;
-  std::vector<Eigen::Vector3d>&b_point_, &delta_point_;
-  std::vector<Vec6, Eigen::aligned_allocator<Vec6>>&b_pose_, &delta_pose_, &g_;
-  std::vector<PoseState>& trial_poses_;
-  std::vector<Eigen::Vector3d>& trial_points_;
+  SchurWorkspace& w_;
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Upper> sparse_;
   bool sparse_analysed_ = false;
   double gradient_dot_delta_ = 0, damping_term_ = 0;
@@ -460,7 +429,7 @@ bool SolvePassSchurLm(const BundleAdjustmentProblem& input, const BundleAdjustme
     local = MakeSchurWorkspace();
     workspace = local.get();
   }
-  std::vector<PoseState>& state = workspace->state_;
+  std::vector<PoseState>& state = workspace->state;
   state.resize(poses->size());
   for (size_t k = 0; k < poses->size(); ++k) {
     state[k].R = (*poses)[k].linear();

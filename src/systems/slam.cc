@@ -26,6 +26,12 @@ Eigen::Vector3d Unproject(const PinholeCamera& cam, const Eigen::Isometry3d& T_c
   return T_cam_world.inverse() * Xc;
 }
 
+// Keypoints of the frame matched to a map point.
+int MatchedCount(const TrackedFrame& frame) {
+  return static_cast<int>(
+      std::count_if(frame.points.begin(), frame.points.end(), [](PointHandle p) { return !p.is_null(); }));
+}
+
 }  // namespace
 
 const char* TrackingStateName(TrackingState state) {
@@ -96,28 +102,25 @@ void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
                  frame.left.cols, "x", frame.left.rows, ", calibration says ", cam.width, "x", cam.height);
   out->index = frame.index;
   out->t_ns = frame.t_ns;
+  // Pooled pyramids: their levels are not reallocated per frame.
+  const auto left_pyramid = pyramids_.Acquire();
   if (calibration_.sensor == Sensor::kStereo) {
     FLATSLAM_CHECK(!frame.right.empty(), "frame ", frame.index, " has no right image");
     Keypoints right;
-    const auto left_pyramid = pyramids_.Acquire();
     const auto right_pyramid = pyramids_.Acquire();
     tbb::parallel_invoke([&] { extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get()); },
                          [&] { extractor_.Extract(frame.right, &right, right_pyramid.get()); });
     MatchStereo(right, *left_pyramid, *right_pyramid, extractor_.scales(), cam.fx, calibration_.baseline_m,
                 options_.stereo, &out->keypoints);
-    left_pyramid->levels[0].release();  // level 0 shares the input image: do not keep it alive
-    right_pyramid->levels[0].release();
-  } else if (calibration_.sensor == Sensor::kMonocular) {
-    const auto pyramid = pyramids_.Acquire();
-    extractor_.Extract(frame.left, &out->keypoints, pyramid.get());
-    pyramid->levels[0].release();
+    right_pyramid->levels[0].release();  // level 0 shares the input image: do not keep it alive
   } else {
-    FLATSLAM_CHECK(!frame.depth.empty(), "frame ", frame.index, " has no depth image");
-    const auto pyramid = pyramids_.Acquire();
-    extractor_.Extract(frame.left, &out->keypoints, pyramid.get());
-    pyramid->levels[0].release();
-    DepthFromImage(frame.depth, cam.fx, options_.rgbd_virtual_baseline_m, &out->keypoints);
+    FLATSLAM_CHECK(calibration_.sensor == Sensor::kMonocular || !frame.depth.empty(), "frame ", frame.index,
+                   " has no depth image");
+    extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get());
+    if (calibration_.sensor == Sensor::kRgbd)
+      DepthFromImage(frame.depth, cam.fx, options_.rgbd_virtual_baseline_m, &out->keypoints);
   }
+  left_pyramid->levels[0].release();
   out->Prepare(cam.width, cam.height);
 }
 
@@ -183,8 +186,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     } else {
       lost_frames_ = 0;
       if (report.relocalized) velocity_.reset();
-      const int inliers = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
-                                                         [](PointHandle p) { return !p.is_null(); }));
+      const int inliers = MatchedCount(frame);
       report.inliers = inliers;
       if (!options_.localization_only && NeedKeyFrame(frame, inliers)) *new_keyframe = CreateKeyFrame(frame);
     }
@@ -378,8 +380,7 @@ bool Slam::TrackLocalMap(TrackedFrame& frame, int* matches) {
   if (!options_.localization_only)
     for (PointHandle p : visible)
       if (MapPoint* point = map_.points().try_get(p)) ++point->visible;
-  *matches = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
-                                            [](PointHandle p) { return !p.is_null(); }));
+  *matches = MatchedCount(frame);
   int inliers = OptimizeFramePose(frame);
   // Far fewer inliers than the last frame had: the predicted pose was off (a sudden turn) and the
   // narrow search missed most points. Search again, three times as wide, from the refined pose,
@@ -391,8 +392,7 @@ bool Slam::TrackLocalMap(TrackedFrame& frame, int* matches) {
     const int retried = OptimizeFramePose(frame);
     if (retried > inliers) {
       inliers = retried;
-      *matches = static_cast<int>(std::count_if(frame.points.begin(), frame.points.end(),
-                                                [](PointHandle p) { return !p.is_null(); }));
+      *matches = MatchedCount(frame);
     } else {
       frame.T_cam_world = refined;
       frame.points = kept;

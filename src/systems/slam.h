@@ -239,8 +239,7 @@ class Slam {
   Calibration calibration_;
   SlamOptions options_;
   OrbExtractor extractor_;
-  // Stereo matching reads both pyramids; pooled so their levels are not reallocated per frame.
-  mutable ObjectPool<ImagePyramid> pyramids_;
+  mutable ObjectPool<ImagePyramid> pyramids_;  // Extract's work pyramids, reused across frames
   CameraGeometry geometry_;
   MapScales map_scales_;
 
