@@ -47,7 +47,7 @@ bool SlamOptions::Check() const {
   return orb.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
          rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && far_stereo_baselines >= 0 && min_init_points > 0 && min_motion_inliers > 0 &&
          min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 && min_frames_between_keyframes >= -1 &&
-         local_keyframes > 0 && min_parallax_deg >= 0 && min_parallax_deg < 90 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 &&
+         local_keyframes > 0 && min_parallax_deg >= 0 && min_parallax_deg < 90 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 && revisit_radius >= 0 &&
          relocalization_frames >= 0 && loop_consistency >= 1 && min_loop_matches >= 3;
 }
 
@@ -74,6 +74,7 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
   FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
   FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
                  "stereo calibration without a baseline");
+  map_.LogReplacements(true);
   geometry_.camera = calibration_.camera;
   const double baseline = calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m
                           : calibration_.sensor == Sensor::kRgbd ? options_.rgbd_virtual_baseline_m
@@ -134,6 +135,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   for (float d : frame.keypoints.depth) report.stereo_points += d > 0 ? 1 : 0;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
+  FollowReplacedPoints();
   bool ok = false;
   int matches = 0;
   if (state_ == TrackingState::kNotInitialized) {
@@ -314,6 +316,27 @@ int Slam::OptimizeFramePose(TrackedFrame& frame) {
   return result.num_inliers;
 }
 
+void Slam::FollowReplacedPoints() {
+  // Local mapping merges duplicates (fusion, loop welding) while frames are tracked; the last
+  // frame's keypoints move to the surviving points so that the next frame can still match them.
+  const std::vector<std::pair<PointHandle, PointHandle>> replaced = map_.TakeReplacements();
+  if (replaced.empty() || !last_frame_) return;
+  std::unordered_map<PointHandle, PointHandle> into(replaced.begin(), replaced.end());
+  std::unordered_set<PointHandle> held;
+  for (PointHandle p : last_frame_->points)
+    if (map_.points().contains(p)) held.insert(p);
+  for (PointHandle& p : last_frame_->points) {
+    if (p.is_null() || map_.points().contains(p)) continue;
+    // Chains (a into b, later b into c) end at a live point. A point merged and then culled, or
+    // merged into one the frame already holds, leaves the keypoint free.
+    for (int hops = 0; hops < 8 && !p.is_null() && !map_.points().contains(p); ++hops) {
+      const auto it = into.find(p);
+      p = it == into.end() ? PointHandle::null() : it->second;
+    }
+    if (!map_.points().contains(p) || !held.insert(p).second) p = PointHandle::null();
+  }
+}
+
 bool Slam::TrackWithMotion(TrackedFrame& frame) {
   if (!velocity_ || !last_frame_) return false;
   frame.T_cam_world = *velocity_ * last_frame_->T_cam_world;
@@ -325,7 +348,10 @@ bool Slam::TrackWithMotion(TrackedFrame& frame) {
                                 options_.matcher);
   }
   if (matches < 20) return false;
-  return OptimizeFramePose(frame) >= options_.min_motion_inliers;
+  // A pose carried by a sliver of the last frame's matches is more likely wrong than right:
+  // the reference keyframe search (wider, without the motion prior) gets a say.
+  const int inliers = OptimizeFramePose(frame);
+  return inliers >= options_.min_motion_inliers && inliers * 8 >= last_inliers_;
 }
 
 bool Slam::TrackReferenceKeyFrame(TrackedFrame& frame) {
@@ -423,6 +449,10 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
     else ++tracked_close;
   }
   const bool need_close = tracked_close < 100 && untracked_close > 70;
+  if (ViewedBefore(frame) && inliers >= 0.5 * reference_points && tracked_close >= 50) {
+    keyframe_wanted_ = false;
+    return false;
+  }
   const size_t since = frame.index - last_keyframe_frame_;
   const bool idle = pending_keyframes_ == 0 && since >= static_cast<size_t>(options_.min_frames_between_keyframes);
   const bool timeout = since >= static_cast<size_t>(options_.max_frames_between_keyframes);
@@ -435,6 +465,33 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   keyframe_wanted_ = thin && !idle && (timeout || weak || fading);
   if (!((timeout || idle || weak) && thin)) return false;
   return idle || pending_keyframes_ < 3;
+}
+
+bool Slam::ViewedBefore(const TrackedFrame& frame) const {
+  if (options_.revisit_radius <= 0 || local_keyframes_.empty()) return false;
+  thread_local std::vector<double> depths;
+  depths.clear();
+  for (PointHandle p : frame.points)
+    if (const MapPoint* point = map_.points().try_get(p)) depths.push_back((frame.T_cam_world * point->position).z());
+  if (depths.size() < 20) return false;
+  std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+  const double radius = options_.revisit_radius * depths[depths.size() / 2];
+  uint64_t newest = 0;
+  for (KeyFrameHandle h : local_keyframes_)
+    if (const KeyFrame* kf = map_.keyframes().try_get(h)) newest = std::max(newest, kf->id);
+  const Eigen::Isometry3d T_world_cam = frame.T_cam_world.inverse();
+  const Eigen::Vector3d axis = T_world_cam.linear().col(2);
+  constexpr uint64_t kRecent = 20;
+  const double min_cos = std::cos(20.0 * M_PI / 180.0);
+  for (KeyFrameHandle h : local_keyframes_) {
+    const KeyFrame* kf = map_.keyframes().try_get(h);
+    if (!kf || kf->id + kRecent > newest) continue;
+    const Eigen::Isometry3d T_world_kf = kf->T_cam_world.inverse();
+    if ((T_world_kf.translation() - T_world_cam.translation()).norm() < radius &&
+        T_world_kf.linear().col(2).dot(axis) > min_cos)
+      return true;
+  }
+  return false;
 }
 
 KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) {

@@ -9,6 +9,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <mutex>
 #include <optional>
 #include <random>
@@ -66,6 +67,11 @@ struct SlamOptions {
   double min_parallax_deg = 0;
   size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
+  // Revisits: when an older keyframe (not one of the last 20 made) already views the scene from
+  // within this fraction of the median scene depth, with its optical axis within 20 degrees, a
+  // keyframe is made only if tracking is weak (under half the reference keyframe's points, or
+  // under 50 close points). Keeps the map from growing while a place is revisited; 0 = off.
+  double revisit_radius = 0.1;
   uint32_t agent = 0;                   // stamped on every keyframe (multi-agent maps)
   bool localization_only = false;       // track against the map without changing it (no keyframes)
   // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
@@ -194,6 +200,8 @@ class Slam {
   bool Initialize(TrackedFrame& frame);
   bool InitializeMonocular(TrackedFrame& frame);
   [[nodiscard]] bool monocular() const { return calibration_.sensor == Sensor::kMonocular; }
+  void FollowReplacedPoints();
+  [[nodiscard]] bool ViewedBefore(const TrackedFrame& frame) const;
   bool TrackWithMotion(TrackedFrame& frame);
   bool TrackReferenceKeyFrame(TrackedFrame& frame);
   int OptimizeFramePose(TrackedFrame& frame);
@@ -255,7 +263,9 @@ class Slam {
   std::vector<KeyFrameHandle> local_keyframes_;
   std::vector<PointHandle> local_points_;
   int last_inliers_ = 0;  // of the last frame's local-map tracking
-  std::vector<FramePose> frame_poses_;
+  // One per tracked frame, for the trajectory. A deque grows by fixed blocks: a vector's doubling
+  // would leave up to half its capacity unused and briefly hold both copies in a long session.
+  std::deque<FramePose> frame_poses_;
   KeyFrameHandle first_keyframe_;
   std::optional<TrackedFrame> init_frame_;  // monocular: first frame of the two-view initialization
   std::mt19937_64 rng_;

@@ -89,6 +89,7 @@ const std::vector<Entry>& Entries() {
       {"min_parallax_deg", [](SlamOptions& o) -> Field { return &o.min_parallax_deg; }},
       {"max_local_map_keyframes", [](SlamOptions& o) -> Field { return &o.max_local_map_keyframes; }},
       {"redundant_keyframe_ratio", [](SlamOptions& o) -> Field { return &o.redundant_keyframe_ratio; }},
+      {"revisit_radius", [](SlamOptions& o) -> Field { return &o.revisit_radius; }},
       {"loop_closing", [](SlamOptions& o) -> Field { return &o.loop_closing; }},
       {"global_bundle_adjustment", [](SlamOptions& o) -> Field { return &o.global_bundle_adjustment; }},
       {"relocalization_frames", [](SlamOptions& o) -> Field { return &o.relocalization_frames; }},

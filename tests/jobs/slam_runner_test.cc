@@ -124,6 +124,24 @@ TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
   }
 }
 
+// A long session must not grow the map while it keeps revisiting the same place. The room's loop
+// is 537 frames; over laps 3 and 4 the default options make 6 keyframes and the map ends 4 above
+// its size after lap 2 (with `revisit_radius` 0, ORB-SLAM2's rules alone: 29 made, +10).
+TEST(SlamRun, RevisitsKeepTheMapBounded) {
+  const Outcome o = RunAndScore("synth:room:duration=100,width=480,height=360", false);
+  ASSERT_EQ(o.run.reports.size(), 2000u);
+  EXPECT_EQ(o.lost, 0u);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
+  constexpr size_t kTwoLaps = 2 * 537;
+  size_t made_after = 0;
+  for (size_t i = kTwoLaps; i < o.run.reports.size(); ++i) made_after += o.run.reports[i].keyframe;
+  const size_t after_two_laps = o.run.reports[kTwoLaps - 1].map_keyframes;
+  std::printf("keyframes: %zu after two laps, %zu at the end, %zu made in laps 3-4\n", after_two_laps,
+              o.run.reports.back().map_keyframes, made_after);
+  EXPECT_LE(made_after, 10u);
+  EXPECT_LE(o.run.reports.back().map_keyframes, after_two_laps + 6);
+}
+
 TEST(SlamRun, MonocularRoomAfterSim3) {
   const Outcome o = RunAndScore("synth:room:duration=20,width=480,height=360,sensor=mono", false);
   EXPECT_GT(o.run.trajectory.size(), 300u);
