@@ -8,7 +8,12 @@
 #include <algorithm>
 #include <bit>
 #include <cerrno>
+#include <condition_variable>
 #include <cstring>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
 #include <new>
 #include <random>
 #include <thread>
@@ -74,21 +79,34 @@ Descriptor FromDescriptor(const schema::Descriptor256& d) {
   return out;
 }
 
-// Upper bound of the serialized size, to size the builder once and to refuse >2 GiB early.
+// Upper bound of the serialized size, to size the builder once and to refuse >2 GiB early. It
+// counts only what is written (edges to live keyframes), so a map and its reload estimate alike:
+// the estimate sets the file's layout (see SnapshotImage).
 size_t EstimateSize(std::span<const SnapshotMapRef> maps) {
   size_t bytes = 4096;
   for (const SnapshotMapRef& ref : maps) {
+    const auto& keyframes = ref.map->keyframes();
     bytes += 256;
-    for (const KeyFrame& kf : ref.map->keyframes().values()) {
-      bytes += 512 + kf.size() * (8 + 4 + 4 + 4 + 1 + 32 + 4) + 8 * 4;
-      bytes += (kf.children.size() + kf.loop_edges.size()) * 4 + kf.covisible.size() * 8;
+    for (const KeyFrame& kf : keyframes.values()) {
+      // The record table and its vtable, then ten vectors, each with a length and alignment padding.
+      bytes += 512 + 10 * 12 + kf.size() * (8 + 4 + 4 + 4 + 1 + 32 + 4);
+      for (KeyFrameHandle c : kf.children) bytes += keyframes.contains(c) ? 4 : 0;
+      for (KeyFrameHandle l : kf.loop_edges) bytes += keyframes.contains(l) ? 4 : 0;
+      for (const auto& edge : kf.covisible) bytes += keyframes.contains(edge.first) ? 8 : 0;
     }
-    for (const MapPoint& p : ref.map->points().values()) bytes += sizeof(schema::PointRecord) + 4 + p.observations.size() * 8;
+    for (const MapPoint& p : ref.map->points().values()) {
+      bytes += sizeof(schema::PointRecord) + 4;
+      for (const Observation& o : p.observations) bytes += keyframes.contains(o.keyframe) ? 8 : 0;
+    }
   }
   return bytes;
 }
 
-fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, const SnapshotMapRef& ref) {
+// Called with the builder's size whenever everything written so far is final (between records).
+using BuildProgress = std::function<void(size_t)>;
+
+fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, const SnapshotMapRef& ref,
+                                            const BuildProgress& progress) {
   FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
   const Map& map = *ref.map;
   const auto& keyframes = map.keyframes();
@@ -154,6 +172,7 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
     record.add_descriptors(descriptors);
     record.add_points(point_indices);
     kf_offsets.push_back(record.Finish());
+    if (progress) progress(builder.GetSize());
   }
   const auto keyframe_vector = builder.CreateVector(kf_offsets);
 
@@ -175,6 +194,7 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
       if (keyframes.contains(o.keyframe)) observations.emplace_back(kf_index(o.keyframe), o.keypoint);
   const auto observation_vector = builder.CreateVectorOfStructs(observations);
   const auto offset_vector = builder.CreateVector(offsets);
+  if (progress) progress(builder.GetSize());
 
   std::vector<schema::PointRecord> records;
   records.reserve(point_values.size());
@@ -183,6 +203,7 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
                                      p.min_distance, p.max_distance, kf_index(p.reference), p.visible, p.found);
   }
   const auto point_vector = builder.CreateVectorOfStructs(records);
+  if (progress) progress(builder.GetSize());
 
   std::sort(agents.begin(), agents.end());
   agents.erase(std::unique(agents.begin(), agents.end()), agents.end());
@@ -257,17 +278,66 @@ uint64_t SnapshotHash(std::span<const uint8_t> bytes, size_t skip_offset, size_t
 
 namespace {
 
-// A finished snapshot buffer whose content hash slot (at hash_offset) still holds zero.
-struct BuiltSnapshot {
-  std::span<uint8_t> bytes;
-  size_t hash_offset = 0;
+// Thrown by BuilderAllocator when the builder would outgrow its reservation (the size estimate
+// fell short); the snapshot is then built again with more room.
+struct GrowthRefused {};
+
+// The builder's memory: one block of `reserved` bytes mapped up front (so its address is known
+// before building starts) and never grown. Straight from mmap, so it goes back to the system when
+// the save ends. Transparent huge pages are not asked for: they made repeated saves in one
+// process faster, but the first save of a process (the usual case: `run --save-map`) waited on
+// compaction, 0.5-1.0 s against 0.27-0.6 s without them for a 180 MB map on the development VM.
+class BuilderAllocator : public fb::Allocator {
+ public:
+  explicit BuilderAllocator(size_t reserved) : reserved_(reserved) {
+    void* p = ::mmap(nullptr, reserved_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (p == MAP_FAILED) throw std::bad_alloc();
+    base_ = static_cast<uint8_t*>(p);
+  }
+  ~BuilderAllocator() override { ::munmap(base_, reserved_); }
+  BuilderAllocator(const BuilderAllocator&) = delete;
+  BuilderAllocator& operator=(const BuilderAllocator&) = delete;
+
+  uint8_t* allocate(size_t size) override {
+    if (size > reserved_) throw GrowthRefused{};
+    return base_;
+  }
+  void deallocate(uint8_t*, size_t) override {}
+  uint8_t* reallocate_downward(uint8_t*, size_t, size_t, size_t, size_t) override { throw GrowthRefused{}; }
+
+  [[nodiscard]] uint8_t* base() const { return base_; }
+  [[nodiscard]] size_t reserved() const { return reserved_; }
+
+ private:
+  size_t reserved_;
+  uint8_t* base_ = nullptr;
 };
 
-// Builds the whole snapshot in builder, all but the content hash.
-BuiltSnapshot BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRef> maps,
-                                       const SnapshotMetadata& metadata) {
+// A builder whose buffer holds the maps' estimated size plus a page, times 2^attempt.
+struct SizedBuilder {
+  SizedBuilder(std::span<const SnapshotMapRef> maps, int attempt)
+      : allocator(Reserve(maps, attempt)), builder(allocator.reserved(), &allocator) {}
+  static size_t Reserve(std::span<const SnapshotMapRef> maps, int attempt) {
+    for (const SnapshotMapRef& ref : maps) FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
+    const size_t estimate = EstimateSize(maps);
+    FLATSLAM_CHECK(estimate < kMaxBufferSize, "map snapshot: about ", estimate >> 20,
+                   " MiB exceeds the 2 GiB limit of one snapshot buffer");
+    constexpr size_t kPage = 4096;
+    const size_t reserved = ((estimate << attempt) + 2 * kPage - 1) / kPage * kPage;
+    FLATSLAM_CHECK(reserved < kMaxBufferSize, "map snapshot: the maps outgrew their size estimate (",
+                   estimate >> 20, " MiB) past the 2 GiB limit of one snapshot buffer");
+    return reserved;
+  }
+  BuilderAllocator allocator;
+  fb::FlatBufferBuilder builder;
+};
+
+// Builds the whole snapshot in builder, all but the content hash; progress (if set) hears of
+// the builder's size whenever everything written so far is final.
+void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRef> maps,
+                   const SnapshotMetadata& metadata, const BuildProgress& progress) {
   std::vector<fb::Offset<schema::MapSegment>> segments;
-  for (const SnapshotMapRef& ref : maps) segments.push_back(BuildSegment(builder, ref));
+  for (const SnapshotMapRef& ref : maps) segments.push_back(BuildSegment(builder, ref, progress));
   const auto segment_vector = builder.CreateVector(segments);
 
   const Calibration& calib = metadata.calibration;
@@ -280,64 +350,168 @@ BuiltSnapshot BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const Snap
   const auto root = schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder,
                                               metadata.vocabulary_checksum, calibration, scales, segment_vector);
   schema::FinishMapSnapshotBuffer(builder, root);
-
-  uint8_t* buffer = builder.GetBufferPointer();
-  return {{buffer, builder.GetSize()}, HashOffset(schema::GetMapSnapshot(buffer), buffer)};
 }
 
-// Computes the content hash of a built snapshot and writes it into its slot.
-void StampContentHash(const BuiltSnapshot& built) {
-  const uint64_t hash = SnapshotHash(built.bytes, built.hash_offset, 8);
-  std::memcpy(built.bytes.data() + built.hash_offset, &hash, 8);
+// A snapshot file's bytes. The builder fills its buffer from the end, so the flatbuffer takes the
+// last size bytes of the reserved block; the file keeps that layout: the root offset and file
+// identifier, zeros (the estimate's slack), then the flatbuffer. Every byte sits at the same
+// offset in memory as in the file, so finished parts are written while the rest is built.
+// Offsets inside a flatbuffer are relative: only the leading root offset changes.
+struct SnapshotImage {
+  std::span<uint8_t> bytes;
+  size_t hash_offset = 0;  // of the content hash slot (zero until stamped)
+};
+
+SnapshotImage LayOut(const SizedBuilder& sized) {
+  uint8_t* base = sized.allocator.base();
+  const size_t reserved = sized.allocator.reserved();
+  const size_t start = reserved - sized.builder.GetSize();
+  FLATSLAM_CHECK(sized.builder.GetBufferPointer() == base + start && start >= 8, "map snapshot: unexpected layout");
+  const size_t hash_offset = start + HashOffset(schema::GetMapSnapshot(base + start), base + start);
+  const fb::uoffset_t root = static_cast<fb::uoffset_t>(start) + fb::ReadScalar<fb::uoffset_t>(base + start);
+  char identifier[fb::kFileIdentifierLength];
+  std::memcpy(identifier, base + start + sizeof(fb::uoffset_t), sizeof(identifier));
+  std::memset(base, 0, start);  // the builder's scratch space and the slack
+  fb::WriteScalar(base, root);
+  std::memcpy(base + sizeof(fb::uoffset_t), identifier, sizeof(identifier));
+  return {{base, reserved}, hash_offset};
 }
 
-// Builder memory straight from mmap, returned to the system when the save ends. Transparent huge
-// pages are not asked for: they made repeated saves in one process faster, but the first save of
-// a process (the usual case: `run --save-map`) waited on compaction, 0.5-1.0 s against
-// 0.27-0.6 s without them for a 180 MB map on the development VM.
-class BuilderAllocator : public fb::Allocator {
- public:
-  uint8_t* allocate(size_t size) override {
-    const size_t bytes = Round(size);
-    void* p = ::mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-    if (p == MAP_FAILED) throw std::bad_alloc();
-    return static_cast<uint8_t*>(p);
+// Computes the content hash of an image and writes it into its slot.
+void StampContentHash(const SnapshotImage& image) {
+  const uint64_t hash = SnapshotHash(image.bytes, image.hash_offset, 8);
+  std::memcpy(image.bytes.data() + image.hash_offset, &hash, 8);
+}
+
+// Writes bytes [begin, end) of base at the same file offsets and hands them to the disk at once;
+// false (errno set) on failure.
+bool WriteRange(int fd, const uint8_t* base, size_t begin, size_t end) {
+  size_t written = begin;
+  while (written < end) {
+    const ssize_t n = ::pwrite(fd, base + written, end - written, static_cast<off_t>(written));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return false;
+    written += static_cast<size_t>(n);
   }
-  void deallocate(uint8_t* p, size_t size) override { ::munmap(p, Round(size)); }
+  if (end > begin)
+    (void)::sync_file_range(fd, static_cast<off_t>(begin), static_cast<off_t>(end - begin), SYNC_FILE_RANGE_WRITE);
+  return true;
+}
+
+// Writes the finished tail of an image, [final_from, end), to the file in its own thread while the
+// front is still being built: chunks of 8 MiB, last first, each handed to the disk at once, so
+// the final fsync waits for little more than the front.
+class TailWriter {
+ public:
+  TailWriter(int fd, const uint8_t* base, size_t end)
+      : fd_(fd), base_(base), final_from_(end), written_from_(end), thread_([this] { Run(); }) {}
+  ~TailWriter() { Finish(); }
+  TailWriter(const TailWriter&) = delete;
+  TailWriter& operator=(const TailWriter&) = delete;
+
+  // Everything from offset final_from on is final.
+  void Publish(size_t final_from) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      final_from_ = final_from;
+    }
+    wake_.notify_one();
+  }
+  // Stops after the chunk in flight. Returns the offset from which everything is written; an
+  // errno value in *error if a write failed.
+  size_t Finish(int* error = nullptr) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      done_ = true;
+    }
+    wake_.notify_one();
+    if (thread_.joinable()) thread_.join();
+    if (error) *error = error_;
+    return written_from_;
+  }
 
  private:
-  static size_t Round(size_t size) { return (std::max<size_t>(size, 1) + kHugePage - 1) / kHugePage * kHugePage; }
-  static constexpr size_t kHugePage = size_t{2} << 20;
+  static constexpr size_t kChunk = size_t{8} << 20;
+  void Run() {
+    std::unique_lock<std::mutex> lock(mutex_);
+    for (;;) {
+      wake_.wait(lock, [this] { return done_ || written_from_ - final_from_ >= kChunk; });
+      if (done_) return;
+      const size_t from = written_from_ - kChunk;
+      lock.unlock();
+      const bool ok = WriteRange(fd_, base_, from, written_from_);
+      const int error = errno;
+      lock.lock();
+      if (!ok) {
+        error_ = error;
+        return;
+      }
+      written_from_ = from;
+    }
+  }
+
+  const int fd_;
+  const uint8_t* const base_;
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  size_t final_from_;
+  size_t written_from_;
+  bool done_ = false;
+  int error_ = 0;
+  std::thread thread_;
 };
 
-// A builder sized once for the maps (no regrowth while building).
-struct SizedBuilder {
-  explicit SizedBuilder(std::span<const SnapshotMapRef> maps) : builder(Estimate(maps), &allocator) {}
-  static size_t Estimate(std::span<const SnapshotMapRef> maps) {
-    for (const SnapshotMapRef& ref : maps) FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
-    const size_t estimate = EstimateSize(maps);
-    FLATSLAM_CHECK(estimate < kMaxBufferSize, "map snapshot: about ", estimate >> 20,
-                   " MiB exceeds the 2 GiB limit of one snapshot buffer");
-    return estimate;
-  }
-  BuilderAllocator allocator;
-  fb::FlatBufferBuilder builder;
+// A failed write to the snapshot file: what failed and errno.
+struct WriteFailed {
+  const char* what;
+  int error;
 };
+
+// Builds and lays out the maps, with more room should the estimate fall short, then calls
+// use(image, written_from). With a file descriptor, finished parts are written to it while the
+// rest is built; from offset written_from on, the file already holds the image.
+template <class Use>
+void WithSnapshot(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata, int fd, Use use) {
+  for (int attempt = 0;; ++attempt) {
+    try {
+      SizedBuilder sized(maps, attempt);
+      const size_t reserved = sized.allocator.reserved();
+      std::optional<TailWriter> tail;  // declared after sized: stopped before its memory goes
+      BuildProgress progress;
+      if (fd >= 0) {
+        tail.emplace(fd, sized.allocator.base(), reserved);
+        progress = [&tail, reserved](size_t built) { tail->Publish(reserved - built); };
+      }
+      BuildSnapshot(sized.builder, maps, metadata, progress);
+      size_t written_from = reserved;
+      if (tail) {
+        int error = 0;
+        written_from = tail->Finish(&error);
+        if (error != 0) throw WriteFailed{"write failed", error};
+      }
+      use(LayOut(sized), written_from);
+      return;
+    } catch (const GrowthRefused&) {
+      FLATSLAM_CHECK(attempt < 3, "map snapshot: the size estimate fell short three times");
+      if (fd >= 0 && ::ftruncate(fd, 0) != 0) throw WriteFailed{"truncate failed", errno};
+    }
+  }
+}
 
 }  // namespace
 
 std::vector<uint8_t> SerializeMapSnapshot(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata) {
-  SizedBuilder sized(maps);
-  const BuiltSnapshot built = BuildSnapshot(sized.builder, maps, metadata);
-  StampContentHash(built);
-  return std::vector<uint8_t>(built.bytes.begin(), built.bytes.end());
+  std::vector<uint8_t> out;
+  WithSnapshot(maps, metadata, -1, [&](const SnapshotImage& image, size_t) {
+    StampContentHash(image);
+    out.assign(image.bytes.begin(), image.bytes.end());
+  });
+  return out;
 }
 
 void SaveMapSnapshot(const std::filesystem::path& path, std::span<const SnapshotMapRef> maps,
                      const SnapshotMetadata& metadata) {
-  SizedBuilder sized(maps);
-  const BuiltSnapshot built = BuildSnapshot(sized.builder, maps, metadata);
-  const std::span<const uint8_t> bytes = built.bytes;
+  for (const SnapshotMapRef& ref : maps) FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
   const std::filesystem::path dir = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
   std::mt19937_64 rng(std::random_device{}());
   std::string temp_name = ".";
@@ -346,46 +520,31 @@ void SaveMapSnapshot(const std::filesystem::path& path, std::span<const Snapshot
   const std::filesystem::path temp = dir / temp_name;
   FdCloser file{::open(temp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644)};
   FLATSLAM_CHECK(file.fd >= 0, "cannot save map snapshot ", path, ": cannot create ", temp, ": ", ErrnoText());
-  auto fail = [&](const std::string& what) {
-    const std::string reason = ErrnoText();
+  auto fail = [&](const std::string& what, int error) {
     ::close(file.fd);
     file.fd = -1;
     ::unlink(temp.c_str());
-    Fail("cannot save map snapshot ", path, ": ", what, ": ", reason);
+    Fail("cannot save map snapshot ", path, ": ", what, ": ", std::strerror(error));
   };
-  // The content hash sits in the root table at the front of the buffer. Everything after the
-  // page that holds it is written while another thread computes the hash; that page goes last.
-  constexpr size_t kPage = 4096;
-  const size_t head = std::min(bytes.size(), (built.hash_offset + 8 + kPage - 1) / kPage * kPage);
-  std::jthread hasher([&built] { StampContentHash(built); });
-  // Written in chunks, each handed to the disk right away, so that the final fsync waits for
-  // little more than the last chunk.
-  auto write_range = [&](size_t begin, size_t end) {
-    constexpr size_t kChunk = size_t{16} << 20;
-    size_t written = begin, flushed = begin;
-    while (written < end) {
-      const ssize_t n = ::pwrite(file.fd, bytes.data() + written, std::min(end - written, kChunk),
-                                 static_cast<off_t>(written));
-      if (n < 0 && errno == EINTR) continue;
-      if (n <= 0) {
-        if (hasher.joinable()) hasher.join();
-        fail("write failed");
-      }
-      written += static_cast<size_t>(n);
-      if (written - flushed >= kChunk || written == end) {
-        (void)::sync_file_range(file.fd, static_cast<off_t>(flushed), static_cast<off_t>(written - flushed),
-                                SYNC_FILE_RANGE_WRITE);
-        flushed = written;
-      }
-    }
-  };
-  write_range(head, bytes.size());
-  hasher.join();
-  write_range(0, head);
-  if (::fsync(file.fd) != 0) fail("fsync failed");
+  try {
+    WithSnapshot(maps, metadata, file.fd, [&](const SnapshotImage& image, size_t written_from) {
+      // The front holds the root table and its content hash: it goes last.
+      StampContentHash(image);
+      if (!WriteRange(file.fd, image.bytes.data(), 0, written_from)) throw WriteFailed{"write failed", errno};
+    });
+    if (::fsync(file.fd) != 0) throw WriteFailed{"fsync failed", errno};
+  } catch (const WriteFailed& e) {
+    fail(e.what, e.error);
+  } catch (...) {
+    // Nothing half-written is left behind (a build error, memory refused).
+    ::close(file.fd);
+    file.fd = -1;
+    ::unlink(temp.c_str());
+    throw;
+  }
   if (::close(file.fd) != 0) {
     file.fd = -1;
-    fail("close failed");
+    fail("close failed", errno);
   }
   file.fd = -1;
   // Replacing a map frees the old file's blocks and cached pages when its last reference goes,
@@ -393,10 +552,10 @@ void SaveMapSnapshot(const std::filesystem::path& path, std::span<const Snapshot
   // thread instead of the caller.
   const int previous = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (::rename(temp.c_str(), path.c_str()) != 0) {
-    const std::string reason = ErrnoText();
+    const int error = errno;
     ::unlink(temp.c_str());
     if (previous >= 0) ::close(previous);
-    Fail("cannot save map snapshot ", path, ": rename failed: ", reason);
+    Fail("cannot save map snapshot ", path, ": rename failed: ", std::strerror(error));
   }
   if (previous >= 0) std::thread([previous] { ::close(previous); }).detach();
   // Makes the rename itself durable; failure here leaves a complete file, so it is not an error.

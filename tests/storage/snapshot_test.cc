@@ -460,8 +460,8 @@ TEST_F(MapSnapshotBadInput, FailedSaveKeepsTheOldFileAndLeavesNoTemporary) {
   fs::remove_all(dir);
 }
 
-// A file of several write chunks (16 MiB each), written while its hash is computed, saved over an
-// existing one: the bytes on disk are exactly the serialized snapshot, content hash included.
+// A file of several write chunks (8 MiB each, written while the rest is still being built), saved
+// over an existing one: the bytes on disk are exactly the serialized snapshot, content hash included.
 TEST(MapSnapshot, LargeSaveOverAnExistingFileIsByteExact) {
   testing::RandomMapOptions o;
   o.keyframes = 320;
