@@ -122,7 +122,6 @@ void Map::ReplacePoint(PointHandle from, PointHandle into) {
   const std::vector<Observation> moved = points_.get(from).observations;
   const uint32_t visible = points_.get(from).visible, found = points_.get(from).found;
   ErasePoint(from);
-  if (log_replacements_) replacements_.emplace_back(from, into);
   MapPoint& keep = points_.get(into);
   keep.visible += visible;
   keep.found += found;

@@ -102,16 +102,6 @@ class Map {
   // Merges `from` into `into` (duplicate points): observations move unless the keyframe
   // already sees `into`; `from` is erased. Visible/found counters add up.
   void ReplacePoint(PointHandle from, PointHandle into);
-  // While on, ReplacePoint logs each (from, into) pair, so that holders of point handles
-  // outside the map (the last tracked frame) can follow merged points. Off by default.
-  void LogReplacements(bool on) {
-    log_replacements_ = on;
-    replacements_.clear();
-  }
-  // The pairs logged since the last call, oldest first; the log is emptied.
-  [[nodiscard]] std::vector<std::pair<PointHandle, PointHandle>> TakeReplacements() {
-    return std::exchange(replacements_, {});
-  }
 
   // Binds keypoints of kf to matched points (matched[k] for keypoint k; null or erased entries
   // skipped): a point kf already has at k is merged into the matched one (ReplacePoint), a free
@@ -147,8 +137,6 @@ class Map {
   Arena<KeyFrame> keyframes_;
   Arena<MapPoint> points_;
   uint64_t next_keyframe_id_ = 0;
-  bool log_replacements_ = false;
-  std::vector<std::pair<PointHandle, PointHandle>> replacements_;
 };
 
 }  // namespace flatslam

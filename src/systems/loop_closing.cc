@@ -50,7 +50,6 @@ void Slam::AdoptMap(Map&& map) {
                  "a map can only be adopted before the first frame");
   FLATSLAM_CHECK(!map.keyframes().empty(), "the map to continue has no keyframes");
   map_ = std::move(map);
-  map_.LogReplacements(true);
   const auto handles = map_.keyframes().handles();
   const std::vector<KeyFrameHandle> kfs(handles.begin(), handles.end());
   for (KeyFrameHandle h : kfs) {

@@ -74,7 +74,6 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
   FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
   FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
                  "stereo calibration without a baseline");
-  map_.LogReplacements(true);
   geometry_.camera = calibration_.camera;
   const double baseline = calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m
                           : calibration_.sensor == Sensor::kRgbd ? options_.rgbd_virtual_baseline_m
@@ -135,7 +134,6 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   for (float d : frame.keypoints.depth) report.stereo_points += d > 0 ? 1 : 0;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
-  FollowReplacedPoints();
   bool ok = false;
   int matches = 0;
   if (state_ == TrackingState::kNotInitialized) {
@@ -314,27 +312,6 @@ int Slam::OptimizeFramePose(TrackedFrame& frame) {
     }
   }
   return result.num_inliers;
-}
-
-void Slam::FollowReplacedPoints() {
-  // Local mapping merges duplicates (fusion, loop welding) while frames are tracked; the last
-  // frame's keypoints move to the surviving points so that the next frame can still match them.
-  const std::vector<std::pair<PointHandle, PointHandle>> replaced = map_.TakeReplacements();
-  if (replaced.empty() || !last_frame_) return;
-  std::unordered_map<PointHandle, PointHandle> into(replaced.begin(), replaced.end());
-  std::unordered_set<PointHandle> held;
-  for (PointHandle p : last_frame_->points)
-    if (map_.points().contains(p)) held.insert(p);
-  for (PointHandle& p : last_frame_->points) {
-    if (p.is_null() || map_.points().contains(p)) continue;
-    // Chains (a into b, later b into c) end at a live point. A point merged and then culled, or
-    // merged into one the frame already holds, leaves the keypoint free.
-    for (int hops = 0; hops < 8 && !p.is_null() && !map_.points().contains(p); ++hops) {
-      const auto it = into.find(p);
-      p = it == into.end() ? PointHandle::null() : it->second;
-    }
-    if (!map_.points().contains(p) || !held.insert(p).second) p = PointHandle::null();
-  }
 }
 
 bool Slam::TrackWithMotion(TrackedFrame& frame) {

@@ -200,7 +200,6 @@ class Slam {
   bool Initialize(TrackedFrame& frame);
   bool InitializeMonocular(TrackedFrame& frame);
   [[nodiscard]] bool monocular() const { return calibration_.sensor == Sensor::kMonocular; }
-  void FollowReplacedPoints();
   [[nodiscard]] bool ViewedBefore(const TrackedFrame& frame) const;
   bool TrackWithMotion(TrackedFrame& frame);
   bool TrackReferenceKeyFrame(TrackedFrame& frame);

@@ -119,23 +119,6 @@ TEST(Map, ReplacePointMergesObservations) {
   EXPECT_EQ(map.Validate(), "");
 }
 
-TEST(Map, ReplacementsAreLoggedOnlyWhenAsked) {
-  Fixture f(2, 4);
-  f.map.ReplacePoint(f.pts[1], f.pts[0]);
-  EXPECT_TRUE(f.map.TakeReplacements().empty());  // off by default: nothing accumulates
-  f.map.LogReplacements(true);
-  f.map.ReplacePoint(f.pts[2], f.pts[3]);
-  f.map.ReplacePoint(f.pts[3], f.pts[0]);  // a chain: 2 -> 3 -> 0
-  f.map.ReplacePoint(f.pts[3], f.pts[0]);  // 3 is gone: no merge, nothing logged
-  const auto log = f.map.TakeReplacements();
-  ASSERT_EQ(log.size(), 2u);
-  EXPECT_EQ(log[0], std::make_pair(f.pts[2], f.pts[3]));
-  EXPECT_EQ(log[1], std::make_pair(f.pts[3], f.pts[0]));
-  EXPECT_TRUE(f.map.TakeReplacements().empty());  // taking empties the log
-  f.map.LogReplacements(false);
-  EXPECT_EQ(f.map.Validate(), "");
-}
-
 TEST(Map, BindMatchedPointsFusesOrObserves) {
   // Keyframes 0 and 1 see points 0..5 at keypoints 0..5; a third keyframe joins that place.
   Fixture f(2, 6);
