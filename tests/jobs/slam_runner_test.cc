@@ -126,7 +126,7 @@ TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
 
 // A long session must not grow the map while it keeps revisiting the same place. The room's loop
 // is 537 frames; over laps 3 and 4 the default options make 6 keyframes and the map ends 4 above
-// its size after lap 2 (with `revisit_radius` 0, ORB-SLAM2's rules alone: 29 made, +10).
+// its size after lap 2 (with `revisit_radius` 0, ORB-SLAM2's rules alone: 26 made, +11).
 TEST(SlamRun, RevisitsKeepTheMapBounded) {
   const Outcome o = RunAndScore("synth:room:duration=100,width=480,height=360", false);
   ASSERT_EQ(o.run.reports.size(), 2000u);
