@@ -40,17 +40,21 @@ TEST(ObjectPool, ConcurrentUseNeverSharesAnObject) {
   ObjectPool<int> pool;
   std::atomic<int> in_use{0}, most_in_use{0}, conflicts{0};
   tbb::parallel_for(0, 20000, [&](int i) {
-    auto lease = pool.Acquire();
+    // Counted from before the lease exists until after it is released, so in_use never
+    // undercounts the leases alive at once (the bound checked below).
     const int now = ++in_use;
     int seen = most_in_use.load();
     while (now > seen && !most_in_use.compare_exchange_weak(seen, now)) {
     }
-    if (*lease != 0) ++conflicts;  // another holder's mark is still there
-    *lease = i + 1;
-    for (volatile int spin = 0; spin < 100; spin = spin + 1) {
+    {
+      auto lease = pool.Acquire();
+      if (*lease != 0) ++conflicts;  // another holder's mark is still there
+      *lease = i + 1;
+      for (volatile int spin = 0; spin < 100; spin = spin + 1) {
+      }
+      if (*lease != i + 1) ++conflicts;  // another holder wrote meanwhile
+      *lease = 0;
     }
-    if (*lease != i + 1) ++conflicts;  // another holder wrote meanwhile
-    *lease = 0;
     --in_use;
   });
   EXPECT_EQ(conflicts.load(), 0);
