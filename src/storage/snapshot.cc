@@ -313,7 +313,7 @@ class BuilderAllocator : public fb::Allocator {
   uint8_t* base_ = nullptr;
 };
 
-// A builder whose buffer holds the maps' estimated size plus a page, times 2^attempt.
+// A builder whose buffer holds the maps' estimated size times 2^attempt, plus a page (rounded up).
 struct SizedBuilder {
   SizedBuilder(std::span<const SnapshotMapRef> maps, int attempt)
       : allocator(Reserve(maps, attempt)), builder(allocator.reserved(), &allocator) {}
