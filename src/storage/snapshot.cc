@@ -107,7 +107,6 @@ using BuildProgress = std::function<void(size_t)>;
 
 fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, const SnapshotMapRef& ref,
                                             const BuildProgress& progress) {
-  FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
   const Map& map = *ref.map;
   const auto& keyframes = map.keyframes();
   const auto& points = map.points();
@@ -516,7 +515,6 @@ std::vector<uint8_t> SerializeMapSnapshot(std::span<const SnapshotMapRef> maps, 
 
 void SaveMapSnapshot(const std::filesystem::path& path, std::span<const SnapshotMapRef> maps,
                      const SnapshotMetadata& metadata) {
-  for (const SnapshotMapRef& ref : maps) FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
   const std::filesystem::path dir = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
   std::mt19937_64 rng(std::random_device{}());
   std::string temp_name = ".";

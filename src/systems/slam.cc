@@ -426,10 +426,6 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
     else ++tracked_close;
   }
   const bool need_close = tracked_close < 100 && untracked_close > 70;
-  if (ViewedBefore(frame) && inliers >= 0.5 * reference_points && tracked_close >= 50) {
-    keyframe_wanted_ = false;
-    return false;
-  }
   const size_t since = frame.index - last_keyframe_frame_;
   const bool idle = pending_keyframes_ == 0 && since >= static_cast<size_t>(options_.min_frames_between_keyframes);
   const bool timeout = since >= static_cast<size_t>(options_.max_frames_between_keyframes);
@@ -439,8 +435,16 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   // Busy mapping with tracking fading (a monocular frame keeping under half the reference
   // keyframe's points): ask local mapping to finish early.
   const bool fading = monocular() && (inliers < 0.5 * reference_points || inliers < 100);
-  keyframe_wanted_ = thin && !idle && (timeout || weak || fading);
-  if (!((timeout || idle || weak) && thin)) return false;
+  const bool wanted = thin && !idle && (timeout || weak || fading);
+  const bool make = (timeout || idle || weak) && thin;
+  // A revisit with healthy tracking makes no keyframe (the geometric test only runs when one
+  // would otherwise be made or asked for).
+  if ((wanted || make) && inliers >= 0.5 * reference_points && tracked_close >= 50 && ViewedBefore(frame)) {
+    keyframe_wanted_ = false;
+    return false;
+  }
+  keyframe_wanted_ = wanted;
+  if (!make) return false;
   return idle || pending_keyframes_ < 3;
 }
 
