@@ -11,18 +11,21 @@
 #include "commands.h"
 #include "core/error.h"
 #include "io/dataset.h"
+#include "io/orb_settings.h"
 
 namespace flatslam::app {
 
 const char* const kInfoUsage =
-    "usage: flatslam info DATASET [--sensor mono|stereo|rgbd] [--seed N] [--check]\n\n"
+    "usage: flatslam info DATASET [--sensor mono|stereo|rgbd] [--seed N] [--settings FILE] [--check]\n\n"
     "Opens a dataset and prints its sensor, calibration, frame count, duration and ground truth.\n"
     "DATASET is a KITTI sequence folder (.../sequences/NN), an EuRoC sequence (the folder\n"
-    "holding mav0/), a TUM RGB-D sequence (the folder holding rgb.txt) or synth:SPEC.\n"
+    "holding mav0/), a TUM RGB-D sequence (the folder holding rgb.txt), synth:SPEC, or a folder of\n"
+    "images (with --settings).\n"
+    "  --settings FILE  an ORB-SLAM2/3 settings YAML whose camera replaces the dataset's calibration\n"
     "  --check   read every frame (in parallel) and report the first bad image\n";
 
 int RunInfo(const std::vector<std::string>& argv) {
-  const Args args(argv, {"sensor", "seed"}, {"check"});
+  const Args args(argv, {"sensor", "seed", "settings"}, {"check"});
   if (args.help()) {
     std::fputs(kInfoUsage, stdout);
     return 0;
@@ -31,6 +34,7 @@ int RunInfo(const std::vector<std::string>& argv) {
   DatasetOptions options;
   if (auto s = args.get("sensor")) options.sensor = ParseSensor(*s);
   options.seed = static_cast<uint64_t>(args.get_int("seed", 1));
+  if (auto s = args.get("settings")) options.settings = std::make_shared<const OrbSettings>(ReadOrbSettings(*s));
   const auto dataset = OpenDataset(args.positional()[0], options);
   const Calibration& calib = dataset->calibration();
   FLATSLAM_CHECK(dataset->size() > 0, "dataset ", args.positional()[0], " has no frames");

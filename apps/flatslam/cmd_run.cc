@@ -16,6 +16,7 @@
 #include "commands.h"
 #include "core/error.h"
 #include "io/dataset.h"
+#include "io/orb_settings.h"
 #include "jobs/slam_runner.h"
 #include "storage/snapshot.h"
 #include "systems/slam_config.h"
@@ -31,12 +32,13 @@ const char* const kRunUsage =
     "                    [--vocabulary FILE|none] [--no-loop-closing] [--no-global-ba]\n"
     "                    [--skip A:B,...] [--lose-at N,...]\n"
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
-    "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n\n"
-    "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder or synth:SPEC) as fast as it can read,\n"
-    "and prints a summary: frames, frames lost, keyframes, map points, ms per frame, frames/s,\n"
-    "peak RSS, and ATE/RPE when the dataset has ground truth.\n"
+    "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n"
+    "                    [--settings FILE]\n\n"
+    "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
+    "as fast as it can read, and prints a summary: frames, frames lost, keyframes, map points, ms per\n"
+    "frame, frames/s, peak RSS, and ATE/RPE when the dataset has ground truth.\n"
     "  --out DIR        write trajectory.tum, trajectory.kitti, keyframes.tum and stats.csv\n"
-    "  --features N     ORB features per image (default 1000; 2000 suits KITTI)\n"
+    "  --features N     ORB features per image (default: from the camera, see --list-options)\n"
     "  --deterministic  run local mapping inline after each keyframe: same input, same output\n"
     "  --mapping-lag N  keyframes tracking may run ahead of local mapping (default 0: wait for\n"
     "                   it, repeatable); 3 is about 10x faster on monocular KITTI, less accurate,\n"
@@ -56,6 +58,9 @@ const char* const kRunUsage =
     "  --config FILE    SLAM options as 'key = value' lines (# comments); see --list-options\n"
     "  --set K=V,...    set options by name after --config and the flags above\n"
     "  --list-options   print every option with its value for this dataset, in the config format\n"
+    "  --settings FILE  an ORB-SLAM2/3 settings YAML: its camera, distortion, baseline and frame rate\n"
+    "                   replace the dataset's calibration, its ORBextractor.* and ThDepth set options\n"
+    "                   (before --features, --config and --set); needed for a plain image folder\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
 
 namespace {
@@ -121,7 +126,7 @@ double Median(std::vector<float> v) {
 
 int RunRun(const std::vector<std::string>& argv) {
   const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at",
-                                 "save-map", "agent", "load-map", "first-frame", "config", "set"},
+                                 "save-map", "agent", "load-map", "first-frame", "config", "set", "settings"},
                   {"deterministic", "quiet", "no-loop-closing", "no-global-ba", "localize-only", "list-options"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
@@ -131,7 +136,11 @@ int RunRun(const std::vector<std::string>& argv) {
   DatasetOptions dataset_options;
   if (auto s = args.get("sensor")) dataset_options.sensor = ParseSensor(*s);
   dataset_options.seed = static_cast<uint64_t>(args.get_int("seed", 1));
+  const std::optional<std::string> settings_file = args.get("settings");
+  if (settings_file) dataset_options.settings = std::make_shared<const OrbSettings>(ReadOrbSettings(*settings_file));
   const auto dataset = OpenDataset(args.positional()[0], dataset_options);
+  if (settings_file && DetectDatasetLayout(args.positional()[0], true) != DatasetLayout::kImageFolder)
+    std::fprintf(stderr, "settings %s replaces the dataset's calibration\n", settings_file->c_str());
   FLATSLAM_CHECK(dataset->size() > 0, "dataset ", args.positional()[0], " has no frames");
   const int64_t max_frames = args.get_int("max-frames", static_cast<int64_t>(dataset->size()));
   if (max_frames < 1) throw UsageError{"--max-frames must be at least 1"};
@@ -191,6 +200,9 @@ int RunRun(const std::vector<std::string>& argv) {
   const int64_t agent = args.get_int("agent", 0);
   if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
   options.agent = static_cast<uint32_t>(agent);
+  if (settings_file)
+    for (const auto& [key, value] : SettingsSlamOptions(*dataset_options.settings, dataset->calibration().sensor))
+      SetSlamOption(&options, key, value, *settings_file);
   options.orb.features = static_cast<int>(args.get_int("features", options.orb.features));
   options.seed = dataset_options.seed;
   if (auto config = args.get("config")) LoadSlamConfig(*config, &options);
@@ -202,8 +214,9 @@ int RunRun(const std::vector<std::string>& argv) {
     }
   }
   if (args.has("list-options")) {
-    for (const std::string& line : DescribeSlamOptions(ResolvedOptions(options, dataset->calibration())))
-      std::printf("%s\n", line.c_str());
+    std::vector<DerivedOption> derived;
+    const SlamOptions resolved = ResolvedOptions(options, dataset->calibration(), &derived);
+    for (const std::string& line : DescribeSlamOptions(resolved, derived)) std::printf("%s\n", line.c_str());
     return 0;
   }
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);
@@ -298,6 +311,14 @@ int RunRun(const std::vector<std::string>& argv) {
   const double mean_extract =
       std::accumulate(extract_ms.begin(), extract_ms.end(), 0.0) / std::max<size_t>(1, extract_ms.size());
   std::printf("dataset       %s\n", dataset->name().c_str());
+  {
+    const Calibration& c = dataset->calibration();
+    const SlamOptions resolved = ResolvedOptions(options, c);
+    std::printf("camera        %dx%d, fx %.1f, %.3g Hz%s; %d ORB features per image%s\n", c.camera.width,
+                c.camera.height, c.camera.fx, c.frame_rate_hz,
+                c.sensor == Sensor::kStereo ? (", baseline " + std::to_string(c.baseline_m) + " m").c_str() : "",
+                resolved.orb.features, options.orb.features == 0 ? " (from the camera)" : "");
+  }
   std::printf("frames        %zu tracked, %zu lost, %zu before initialization\n", trajectory.size(), lost,
               not_initialized);
   if (options.vocabulary) {

@@ -7,8 +7,10 @@
 
 #include "core/error.h"
 #include "io/euroc.h"
+#include "io/image_folder.h"
 #include "io/image_io.h"
 #include "io/kitti.h"
+#include "io/orb_settings.h"
 #include "io/tum.h"
 
 namespace flatslam {
@@ -38,33 +40,74 @@ Sensor ParseSensor(const std::string& name) {
   Fail("unknown sensor '", name, "': expected mono, stereo or rgbd");
 }
 
-std::unique_ptr<Dataset> OpenDataset(const std::string& spec, const DatasetOptions& options) {
-  constexpr std::string_view kSynth = "synth:";
-  if (spec.rfind(kSynth, 0) == 0) return OpenSyntheticDataset(spec.substr(kSynth.size()), options);
-
+DatasetLayout DetectDatasetLayout(const std::string& spec, bool have_settings) {
+  if (spec.rfind("synth:", 0) == 0) return DatasetLayout::kSynthetic;
   const std::filesystem::path path(spec);
   std::error_code ec;
   FLATSLAM_CHECK(!spec.empty(), "empty dataset spec: expected synth:NAME or a dataset folder");
   FLATSLAM_CHECK(std::filesystem::is_directory(path, ec), "dataset folder not found: ", spec);
-
-  if (std::filesystem::is_directory(path / "mav0", ec) || io::FolderName(path) == "mav0") {
-    EurocOptions euroc;
-    euroc.sensor = options.sensor;
-    return std::make_unique<EurocDataset>(path, euroc);
+  if (std::filesystem::is_directory(path / "mav0", ec) || io::FolderName(path) == "mav0") return DatasetLayout::kEuroc;
+  if (std::filesystem::is_regular_file(path / "rgb.txt", ec)) return DatasetLayout::kTum;
+  // With settings, image_0/ without calib.txt is a plain folder of stereo (image_0/ + image_1/) images.
+  if (std::filesystem::is_directory(path / "image_0", ec) &&
+      (!have_settings || std::filesystem::is_regular_file(path / "calib.txt", ec))) {
+    return DatasetLayout::kKitti;
   }
-  if (std::filesystem::is_regular_file(path / "rgb.txt", ec)) {
-    TumOptions tum;
-    tum.sensor = options.sensor;
-    return std::make_unique<TumDataset>(path, tum);
-  }
-  if (std::filesystem::is_directory(path / "image_0", ec)) {
-    KittiOptions kitti;
-    kitti.sensor = options.sensor;
-    return std::make_unique<KittiDataset>(path, kitti);
-  }
+  if (have_settings) return DatasetLayout::kImageFolder;
+  FLATSLAM_CHECK(!LooksLikeImageFolder(path), "dataset folder ", spec,
+                 " is a plain image folder (not a KITTI, EuRoC or TUM sequence): reading it needs a camera "
+                 "settings file (--settings FILE, an ORB-SLAM2/3 YAML with the camera's fx, fy, cx, cy)");
   Fail("cannot tell the layout of dataset folder ", spec,
        ": expected a KITTI sequence (image_0/, calib.txt, times.txt), an EuRoC sequence (mav0/), "
-       "a TUM RGB-D sequence (rgb.txt) or synth:NAME");
+       "a TUM RGB-D sequence (rgb.txt), synth:NAME, or a folder of images with a settings file (--settings)");
+}
+
+std::unique_ptr<Dataset> OpenDataset(const std::string& spec, const DatasetOptions& options) {
+  const OrbSettings* settings = options.settings.get();
+  const std::filesystem::path path(spec);
+  std::unique_ptr<Dataset> dataset;
+  switch (DetectDatasetLayout(spec, settings != nullptr)) {
+    case DatasetLayout::kSynthetic:
+      FLATSLAM_CHECK(!settings, "a settings file does not apply to ", spec,
+                     ": a synthetic scene renders with its own camera (set width, height, fx in the spec)");
+      return OpenSyntheticDataset(spec.substr(std::string_view("synth:").size()), options);
+    case DatasetLayout::kEuroc: {
+      EurocOptions euroc;
+      euroc.sensor = options.sensor;
+      euroc.undistort = !settings;
+      dataset = std::make_unique<EurocDataset>(path, euroc);
+      break;
+    }
+    case DatasetLayout::kTum: {
+      TumOptions tum;
+      tum.sensor = options.sensor;
+      if (settings) {
+        tum.camera = settings->raw_camera();
+        tum.depth_factor = settings->depth_map_factor;
+        tum.color_order = settings->rgb ? ColorOrder::kRgb : ColorOrder::kBgr;
+      }
+      dataset = std::make_unique<TumDataset>(path, tum);
+      break;
+    }
+    case DatasetLayout::kKitti: {
+      KittiOptions kitti;
+      kitti.sensor = options.sensor;
+      dataset = std::make_unique<KittiDataset>(path, kitti);
+      break;
+    }
+    case DatasetLayout::kImageFolder: {
+      ImageFolderOptions folder;
+      folder.sensor = options.sensor;
+      folder.camera = settings->raw_camera();
+      folder.baseline_m = settings->baseline_m;
+      folder.frame_rate_hz = settings->frame_rate_hz;
+      if (settings->depth_map_factor > 0) folder.depth_factor = settings->depth_map_factor;
+      folder.color_order = settings->rgb ? ColorOrder::kRgb : ColorOrder::kBgr;
+      dataset = std::make_unique<ImageFolderDataset>(path, folder);
+      break;
+    }
+  }
+  return settings ? ApplyOrbSettings(std::move(dataset), options.settings) : std::move(dataset);
 }
 
 }  // namespace flatslam

@@ -25,19 +25,33 @@ class Dataset {
   [[nodiscard]] virtual std::optional<Trajectory> ground_truth() const = 0;
 };
 
+struct OrbSettings;  // io/orb_settings.h
+
 struct DatasetOptions {
   // Requested sensor; empty = the richest the dataset offers (stereo/RGB-D over mono).
   std::optional<Sensor> sensor;
   // Synthetic scenes only: seed of the renderer's noise.
   uint64_t seed = 1;
+  // Camera settings (an ORB-SLAM2/3 file, see io/orb_settings.h) replacing the dataset's calibration,
+  // with their depth factor and colour order; needed for a plain image folder. Null = the dataset's own.
+  std::shared_ptr<const OrbSettings> settings;
 };
 
-// Opens a dataset from a path or spec, detecting its layout:
+enum class DatasetLayout { kSynthetic, kKitti, kEuroc, kTum, kImageFolder };
+
+// The layout OpenDataset reads `spec` as (first match wins):
 //   synth:NAME                   synthetic scene (see SyntheticSceneNames())
-//   .../sequences/NN             KITTI odometry sequence (poses from ../../poses/NN.txt)
 //   .../<seq> with mav0/         EuRoC ASL
 //   .../<seq> with rgb.txt       TUM RGB-D
-// Throws flatslam::Error naming what is missing.
+//   .../sequences/NN             KITTI odometry sequence, image_0/ (poses from ../../poses/NN.txt;
+//                                with settings, only when calib.txt is there too)
+//   any other folder             plain image folder (io/image_folder.h), only with settings
+// Throws flatslam::Error naming what is missing (a settings file, for a folder of images).
+[[nodiscard]] DatasetLayout DetectDatasetLayout(const std::string& spec, bool have_settings);
+
+// Opens a dataset from a path or spec, detecting its layout as above; with settings, the images
+// are read raw and ApplyOrbSettings gives them the settings' calibration. Throws flatslam::Error
+// naming what is missing.
 [[nodiscard]] std::unique_ptr<Dataset> OpenDataset(const std::string& spec,
                                                    const DatasetOptions& options = {});
 

@@ -5,11 +5,10 @@
 #include <map>
 #include <system_error>
 
-#include <opencv2/calib3d.hpp>
-#include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
 #include "io/image_io.h"
+#include "io/rectify.h"
 #include "io/tum.h"
 
 namespace flatslam {
@@ -142,13 +141,6 @@ Trajectory ReadAslGroundTruth(const std::filesystem::path& csv) {
   return trajectory;
 }
 
-cv::Mat ToCv(const Eigen::Matrix3d& m) {
-  cv::Mat out(3, 3, CV_64F);
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) out.at<double>(r, c) = m(r, c);
-  return out;
-}
-
 }  // namespace
 
 EurocCameraModel ReadEurocSensorYaml(const std::filesystem::path& path) {
@@ -231,42 +223,39 @@ EurocDataset::EurocDataset(const std::filesystem::path& sequence_dir, const Euro
 
   // Maps are computed once here; read() only remaps.
   const cv::Size size = raw_[0].resolution;
-  const cv::Mat K0(raw_[0].K), D0(raw_[0].distortion);
-  if (stereo) {
+  const cv::Mat D0(raw_[0].distortion);
+  maps_.resize(stereo ? 2 : 1);
+  if (!options.undistort) {
+    // Raw images: the calibration is cam0's raw K (and the cameras' distance as the baseline).
+    rotation_.assign(maps_.size(), cv::Matx33d::eye());
+    for (const EurocCameraModel& camera : raw_) {
+      const cv::Matx33d& k = camera.K;
+      projection_.emplace_back(k(0, 0), k(0, 1), k(0, 2), 0, k(1, 0), k(1, 1), k(1, 2), 0, 0, 0, 1, 0);
+    }
+    if (stereo) {
+      calibration_.baseline_m = (raw_[1].T_body_sensor.inverse() * raw_[0].T_body_sensor).translation().norm();
+    }
+  } else if (stereo) {
     const Eigen::Isometry3d T_cam1_cam0 = raw_[1].T_body_sensor.inverse() * raw_[0].T_body_sensor;
-    const cv::Mat R = ToCv(T_cam1_cam0.linear());
-    const cv::Mat T = (cv::Mat_<double>(3, 1) << T_cam1_cam0.translation().x(), T_cam1_cam0.translation().y(),
-                       T_cam1_cam0.translation().z());
-    const cv::Mat K1(raw_[1].K), D1(raw_[1].distortion);
-    cv::Mat R0, R1, P0, P1, Q;
-    cv::stereoRectify(K0, D0, K1, D1, size, R, T, R0, R1, P0, P1, Q, cv::CALIB_ZERO_DISPARITY,
-                      options.rectify_alpha, size);
-    rotation_ = {cv::Matx33d(R0), cv::Matx33d(R1)};
-    projection_ = {cv::Matx34d(P0), cv::Matx34d(P1)};
-    map_a_.resize(2);
-    map_b_.resize(2);
-    cv::initUndistortRectifyMap(K0, D0, R0, P0, size, CV_16SC2, map_a_[0], map_b_[0]);
-    cv::initUndistortRectifyMap(K1, D1, R1, P1, size, CV_16SC2, map_a_[1], map_b_[1]);
-    calibration_.baseline_m = -projection_[1](0, 3) / projection_[1](0, 0);
+    const cv::Mat D1(raw_[1].distortion);
+    const StereoRectification rectified =
+        RectifyStereo(raw_[0].K, D0, raw_[1].K, D1, size, T_cam1_cam0, options.rectify_alpha);
+    rotation_ = {rectified.R_left, rectified.R_right};
+    projection_ = {rectified.P_left, rectified.P_right};
+    maps_[0] = RectifyMap(raw_[0].K, D0, rectified.R_left, rectified.P_left.get_minor<3, 3>(0, 0), size);
+    maps_[1] = RectifyMap(raw_[1].K, D1, rectified.R_right, rectified.P_right.get_minor<3, 3>(0, 0), size);
+    calibration_.baseline_m = rectified.baseline_m();
   } else {
-    const cv::Mat new_K = cv::getOptimalNewCameraMatrix(K0, D0, size, options.rectify_alpha, size);
+    const cv::Matx33d k = UndistortedCameraMatrix(raw_[0].K, D0, size, options.rectify_alpha);
     rotation_ = {cv::Matx33d::eye()};
-    const cv::Matx33d k(new_K);
     projection_ = {cv::Matx34d(k(0, 0), k(0, 1), k(0, 2), 0, k(1, 0), k(1, 1), k(1, 2), 0, 0, 0, 1, 0)};
-    map_a_.resize(1);
-    map_b_.resize(1);
-    cv::initUndistortRectifyMap(K0, D0, cv::Mat(), new_K, size, CV_16SC2, map_a_[0], map_b_[0]);
+    maps_[0] = RectifyMap(raw_[0].K, D0, cv::Matx33d::eye(), k, size);
   }
   const cv::Matx34d& P = projection_[0];
   calibration_.sensor = sensor;
   calibration_.camera = {P(0, 0), P(1, 1), P(0, 2), P(1, 2), size.width, size.height};
   // The rectified frame is the raw cam0 frame rotated by R0: x_rect = R0 x_raw.
-  Eigen::Matrix3d R_rect_raw;
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) R_rect_raw(r, c) = rotation_[0](r, c);
-  Eigen::Isometry3d T_raw_rect = Eigen::Isometry3d::Identity();
-  T_raw_rect.linear() = R_rect_raw.transpose();
-  calibration_.T_body_cam = raw_[0].T_body_sensor * T_raw_rect;
+  calibration_.T_body_cam = raw_[0].T_body_sensor * RawFromRectified(rotation_[0]);
   std::vector<int64_t> stamps;
   for (const auto& f : frames_) stamps.push_back(f.t_ns);
   calibration_.frame_rate_hz = raw_[0].rate_hz > 0 ? raw_[0].rate_hz : io::MedianRateHz(stamps);
@@ -301,11 +290,9 @@ Frame EurocDataset::read(size_t i) const {
   Frame frame;
   frame.index = i;
   frame.t_ns = entry.t_ns;
-  const cv::Mat left = ReadGrayImage(entry.left, raw_[0].resolution);
-  cv::remap(left, frame.left, map_a_[0], map_b_[0], cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+  frame.left = maps_[0].Apply(ReadGrayImage(entry.left, raw_[0].resolution));
   if (calibration_.sensor == Sensor::kStereo) {
-    const cv::Mat right = ReadGrayImage(entry.right, raw_[1].resolution);
-    cv::remap(right, frame.right, map_a_[1], map_b_[1], cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+    frame.right = maps_[1].Apply(ReadGrayImage(entry.right, raw_[1].resolution));
   }
   return frame;
 }

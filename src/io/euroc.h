@@ -15,6 +15,7 @@
 #include <opencv2/core/matx.hpp>
 
 #include "io/dataset.h"
+#include "io/rectify.h"
 #include "io/types.h"
 
 namespace flatslam {
@@ -41,6 +42,9 @@ struct EurocOptions {
   double rectify_alpha = 0;
   // cam0 and cam1 frames pair when their stamps differ by at most this (EuRoC: identical).
   int64_t max_stereo_dt_ns = 2'500'000;
+  // false: deliver the raw (distorted) images with cam0's raw K as the camera, for a settings file
+  // that undistorts and rectifies them itself (io/orb_settings.h).
+  bool undistort = true;
 
   [[nodiscard]] bool Check() const {
     return rectify_alpha >= 0 && rectify_alpha <= 1 && max_stereo_dt_ns >= 0;
@@ -61,9 +65,10 @@ class EurocDataset final : public Dataset {
 
   // Raw (distorted) model of camera 0 or 1 as read from sensor.yaml.
   [[nodiscard]] const EurocCameraModel& raw_camera(int camera) const { return raw_.at(camera); }
-  // Rotation taking raw camera `camera` coordinates to its rectified frame (identity for mono).
+  // Rotation taking raw camera `camera` coordinates to its rectified frame (identity for mono and raw).
   [[nodiscard]] const cv::Matx33d& rectification_rotation(int camera) const { return rotation_.at(camera); }
-  // 3x4 projection of the rectified camera `camera` (from stereoRectify; P[0][3] = -fx * baseline).
+  // 3x4 projection of the rectified camera `camera` (from stereoRectify; P[0][3] = -fx * baseline);
+  // the raw K with a zero last column when not undistorting.
   [[nodiscard]] const cv::Matx34d& rectified_projection(int camera) const { return projection_.at(camera); }
   // Stereo: cam0 plus cam1 frames without a partner within max_stereo_dt_ns (dropped).
   [[nodiscard]] size_t unmatched_dropped() const { return unmatched_; }
@@ -81,7 +86,7 @@ class EurocDataset final : public Dataset {
   std::vector<EurocCameraModel> raw_;
   std::vector<cv::Matx33d> rotation_;
   std::vector<cv::Matx34d> projection_;
-  std::vector<cv::Mat> map_a_, map_b_;  // per camera, for cv::remap
+  std::vector<RectifyMap> maps_;  // per camera; empty maps when not undistorting
   std::vector<Entry> frames_;
   size_t unmatched_ = 0;
   std::filesystem::path ground_truth_file_;

@@ -35,7 +35,7 @@ void CheckSize(const cv::Mat& image, cv::Size expected, const std::filesystem::p
 
 }  // namespace
 
-cv::Mat ReadGrayImage(const std::filesystem::path& path, cv::Size expected) {
+cv::Mat ReadGrayImage(const std::filesystem::path& path, cv::Size expected, ColorOrder order) {
   cv::Mat image = DecodeUnchanged(path);
   CheckSize(image, expected, path);
   if (image.depth() == CV_16U) image.convertTo(image, CV_8U, 1.0 / 256.0);
@@ -45,10 +45,10 @@ cv::Mat ReadGrayImage(const std::filesystem::path& path, cv::Size expected) {
     case 1:
       return image;
     case 3:
-      cv::cvtColor(image, image, cv::COLOR_BGR2GRAY);
+      cv::cvtColor(image, image, order == ColorOrder::kRgb ? cv::COLOR_RGB2GRAY : cv::COLOR_BGR2GRAY);
       return image;
     case 4:
-      cv::cvtColor(image, image, cv::COLOR_BGRA2GRAY);
+      cv::cvtColor(image, image, order == ColorOrder::kRgb ? cv::COLOR_RGBA2GRAY : cv::COLOR_BGRA2GRAY);
       return image;
     default:
       Fail("image ", path.string(), " has ", image.channels(), " channels, expected 1, 3 or 4");

@@ -14,10 +14,15 @@
 
 namespace flatslam {
 
-// Reads an image as CV_8UC1. Color (BGR/BGRA) is converted to gray; 16-bit intensity is
-// scaled by 1/256. expected: required size, empty (0x0) = any size.
+// Channel order of decoded colour images: OpenCV decodes to BGR; kRgb weighs the channels as R, G, B
+// (ORB-SLAM's Camera.RGB: 1).
+enum class ColorOrder { kBgr, kRgb };
+
+// Reads an image as CV_8UC1. Color (3 or 4 channels, in `order`) is converted to gray; 16-bit
+// intensity is scaled by 1/256. expected: required size, empty (0x0) = any size.
 // Throws on a missing file, an undecodable (unreadable or truncated) file or a wrong size.
-[[nodiscard]] cv::Mat ReadGrayImage(const std::filesystem::path& path, cv::Size expected = {});
+[[nodiscard]] cv::Mat ReadGrayImage(const std::filesystem::path& path, cv::Size expected = {},
+                                    ColorOrder order = ColorOrder::kBgr);
 
 // Reads a 16-bit single-channel depth image (TUM PNG) as CV_32FC1 metres: raw / depth_factor,
 // raw 0 stays 0 (no measurement). TUM RGB-D uses depth_factor 5000.

@@ -107,7 +107,7 @@ void WriteTumCameraFile(const std::filesystem::path& path, const TumCameraFile& 
 }
 
 TumDataset::TumDataset(const std::filesystem::path& sequence_dir, const TumOptions& options) : dir_(sequence_dir) {
-  FLATSLAM_CHECK(options.Check(), "TumOptions: max_association_dt_ns must be positive");
+  FLATSLAM_CHECK(options.Check(), "TumOptions: max_association_dt_ns must be positive, depth_factor not negative");
   std::error_code ec;
   FLATSLAM_CHECK(std::filesystem::is_directory(dir_, ec), "TUM sequence folder not found: ", dir_.string());
   const auto rgb_txt = dir_ / "rgb.txt", depth_txt = dir_ / "depth.txt";
@@ -138,7 +138,15 @@ TumDataset::TumDataset(const std::filesystem::path& sequence_dir, const TumOptio
 
   const auto camera_txt = dir_ / "camera.txt";
   const std::string folder = io::FolderName(dir_);
-  if (std::filesystem::exists(camera_txt, ec)) {
+  if (options.camera) {
+    calibration_.camera = *options.camera;
+    if (calibration_.camera.width <= 0 || calibration_.camera.height <= 0) {
+      const cv::Size size = ReadImageSize(frames_.front().rgb);
+      calibration_.camera.width = size.width;
+      calibration_.camera.height = size.height;
+    }
+    calibration_source_ = "options";
+  } else if (std::filesystem::exists(camera_txt, ec)) {
     const TumCameraFile file = ReadTumCameraFile(camera_txt);
     calibration_.camera = file.camera;
     depth_factor_ = file.depth_factor;
@@ -151,6 +159,8 @@ TumDataset::TumDataset(const std::filesystem::path& sequence_dir, const TumOptio
     Fail("no calibration for TUM sequence ", dir_.string(), ": ", camera_txt.string(),
          " is missing and the folder name names no freiburg1/2/3 camera");
   }
+  if (options.depth_factor > 0) depth_factor_ = options.depth_factor;
+  color_order_ = options.color_order;
   calibration_.sensor = sensor;
   std::vector<int64_t> stamps;
   for (const auto& f : frames_) stamps.push_back(f.t_ns);
@@ -173,7 +183,7 @@ Frame TumDataset::read(size_t i) const {
   Frame frame;
   frame.index = i;
   frame.t_ns = entry.t_ns;
-  frame.left = ReadGrayImage(entry.rgb, size);
+  frame.left = ReadGrayImage(entry.rgb, size, color_order_);
   if (calibration_.sensor == Sensor::kRgbd) frame.depth = ReadDepthImage(entry.depth, depth_factor_, size);
   return frame;
 }

@@ -3,7 +3,7 @@
 // reader shares (its groundtruth_tum.txt fallback).
 // Concurrency: read() is const and thread-safe; the free functions are stateless.
 //
-// Calibration, first found wins:
+// Calibration, first found wins (TumOptions::camera, from a settings file, comes before all):
 //   1. camera.txt in the sequence folder (written by flatslam's dataset writer), one line:
 //        fx fy cx cy width height [depth_factor]
 //      '#' starts a comment line; depth_factor defaults to 5000.
@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "io/dataset.h"
+#include "io/image_io.h"
 #include "io/types.h"
 
 namespace flatslam {
@@ -30,8 +31,14 @@ struct TumOptions {
   std::optional<Sensor> sensor;
   // RGB and depth stamps pair when |t_rgb - t_depth| < this (associate.py's 0.02 s).
   int64_t max_association_dt_ns = 20'000'000;
+  // Camera given by the caller (a settings file), used instead of camera.txt or the Freiburg
+  // intrinsics; width and height 0 = the size of the first RGB image.
+  std::optional<PinholeCamera> camera;
+  // Raw depth units per metre; 0 = camera.txt's factor, else 5000.
+  double depth_factor = 0;
+  ColorOrder color_order = ColorOrder::kBgr;  // of colour RGB images
 
-  [[nodiscard]] bool Check() const { return max_association_dt_ns > 0; }
+  [[nodiscard]] bool Check() const { return max_association_dt_ns > 0 && depth_factor >= 0; }
 };
 
 // Contents of camera.txt.
@@ -59,7 +66,7 @@ class TumDataset final : public Dataset {
   // RGB-D: RGB frames left without a depth partner (dropped). 0 for monocular.
   [[nodiscard]] size_t unmatched_rgb() const { return unmatched_rgb_; }
   [[nodiscard]] double depth_factor() const { return depth_factor_; }
-  // "camera.txt" or "Freiburg intrinsics".
+  // "camera.txt", "Freiburg intrinsics" or "options".
   [[nodiscard]] const std::string& calibration_source() const { return calibration_source_; }
   // Timestamp of the depth image paired with frame i (RGB-D only).
   [[nodiscard]] int64_t depth_t_ns(size_t i) const { return frames_.at(i).depth_t_ns; }
@@ -76,6 +83,7 @@ class TumDataset final : public Dataset {
   std::string calibration_source_;
   Calibration calibration_;
   double depth_factor_ = 5000;
+  ColorOrder color_order_ = ColorOrder::kBgr;
   std::vector<Entry> frames_;
   size_t unmatched_rgb_ = 0;
   std::optional<Trajectory> ground_truth_;

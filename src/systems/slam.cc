@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <unordered_map>
 #include <unordered_set>
 
@@ -44,29 +45,77 @@ const char* TrackingStateName(TrackingState state) {
 }
 
 bool SlamOptions::Check() const {
-  return orb.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
+  OrbOptions orb_checked = orb;
+  if (orb_checked.features == 0) orb_checked.features = 1;  // 0 = derived from the camera
+  return orb_checked.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
          rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && far_stereo_baselines >= 0 && min_init_points > 0 && min_motion_inliers > 0 &&
          min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 && min_frames_between_keyframes >= -1 &&
          local_keyframes > 0 && min_parallax_deg >= 0 && min_parallax_deg < 90 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 && revisit_radius >= 0 &&
          relocalization_frames >= 0 && loop_consistency >= 1 && min_loop_matches >= 3;
 }
 
-SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration) {
+int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz) {
+  // One feature per 300 px^2 keeps the keypoints per FAST cell the same at every resolution (the
+  // density of ORB-SLAM's budgets for 640x480 and 752x480 cameras: 1000 and 1200). Below 20 Hz the
+  // scene moves further between frames and fewer keypoints survive from one frame to the next:
+  // the budget grows with sqrt(20 / rate), halfway (in log terms) between no growth and growth
+  // with the image motion per frame.
+  const double rate = frame_rate_hz > 0 ? frame_rate_hz : 20.0;
+  const double raw = static_cast<double>(camera.width) * camera.height / 300.0 * std::sqrt(std::max(1.0, 20.0 / rate));
+  // Nearest value of the 1-1.2-1.5-2-2.5-3-4-5-6-8 series (in log terms), so that cameras of
+  // nearly the same size share a budget.
+  static constexpr double kSeries[] = {1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10};
+  const double decade = std::pow(10.0, std::floor(std::log10(std::max(raw, 1.0))));
+  double best = decade;
+  for (double m : kSeries)
+    if (std::abs(std::log(m * decade / raw)) < std::abs(std::log(best / raw))) best = m * decade;
+  return static_cast<int>(std::clamp(std::lround(best), 500L, 8000L));
+}
+
+SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration,
+                            std::vector<DerivedOption>* derived) {
   SlamOptions o = options;
   const bool mono = calibration.sensor == Sensor::kMonocular;
-  if (o.max_frames_between_keyframes == 0)
-    o.max_frames_between_keyframes =
-        calibration.frame_rate_hz > 0 ? static_cast<int>(std::lround(calibration.frame_rate_hz)) : 10;
-  if (mono) o.motion_search_radius = o.mono_search_radius;
-  if (o.min_frames_between_keyframes < 0) o.min_frames_between_keyframes = mono ? 2 : 0;
-  if (o.min_parallax_deg == 0) o.min_parallax_deg = mono ? 2.0 : 1.146;
+  const PinholeCamera& cam = calibration.camera;
+  auto note = [&](const char* key, std::string rule) {
+    if (derived) derived->push_back({key, std::move(rule)});
+  };
+  char text[256];
+  const double rate = calibration.frame_rate_hz;
+  if (o.orb.features == 0) {
+    o.orb.features = DerivedFeatureBudget(cam, rate);
+    std::snprintf(text, sizeof(text),
+                  "one feature per 300 px^2 of %dx%d, x sqrt(20 Hz / %.3g Hz) below 20 Hz, rounded to the "
+                  "1-1.2-1.5-2-2.5-3-4-5-6-8 series",
+                  cam.width, cam.height, rate > 0 ? rate : 20.0);
+    note("orb.features", text);
+  }
+  if (o.max_frames_between_keyframes == 0) {
+    o.max_frames_between_keyframes = rate > 0 ? static_cast<int>(std::lround(rate)) : 10;
+    note("max_frames_between_keyframes", rate > 0 ? "one second of frames at the camera's frame rate"
+                                                  : "10 frames: the frame rate is unknown");
+  }
+  if (mono) {
+    o.motion_search_radius = o.mono_search_radius;
+    note("motion_search_radius", "monocular: mono_search_radius (no depth to predict the right image)");
+  }
+  if (o.min_frames_between_keyframes < 0) {
+    o.min_frames_between_keyframes = mono ? 2 : 0;
+    note("min_frames_between_keyframes", mono ? "monocular: 2, forward motion thins tracked points every frame"
+                                              : "with depth: 0, an idle local mapping takes any keyframe");
+  }
+  if (o.min_parallax_deg == 0) {
+    o.min_parallax_deg = mono ? 2.0 : 1.146;
+    note("min_parallax_deg", mono ? "monocular: 2 degrees, depth within about 4% at a pixel of noise"
+                                  : "with depth: 1.146 degrees; close points take the measured depth");
+  }
   return o;
 }
 
 Slam::Slam(const Calibration& calibration, const SlamOptions& options)
     : calibration_(calibration),
       options_(ResolvedOptions(options, calibration)),
-      extractor_(options.orb),
+      extractor_(options_.orb),
       rng_(options.seed),
       database_(options.vocabulary ? options.vocabulary->word_count() : 0),
       loop_rng_(options.seed + 1) {
@@ -604,7 +653,6 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
                                                 std::pair<double, double> depth_range) const {
   std::vector<NewPoint> out;
   const double baseline = geometry_.bf / geometry_.camera.fx;
-  const double close = CloseDepth();
   TriangulationOptions tri;
   tri.max_reprojection_error_px = 2.0;
   tri.min_parallax_deg = 0.0;
@@ -619,13 +667,17 @@ std::vector<Slam::NewPoint> Slam::FindNewPoints(const std::vector<KeyFrame>& sna
       const TriangulatedPoint t = TriangulatePoint(geometry_.camera, a.T_cam_world, b.T_cam_world,
                                                    a.uv[i1].cast<double>(), b.uv[i2].cast<double>(), tri);
       Eigen::Vector3d X;
-      // Low parallax: a close stereo depth is more reliable than a triangulated one.
+      // Rays that diverge by min_parallax_deg are triangulated; otherwise the stereo or RGB-D
+      // depth of the keyframe that sees the point nearer (the wider stereo angle) places it, at
+      // any depth: far points, whose rays barely diverge between keyframes on fast forward
+      // motion, enter the map from their disparity.
       const double ray_cos = std::cos(t.parallax_deg * M_PI / 180.0);
+      const bool depth_a = a.depth[i1] > 0, depth_b = b.depth[i2] > 0;
       if (t.ok() && ray_cos < max_ray_cos) {
         X = t.X_world;
-      } else if (a.depth[i1] > 0 && a.depth[i1] < close) {
+      } else if (depth_a && (!depth_b || a.depth[i1] <= b.depth[i2])) {
         X = Unproject(geometry_.camera, a.T_cam_world, a.uv[i1], a.depth[i1]);
-      } else if (b.depth[i2] > 0 && b.depth[i2] < close) {
+      } else if (depth_b) {
         X = Unproject(geometry_.camera, b.T_cam_world, b.uv[i2], b.depth[i2]);
       } else {
         continue;

@@ -13,6 +13,7 @@
 #include <mutex>
 #include <optional>
 #include <random>
+#include <string>
 #include <thread>
 #include <unordered_map>
 #include <vector>
@@ -32,8 +33,16 @@ namespace flatslam {
 
 class Vocabulary;
 
+// The ORB options SLAM starts from: the extractor's, with the feature budget left to the camera.
+[[nodiscard]] inline OrbOptions SlamOrbDefaults() {
+  OrbOptions orb;
+  orb.features = 0;
+  return orb;
+}
+
 struct SlamOptions {
-  OrbOptions orb;                       // per image feature budget etc.
+  // Extraction; orb.features 0 = derived from the camera (see ResolvedOptions).
+  OrbOptions orb = SlamOrbDefaults();
   StereoOptions stereo;
   MatcherOptions matcher;
   PoseOptimizerOptions pose;
@@ -85,9 +94,21 @@ struct SlamOptions {
   [[nodiscard]] bool Check() const;
 };
 
-// The options a Slam for this calibration runs with: values left to the sensor (0 or -1 above)
-// filled in, the monocular search radius in place of the motion one.
-[[nodiscard]] SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration);
+// An option whose value ResolvedOptions chose from the calibration, and the rule it followed.
+struct DerivedOption {
+  std::string key;   // as in slam_config.h ("orb.features")
+  std::string rule;  // one line: the rule and its inputs
+};
+
+// The options a Slam for this calibration runs with: values left to the camera or sensor (0 or -1
+// above) filled in, the monocular search radius in place of the motion one. Each value filled in
+// is listed in *derived (when given) with its rule.
+[[nodiscard]] SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration,
+                                          std::vector<DerivedOption>* derived = nullptr);
+
+// Features per image for a camera: one per 300 square pixels, times sqrt(20 Hz / frame rate)
+// below 20 Hz, rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series and kept in [500, 8000].
+[[nodiscard]] int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz);
 
 enum class TrackingState { kNotInitialized, kOk, kLost };
 

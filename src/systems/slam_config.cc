@@ -196,10 +196,12 @@ void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options) {
   FLATSLAM_CHECK(options->Check(), path.string(), ": the options are not valid together (a value is out of range)");
 }
 
-std::vector<std::string> DescribeSlamOptions(const SlamOptions& options) {
+std::vector<std::string> DescribeSlamOptions(const SlamOptions& options, std::span<const DerivedOption> derived) {
   SlamOptions copy = options;
   std::vector<std::string> out;
   for (const Entry& entry : Entries()) {
+    for (const DerivedOption& d : derived)
+      if (d.key == entry.key) out.push_back("# derived: " + d.rule);
     std::ostringstream line;
     line << entry.key << " = ";
     std::visit(

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <filesystem>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -28,6 +29,8 @@ void ApplySlamSetting(SlamOptions* options, std::string_view setting);
 void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options);
 
 // Every key with its current value in `options`, as "key = value" lines (the config file format).
-[[nodiscard]] std::vector<std::string> DescribeSlamOptions(const SlamOptions& options);
+// A key listed in `derived` (ResolvedOptions) is preceded by a "# derived: RULE" comment line.
+[[nodiscard]] std::vector<std::string> DescribeSlamOptions(const SlamOptions& options,
+                                                           std::span<const DerivedOption> derived = {});
 
 }  // namespace flatslam

@@ -1,5 +1,6 @@
 #include "systems/slam_config.h"
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -58,8 +59,8 @@ TEST(SlamConfig, ErrorsNameTheKeyAndWhatWasExpected) {
   EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "pose.chi2_mono", "nan"); }).find("a real number"), std::string::npos);
   EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features"); }).find("expected KEY=VALUE"), std::string::npos);
   // A value that parses but breaks an option's range is refused as a whole.
-  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features=0"); }).find("no longer valid"), std::string::npos);
-  EXPECT_EQ(o.orb.features, 0);  // the caller's options are not used after a throw
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features=-5"); }).find("no longer valid"), std::string::npos);
+  EXPECT_EQ(o.orb.features, -5);  // the caller's options are not used after a throw
 }
 
 TEST(SlamConfig, FileErrorsNameTheFileAndLine) {
@@ -99,6 +100,57 @@ TEST(SlamConfig, DescriptionRoundTripsThroughAConfigFile) {
   EXPECT_DOUBLE_EQ(loaded.pose.huber_mono, 2.5);
   EXPECT_EQ(loaded.far_stereo_baselines, 0);
   EXPECT_EQ(loaded.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kCeres);
+  std::filesystem::remove(path);
+}
+
+Calibration CameraOf(int width, int height, double fx, double rate_hz, Sensor sensor, double baseline_m = 0) {
+  Calibration c;
+  c.sensor = sensor;
+  c.camera = PinholeCamera{fx, fx, (width - 1) * 0.5, (height - 1) * 0.5, width, height};
+  c.frame_rate_hz = rate_hz;
+  c.baseline_m = baseline_m;
+  return c;
+}
+
+// Defaults left to the camera: a TUM-like 640x480 at 30 Hz, a KITTI-like 1241x376 at 10 Hz and
+// a EuRoC-like 752x480 at 20 Hz each get the documented value.
+TEST(SlamOptions, FeatureBudgetFollowsTheCamera) {
+  const SlamOptions defaults;
+  EXPECT_EQ(defaults.orb.features, 0);
+  EXPECT_TRUE(defaults.Check());
+  // 307,200 px / 300 = 1024 -> 1000.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(640, 480, 525, 30, Sensor::kRgbd)).orb.features, 1000);
+  // 466,616 px / 300 = 1555, x sqrt(2) at 10 Hz = 2200 -> 2000.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(1241, 376, 718.9, 10, Sensor::kStereo, 0.537)).orb.features, 2000);
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular)).orb.features, 2000);
+  // 360,960 px / 300 = 1203 -> 1200.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(752, 480, 458.6, 20, Sensor::kStereo, 0.11)).orb.features, 1200);
+  // Tiny and huge images stay within [500, 8000]; an unknown rate counts as 20 Hz.
+  EXPECT_EQ(DerivedFeatureBudget(PinholeCamera{100, 100, 80, 60, 160, 120}, 0), 500);
+  EXPECT_EQ(DerivedFeatureBudget(PinholeCamera{3000, 3000, 2000, 1500, 4000, 3000}, 5), 8000);
+  // An explicit budget is kept.
+  SlamOptions explicit_budget;
+  explicit_budget.orb.features = 1500;
+  EXPECT_EQ(ResolvedOptions(explicit_budget, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular)).orb.features, 1500);
+}
+
+// --list-options: each value chosen from the camera comes with its rule, and the whole listing
+// still reads back as a config file.
+TEST(SlamOptions, DerivedValuesAreExplained) {
+  std::vector<DerivedOption> derived;
+  const SlamOptions resolved =
+      ResolvedOptions(SlamOptions{}, CameraOf(1241, 376, 718.9, 10, Sensor::kStereo, 0.537), &derived);
+  const std::vector<std::string> lines = DescribeSlamOptions(resolved, derived);
+  const auto features = std::find(lines.begin(), lines.end(), "orb.features = 2000");
+  ASSERT_NE(features, lines.end());
+  ASSERT_NE(features, lines.begin());
+  EXPECT_EQ(std::prev(features)->rfind("# derived: one feature per 300 px^2 of 1241x376", 0), 0u) << *std::prev(features);
+  std::string text;
+  for (const std::string& line : lines) text += line + "\n";
+  const auto path = WriteFile("derived.conf", text);
+  SlamOptions loaded;
+  LoadSlamConfig(path, &loaded);
+  EXPECT_EQ(loaded.orb.features, 2000);
   std::filesystem::remove(path);
 }
 

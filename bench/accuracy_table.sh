@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# Accuracy with defaults only: runs `flatslam run` with no tuning flag on every real sequence in
+# the shared datasets and on every synthetic scene, and prints one row each: frames, lost frames
+# (after initialization), keyframes, ATE after SE(3) (metres and % of path), ATE after Sim(3),
+# Sim(3) scale, RPE per frame, frames/s, and the reference figure or bar the row is held to.
+# usage: bench/accuracy_table.sh [BUILD_DIR] [DATASETS_DIR] [--quick]
+#   --quick: synthetic scenes run 20 s instead of their default duration.
+set -euo pipefail
+here="$(cd "$(dirname "$0")/.." && pwd)"
+build="${1:-$here/build}"
+datasets="${2:-$here/../shared/datasets}"
+quick="${3:-}"
+app="$build/apps/flatslam"
+[ -x "$app" ] || { echo "accuracy_table.sh: $app not found (build first)" >&2; exit 1; }
+synth_duration=""
+[ "$quick" = "--quick" ] && synth_duration=",duration=20"
+
+# name|dataset|sensor|reference (what the row is held to; "-" = none)
+runs=(
+  "kitti07|$datasets/kitti/sequences/07|mono|Sim(3) ATE <= 0.283 m (ORB-SLAM2: 0.268 m), 0 lost"
+  "kitti06|$datasets/kitti/sequences/06|stereo|ATE <= 0.059 m, 0 lost"
+  "kitti06|$datasets/kitti/sequences/06|mono|-"
+  "euroc-MH01-f000-149|$datasets/euroc/MH_01_f000_149|stereo|-"
+  "euroc-MH01-f000-149|$datasets/euroc/MH_01_f000_149|mono|-"
+  "euroc-V101-first20|$datasets/euroc/V1_01_first20|stereo|static: loader check"
+  "synth:room|synth:room${synth_duration}|stereo|ATE < 1% of path"
+  "synth:room|synth:room${synth_duration}|rgbd|ATE < 1% of path"
+  "synth:room|synth:room${synth_duration}|mono|Sim(3) ATE < 2% of path"
+  "synth:room:dynamic=0.3|synth:room:dynamic=0.3${synth_duration}|stereo|ATE < 1% of path"
+  "synth:corridor|synth:corridor${synth_duration}|stereo|ATE < 1% of path"
+  "synth:street|synth:street${synth_duration}|stereo|ATE < 1% of path"
+  "synth:highway|synth:highway${synth_duration}|stereo|ATE < 0.5% of path, scale within 1%"
+  "synth:highway|synth:highway${synth_duration}|mono|init within 1 s, < 1% lost"
+  "synth:handheld|synth:handheld${synth_duration}|stereo|0 lost, ATE < 1% of path"
+  "synth:handheld|synth:handheld${synth_duration}|rgbd|0 lost, ATE < 1% of path"
+  "synth:handheld|synth:handheld${synth_duration}|mono|init within 1 s, < 1% lost"
+)
+
+printf "%-26s %-6s %6s %5s %5s %9s %7s %9s %7s %9s %8s  %s\n" sequence sensor frames lost kfs ATE_m ATE_% ATE_sim3 scale RPE_m fps reference
+for entry in "${runs[@]}"; do
+  IFS='|' read -r name spec sensor reference <<<"$entry"
+  if [[ "$spec" != synth:* && ! -d "$spec" ]]; then
+    printf "%-26s %-6s missing: %s\n" "$name" "$sensor" "$spec"
+    continue
+  fi
+  summary=$("$app" run "$spec" --sensor "$sensor" --quiet 2>&1) || true
+  frames=$(awk '/^frames/{print $2}' <<<"$summary")
+  lost=$(awk '/^frames/{print $4}' <<<"$summary")
+  kfs=$(awk '/^map /{print $2}' <<<"$summary")
+  fps=$(awk '/^throughput/{print $2}' <<<"$summary")
+  ate=$(awk '/^ATE/{print $2}' <<<"$summary")
+  pct=$(awk '/^ATE/{gsub(/\(/,"",$0); for(i=1;i<=NF;i++) if($i ~ /%$/) {print $i; exit}}' <<<"$summary")
+  scale=$(awk '/^ATE/{print $NF}' <<<"$summary")
+  sim3=$(awk '/^ATE/{for(i=1;i<=NF;i++) if($i=="Sim(3)") {print $(i+1); exit}}' <<<"$summary")
+  rpe=$(awk '/^RPE/{print $2}' <<<"$summary")
+  printf "%-26s %-6s %6s %5s %5s %9s %7s %9s %7s %9s %8s  %s\n" "$name" "$sensor" "${frames:--}" "${lost:--}" \
+    "${kfs:--}" "${ate:--}" "${pct:--}" "${sim3:--}" "${scale:--}" "${rpe:--}" "${fps:--}" "$reference"
+done
