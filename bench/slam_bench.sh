@@ -13,10 +13,10 @@ app="$build/apps/flatslam"
 # "-lag3" rows let local mapping run up to 3 keyframes behind tracking (`--mapping-lag 3`):
 # faster, but the result varies from run to run with the timing.
 runs=(
-  "kitti07-mono|$datasets/kitti/sequences/07|--features 2000"
-  "kitti07-mono-lag3|$datasets/kitti/sequences/07|--features 2000 --mapping-lag 3"
-  "kitti06-stereo|$datasets/kitti/sequences/06|--features 2000"
-  "kitti06-stereo-lag3|$datasets/kitti/sequences/06|--features 2000 --mapping-lag 3"
+  "kitti07-mono|$datasets/kitti/sequences/07|"
+  "kitti07-mono-lag3|$datasets/kitti/sequences/07|--mapping-lag 3"
+  "kitti06-stereo|$datasets/kitti/sequences/06|"
+  "kitti06-stereo-lag3|$datasets/kitti/sequences/06|--mapping-lag 3"
   "room-stereo-60s|synth:room|"
   "room-rgbd-60s|synth:room:sensor=rgbd|"
   "corridor-stereo-70s|synth:corridor|"

@@ -1,4 +1,5 @@
-// Renderer throughput: frames per second per sensor at 640x480 on one thread.
+// Renderer throughput: frames per second per sensor on one thread, at each scene's camera
+// (640x480; highway 1241x376).
 #include <benchmark/benchmark.h>
 
 #include "io/synthetic.h"
@@ -23,6 +24,8 @@ BENCHMARK_CAPTURE(BM_Render, room_rgbd, "room", flatslam::Sensor::kRgbd)->Unit(b
 BENCHMARK_CAPTURE(BM_Render, corridor_mono, "corridor", flatslam::Sensor::kMonocular)->Unit(benchmark::kMillisecond);
 BENCHMARK_CAPTURE(BM_Render, street_mono, "street", flatslam::Sensor::kMonocular)->Unit(benchmark::kMillisecond);
 BENCHMARK_CAPTURE(BM_Render, town_mono, "town", flatslam::Sensor::kMonocular)->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(BM_Render, highway_stereo, "highway", flatslam::Sensor::kStereo)->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(BM_Render, handheld_stereo, "handheld", flatslam::Sensor::kStereo)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 

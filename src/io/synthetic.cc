@@ -5,8 +5,11 @@
 #include <array>
 #include <bit>
 #include <cmath>
+#include <iterator>
+#include <limits>
 #include <random>
 #include <sstream>
+#include <utility>
 
 #include <opencv2/imgproc.hpp>
 #include <tbb/parallel_for.h>
@@ -35,7 +38,7 @@ float GaussFromBits(uint64_t bits) {
 }
 
 // Multi-scale random shapes over smooth noise: corners and blobs at every pyramid scale.
-cv::Mat GenerateTexture(int width, int height, uint64_t seed) {
+cv::Mat GenerateShapes(int width, int height, uint64_t seed) {
   std::mt19937_64 rng(seed);
   std::uniform_int_distribution<int> grey(0, 255), mid(60, 200);
   cv::Mat coarse(std::max(2, height / 40), std::max(2, width / 40), CV_8UC1);
@@ -80,6 +83,96 @@ cv::Mat GenerateTexture(int width, int height, uint64_t seed) {
   return img;
 }
 
+// Smooth noise around mean (+-spread) with cells of about cell texels, plus per-texel grain.
+cv::Mat SmoothNoise(int width, int height, double cell, int mean, int spread, int grain,
+                    std::mt19937_64* rng) {
+  std::uniform_int_distribution<int> level(mean - spread, mean + spread);
+  const int cols = std::max(2, static_cast<int>(width / cell)),
+            rows = std::max(2, static_cast<int>(height / cell));
+  cv::Mat coarse(rows, cols, CV_8UC1);
+  for (int r = 0; r < rows; ++r)
+    for (int c = 0; c < cols; ++c) coarse.at<uint8_t>(r, c) = static_cast<uint8_t>(level(*rng));
+  cv::Mat img;
+  cv::resize(coarse, img, cv::Size(width, height), 0, 0, cv::INTER_CUBIC);
+  if (grain > 0) {
+    uint64_t state = (*rng)();
+    for (int r = 0; r < height; ++r) {
+      uint8_t* row = img.ptr<uint8_t>(r);
+      for (int c = 0; c < width; ++c) {
+        const int g = static_cast<int>(SplitMix(&state) % (2 * grain + 1)) - grain;
+        row[c] = static_cast<uint8_t>(std::clamp(row[c] + g, 0, 255));
+      }
+    }
+  }
+  return img;
+}
+
+// Asphalt: grain over slow variation, with repair patches, cracks and tyre marks along u (metres
+// converted with texels_per_m so the features keep their size at any resolution). Every draw is
+// its own statement so the texture does not depend on the compiler's argument order.
+cv::Mat GenerateAsphalt(int width, int height, double texels_per_m, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  cv::Mat img = SmoothNoise(width, height, 1.5 * texels_per_m, 100, 14, 10, &rng);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const double area_m2 = width * height / (texels_per_m * texels_per_m);
+  auto texels = [&](double metres) { return std::max(1, static_cast<int>(metres * texels_per_m)); };
+  auto at = [&] {
+    const int x = static_cast<int>(unit(rng) * width);
+    return cv::Point(x, static_cast<int>(unit(rng) * height));
+  };
+  auto grey = [&](double lo, double span) { return cv::Scalar(lo + span * unit(rng)); };
+  for (int k = 0, n = static_cast<int>(area_m2 / 25); k < n; ++k) {  // repair patches
+    const cv::Point c = at();
+    const int w = texels(0.4 + 2.5 * unit(rng)), h = texels(0.3 + 1.5 * unit(rng));
+    cv::rectangle(img, c, c + cv::Point(w, h), grey(60, 70), cv::FILLED);
+  }
+  for (int k = 0, n = static_cast<int>(area_m2 / 6); k < n; ++k) {  // stains and stones
+    const cv::Point c = at();
+    const int r = texels(0.03 + 0.25 * unit(rng));
+    cv::circle(img, c, r, unit(rng) < 0.5 ? grey(55, 30) : grey(140, 40), cv::FILLED);
+  }
+  for (int k = 0, n = static_cast<int>(area_m2 / 12); k < n; ++k) {  // cracks: short random walks
+    cv::Point p = at();
+    for (int step = 0, steps = 3 + static_cast<int>(unit(rng) * 6); step < steps; ++step) {
+      const int dx = texels(0.1 + 0.4 * unit(rng)), sx = unit(rng) < 0.5 ? -1 : 1;
+      const int dy = texels(0.1 + 0.4 * unit(rng)), sy = unit(rng) < 0.5 ? -1 : 1;
+      cv::line(img, p, p + cv::Point(sx * dx, sy * dy), grey(45, 25), 1);
+      p += cv::Point(sx * dx, sy * dy);
+    }
+  }
+  for (int k = 0, n = static_cast<int>(area_m2 / 150); k < n; ++k) {  // tyre marks along the road
+    const cv::Point c = at();
+    const int length = texels(2 + 8 * unit(rng)), width_texels = texels(0.1 + 0.1 * unit(rng));
+    cv::ellipse(img, c, cv::Size(length, width_texels), 0, 0, 360, grey(65, 20), cv::FILLED);
+  }
+  return img;
+}
+
+// Road paint: bright with slight grain and a few worn spots.
+cv::Mat GeneratePaint(int width, int height, double texels_per_m, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  cv::Mat img = SmoothNoise(width, height, 0.5 * texels_per_m, 215, 12, 6, &rng);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  for (int k = 0, n = static_cast<int>(width * height / (texels_per_m * texels_per_m) / 0.5); k < n; ++k) {
+    const int x = static_cast<int>(unit(rng) * width), y = static_cast<int>(unit(rng) * height);
+    const int r = std::max(1, static_cast<int>(texels_per_m * (0.02 + 0.05 * unit(rng))));
+    cv::circle(img, cv::Point(x, y), r, cv::Scalar(120 + 60 * unit(rng)), cv::FILLED);
+  }
+  return img;
+}
+
+cv::Mat GenerateTexture(TextureStyle style, int width, int height, double texels_per_m, uint64_t seed) {
+  switch (style) {
+    case TextureStyle::kAsphalt:
+      return GenerateAsphalt(width, height, texels_per_m, seed);
+    case TextureStyle::kPaint:
+      return GeneratePaint(width, height, texels_per_m, seed);
+    case TextureStyle::kShapes:
+      break;
+  }
+  return GenerateShapes(width, height, seed);
+}
+
 // Catmull-Rom point on the closed loop through pts, segment i, parameter u in [0,1].
 Eigen::Vector3d CatmullRom(const std::vector<Eigen::Vector3d>& pts, size_t i, double u) {
   const size_t n = pts.size();
@@ -105,6 +198,11 @@ struct SyntheticScene::Texture {
   std::vector<cv::Mat> images;  // CV_8UC1 mip pyramid, level 0 finest (owns the pixels)
   std::vector<Level> levels;
   float texels_per_m = 1;
+  // Shading constants of the quad, fixed for the scene's camera.
+  float footprint_scale2 = 0;  // (texels_per_m / fx)^2
+  float last_level = 0;        // highest level l with l + 1 present
+  float brightness = 1;
+  float size_u = 0, size_v = 0;
 };
 
 // Arc-length table of one agent's loop.
@@ -136,9 +234,164 @@ struct SyntheticScene::PathTable {
   }
 };
 
+namespace {
+
+// Per-thread render buffers, reused across frames: per pixel the nearest quad, its inverse depth
+// and its homogeneous texture coordinates (s, t) * inverse depth.
+struct RenderScratch {
+  std::vector<float> inv_depth, s, t;
+  std::vector<int32_t> quad;
+  void Resize(size_t n) {
+    inv_depth.assign(n, 0.0f);
+    quad.assign(n, -1);
+    s.resize(n);
+    t.resize(n);
+  }
+};
+
+// log2 to within 0.09: exponent plus linear mantissa; enough to choose a mip level.
+inline float FastLog2(float x) {
+  const uint32_t bits = std::bit_cast<uint32_t>(x);
+  const float mantissa = std::bit_cast<float>((bits & 0x007fffffu) | 0x3f800000u);
+  return static_cast<float>(static_cast<int>(bits >> 23) - 127) + (mantissa - 1.0f);
+}
+
+template <class Level>
+[[gnu::always_inline]] inline float SampleBilinear(const Level& img, float x, float y) {
+  x = std::clamp(x, 0.0f, static_cast<float>(img.width - 1));
+  y = std::clamp(y, 0.0f, static_cast<float>(img.height - 1));
+  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+  const int x1 = std::min(x0 + 1, img.width - 1), y1 = std::min(y0 + 1, img.height - 1);
+  const float fx = x - x0, fy = y - y0;
+  const uint8_t* r0 = img.data + img.stride * y0;
+  const uint8_t* r1 = img.data + img.stride * y1;
+  const float top = r0[x0] + fx * (r0[x1] - r0[x0]);
+  const float bottom = r1[x0] + fx * (r1[x1] - r1[x0]);
+  return top + fy * (bottom - top);
+}
+
+// Yaw and pitch offsets of the glance under way at t (raised-cosine turn, hold, turn back).
+std::pair<double, double> GlanceOffset(const std::vector<CameraGlance>& glances, double t) {
+  const auto next = std::upper_bound(glances.begin(), glances.end(), t,
+                                     [](double time, const CameraGlance& g) { return time < g.start_s; });
+  if (next == glances.begin()) return {0.0, 0.0};
+  const CameraGlance& g = *std::prev(next);
+  const double tau = t - g.start_s;
+  double f = 0;
+  const double back = tau - g.turn_s - g.hold_s;  // time into the turn back
+  if (tau < g.turn_s) f = 0.5 * (1 - std::cos(kPi * tau / g.turn_s));
+  else if (back < 0) f = 1;
+  else if (back < g.turn_s) f = 0.5 * (1 + std::cos(kPi * back / g.turn_s));
+  return {f * g.yaw_rad, f * g.pitch_rad};
+}
+
+// Four sides and the top of a box of the given size standing on the body origin (x forward).
+std::vector<SceneQuad> BodyBox(double length, double width, double height, double texels_per_m,
+                               float brightness) {
+  const Eigen::Vector3d lo(-0.5 * length, -0.5 * width, 0);
+  const Eigen::Vector3d X(length, 0, 0), Y(0, width, 0), Z(0, 0, height);
+  auto quad = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v,
+                  float light) {
+    SceneQuad q;
+    q.origin = origin;
+    q.size_u = u.norm();
+    q.size_v = v.norm();
+    q.axis_u = u / q.size_u;
+    q.axis_v = v / q.size_v;
+    q.texels_per_m = texels_per_m;
+    q.brightness = brightness * light;
+    return q;
+  };
+  return {quad(lo, X, Z, 0.9f), quad(lo + Y, X, Z, 1.0f), quad(lo, Y, Z, 0.8f), quad(lo + X, Y, Z, 1.1f),
+          quad(lo + Z, X, Y, 1.15f)};
+}
+
+// Fraction of the image inside the bounding box of the projections of a mover (its geometry
+// scaled by scale) over all (T_world_cam, time) views: an upper bound of the area it covers in
+// their union, since each quad projects inside the hull of its near-plane-clipped corners.
+double BoundingCoverage(const SceneMover& mover, double scale,
+                        const std::vector<std::pair<Eigen::Isometry3d, double>>& views,
+                        const PinholeCamera& cam) {
+  double u_min = std::numeric_limits<double>::infinity(), u_max = -u_min, v_min = u_min, v_max = -u_min;
+  auto extend = [&](const Eigen::Vector3d& p) {
+    const double u = cam.fx * p.x() / p.z() + cam.cx, v = cam.fy * p.y() / p.z() + cam.cy;
+    u_min = std::min(u_min, u);
+    u_max = std::max(u_max, u);
+    v_min = std::min(v_min, v);
+    v_max = std::max(v_max, v);
+  };
+  for (const auto& [T_world_cam, t] : views) {
+    if (!mover.active(t)) continue;
+    const Eigen::Isometry3d T_cam_body = T_world_cam.inverse() * mover.PoseAt(t);
+    for (const SceneQuad& q : mover.quads) {
+      const Eigen::Vector3d o = T_cam_body * (scale * q.origin);
+      const Eigen::Vector3d a = T_cam_body.linear() * (scale * q.size_u * q.axis_u);
+      const Eigen::Vector3d b = T_cam_body.linear() * (scale * q.size_v * q.axis_v);
+      const std::array<Eigen::Vector3d, 4> corners = {o, o + a, o + a + b, o + b};
+      for (int k = 0; k < 4; ++k) {
+        const Eigen::Vector3d& p = corners[k];
+        const Eigen::Vector3d& n = corners[(k + 1) % 4];
+        const bool p_in = p.z() >= kNearPlane, n_in = n.z() >= kNearPlane;
+        if (p_in) extend(p);
+        if (p_in != n_in) extend(p + (n - p) * ((kNearPlane - p.z()) / (n.z() - p.z())));
+      }
+    }
+  }
+  const double w = std::min<double>(u_max, cam.width) - std::max(u_min, 0.0);
+  const double h = std::min<double>(v_max, cam.height) - std::max(v_min, 0.0);
+  if (!(w > 0 && h > 0)) return 0.0;
+  return w * h / (static_cast<double>(cam.width) * cam.height);
+}
+
+// Gain, noise and rounding: the last step of every image. The noise draws follow the pixels in
+// row-major order, so an image depends only on its seed.
+void FinishImage(const float* value, int width, int height, float gain, float sigma, uint64_t noise_seed,
+                 cv::Mat* gray) {
+  gray->create(height, width, CV_8UC1);
+  uint64_t rng = noise_seed;
+  for (int v = 0; v < height; ++v) {
+    uint8_t* out = gray->ptr<uint8_t>(v);
+    const float* in = value + static_cast<size_t>(v) * width;
+    for (int u = 0; u < width; ++u) {
+      float x = in[u];
+      if (gain != 1.0f) x *= gain;
+      if (sigma > 0) x += sigma * GaussFromBits(SplitMix(&rng));
+      out[u] = static_cast<uint8_t>(std::clamp(x + 0.5f, 0.0f, 255.0f));
+    }
+  }
+}
+
+}  // namespace
+
+Eigen::Isometry3d SceneMover::PoseAt(double t) const {
+  FLATSLAM_CHECK(!keys.empty(), "scene mover without keys");
+  if (period_s > 0) {
+    t = keys.front().t_s + std::fmod(t - keys.front().t_s, period_s);
+    if (t < keys.front().t_s) t += period_s;
+  }
+  const auto next = std::upper_bound(keys.begin(), keys.end(), t,
+                                     [](double time, const MoverKey& key) { return time < key.t_s; });
+  MoverKey a = keys.front(), b = keys.front();
+  if (next == keys.end()) {
+    a = b = keys.back();
+    if (period_s > 0) b = {keys.front().t_s + period_s, keys.front().position, keys.front().yaw_rad};
+  } else if (next != keys.begin()) {
+    a = *std::prev(next);
+    b = *next;
+  }
+  const double f = b.t_s > a.t_s ? std::clamp((t - a.t_s) / (b.t_s - a.t_s), 0.0, 1.0) : 0.0;
+  const double yaw = a.yaw_rad + f * std::remainder(b.yaw_rad - a.yaw_rad, 2 * kPi);
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  T.translation() = a.position + f * (b.position - a.position);
+  return T;
+}
+
 bool SyntheticOptions::Check() const {
-  return width >= 32 && height >= 32 && fx >= 0 && fy >= 0 && frame_rate_hz > 0 && duration_s >= 0 &&
-         baseline_m >= 0 && pixel_noise_sigma >= 0 && depth_noise_k >= 0 && max_depth_m > 0 && agent >= 0;
+  return (width == 0 || width >= 32) && (height == 0 || height >= 32) && fx >= 0 && fy >= 0 &&
+         frame_rate_hz >= 0 && duration_s >= 0 && baseline_m >= 0 && pixel_noise_sigma >= 0 &&
+         depth_noise_k >= 0 && max_depth_m > 0 && agent >= 0 && dynamic_fraction >= 0 &&
+         dynamic_fraction <= 0.3;
 }
 
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options) {
@@ -172,8 +425,15 @@ void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOp
     else if (key == "agent") options->agent = static_cast<int>(v);
     else if (key == "seed") options->seed = static_cast<uint64_t>(v);
     else if (key == "sensor") options->sensor = ParseSensor(value);
-    else Fail("synthetic spec '", spec, "': unknown key '", key,
-              "' (known: width, height, fx, fps, duration, baseline, noise, depth_noise, agent, seed, sensor)");
+    else if (key == "dynamic") {
+      FLATSLAM_CHECK(v >= 0 && v <= 0.3, "synthetic spec '", spec, "': dynamic=", value,
+                     " is outside [0, 0.3] (the largest fraction of the image a moving object covers)");
+      options->dynamic_fraction = v;
+    } else {
+      Fail("synthetic spec '", spec, "': unknown key '", key,
+           "' (known: width, height, fx, fps, duration, baseline, noise, depth_noise, agent, seed, sensor, "
+           "dynamic)");
+    }
   }
 }
 
@@ -183,8 +443,20 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
   FLATSLAM_CHECK(options_.agent < static_cast<int>(description_.agents.size()), "scene '",
                  description_.name, "' has ", description_.agents.size(), " agent(s); agent ",
                  options_.agent, " does not exist");
-  if (options_.fx == 0) options_.fx = 0.75 * options_.width;
+  for (size_t m = 0; m < description_.movers.size(); ++m)
+    FLATSLAM_CHECK(!description_.movers[m].keys.empty(), "scene '", description_.name, "': mover ", m,
+                   " has no keys");
+  const int scene_width = description_.default_width > 0 ? description_.default_width : 640;
+  if (options_.width == 0) options_.width = scene_width;
+  if (options_.height == 0)
+    options_.height = description_.default_height > 0 ? description_.default_height : 480;
+  if (options_.fx == 0) {
+    options_.fx = description_.default_fx > 0 ? description_.default_fx * options_.width / scene_width
+                                              : 0.75 * options_.width;
+  }
   if (options_.fy == 0) options_.fy = options_.fx;
+  if (options_.frame_rate_hz == 0)
+    options_.frame_rate_hz = description_.default_frame_rate_hz > 0 ? description_.default_frame_rate_hz : 20;
   if (options_.duration_s == 0) options_.duration_s = description_.default_duration_s;
   if (options_.baseline_m == 0) options_.baseline_m = description_.default_baseline_m;
 
@@ -198,15 +470,48 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
 
   path_ = std::make_unique<PathTable>(description_.agents[options_.agent].control_points);
 
-  textures_.resize(description_.quads.size());
-  tbb::parallel_for(size_t{0}, description_.quads.size(), [&](size_t i) {
-    const SceneQuad& q = description_.quads[i];
+  const SceneExposure& exposure = description_.exposure;
+  if (exposure.gain_step_every_s > 0) {
+    // Auto-exposure steps up or down, drifting back towards unit gain.
+    std::mt19937_64 rng(description_.world_seed * 0x2545f4914f6cdd1dull + 7);
+    std::uniform_real_distribution<double> interval(0.5 * exposure.gain_step_every_s,
+                                                    1.5 * exposure.gain_step_every_s);
+    std::uniform_real_distribution<double> size(exposure.gain_step_min, exposure.gain_step_max),
+        unit(0.0, 1.0);
+    const double end = static_cast<double>(frame_count_) / options_.frame_rate_hz + exposure.exposure_s;
+    double gain = 1;
+    for (double t = interval(rng); t < end; t += interval(rng)) {
+      const double step = size(rng);
+      const bool up = unit(rng) < (gain < 0.85 ? 1.0 : gain > 1.15 ? 0.0 : 0.5);
+      gain *= up ? 1 + step : 1 - step;
+      gain_steps_.emplace_back(t, gain);
+    }
+  }
+
+  if (options_.dynamic_fraction > 0) AddDynamicObjects();
+
+  // Static quads first (their texture seeds do not depend on the movers), then mover quads.
+  std::vector<const SceneQuad*> quads;
+  for (const SceneQuad& q : description_.quads) quads.push_back(&q);
+  for (const SceneMover& mover : description_.movers) {
+    mover_texture_.push_back(quads.size());
+    for (const SceneQuad& q : mover.quads) quads.push_back(&q);
+  }
+  for (const SceneQuad* q : quads) {
+    const Eigen::Vector3d half = 0.5 * (q->size_u * q->axis_u + q->size_v * q->axis_v);
+    bounds_.emplace_back(q->origin.x() + half.x(), q->origin.y() + half.y(), q->origin.z() + half.z(),
+                         half.norm());
+  }
+  textures_.resize(quads.size());
+  tbb::parallel_for(size_t{0}, quads.size(), [&](size_t i) {
+    const SceneQuad& q = *quads[i];
     auto tex = std::make_unique<Texture>();
     const double longest = std::max(q.size_u, q.size_v);
     tex->texels_per_m = static_cast<float>(std::min(q.texels_per_m, kMaxTextureSide / longest));
     const int w = std::max(4, static_cast<int>(std::ceil(q.size_u * tex->texels_per_m)));
     const int h = std::max(4, static_cast<int>(std::ceil(q.size_v * tex->texels_per_m)));
-    tex->images.push_back(GenerateTexture(w, h, description_.world_seed * 1000003ull + i));
+    tex->images.push_back(
+        GenerateTexture(q.style, w, h, tex->texels_per_m, description_.world_seed * 1000003ull + i));
     while (tex->images.back().cols > 8 && tex->images.back().rows > 8) {
       cv::Mat down;
       cv::pyrDown(tex->images.back(), down);
@@ -216,11 +521,117 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
       const cv::Mat& m = tex->images[l];
       tex->levels.push_back({m.ptr<uint8_t>(0), m.cols, m.rows, m.step[0], 1.0f / static_cast<float>(1u << l)});
     }
+    tex->footprint_scale2 = std::pow(tex->texels_per_m / static_cast<float>(calibration_.camera.fx), 2.0f);
+    tex->last_level = static_cast<float>(tex->levels.size()) - 1.001f;
+    tex->brightness = q.brightness;
+    tex->size_u = static_cast<float>(q.size_u);
+    tex->size_v = static_cast<float>(q.size_v);
     textures_[i] = std::move(tex);
   });
 }
 
 SyntheticScene::~SyntheticScene() = default;
+
+void SyntheticScene::AddDynamicObjects() {
+  const CameraPath& agent = description_.agents[options_.agent];
+  double camera_height = 0;
+  for (const Eigen::Vector3d& p : agent.control_points) camera_height += p.z();
+  camera_height /= static_cast<double>(agent.control_points.size());
+  const double d = description_.dynamic_distance_m > 0 ? description_.dynamic_distance_m : 2 * camera_height;
+  const double speed = agent.speed_mps;
+  // Crossing in front only where the camera needs half a second or more to reach the crossing.
+  const bool crossers = d >= 0.5 * speed;
+  const double end = static_cast<double>(frame_count_ - 1) / options_.frame_rate_hz;
+  const double half_view = 0.5 * options_.width / options_.fx;  // tangent of half the field of view
+  const double texels_per_m = std::clamp(2 * options_.fx / d, 16.0, 256.0);
+  std::mt19937_64 rng(description_.world_seed * 0x9e3779b97f4a7c15ull + 977 * (options_.agent + 1));
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+
+  double t0 = std::min(1.0, 0.1 * end);
+  for (int k = 0; end - t0 >= 1.0; ++k) {
+    const double window = std::min(4.0 + 3.0 * unit(rng), end - t0), t1 = t0 + window;
+    SceneMover mover;
+    mover.active_from_s = t0;
+    mover.active_until_s = t1;
+    const float brightness = static_cast<float>(0.75 + 0.35 * unit(rng));
+    if (crossers && k % 2 == 0) {
+      // Crosses the camera's view direction at distance d, at constant speed, mid-window.
+      const Eigen::Isometry3d C = PoseAt(0.5 * (t0 + t1));
+      Eigen::Vector3d forward = C.linear().col(2);
+      forward.z() = 0;
+      forward.normalize();
+      const Eigen::Vector3d side(-forward.y(), forward.x(), 0);
+      Eigen::Vector3d centre = C.translation() + d * forward;
+      centre.z() = 0;
+      const double reach = 1.2 * (d + 0.5 * speed * window) * half_view + d;  // starts out of view
+      const double dir = unit(rng) < 0.5 ? 1.0 : -1.0;
+      const double yaw = std::atan2(dir * side.y(), dir * side.x());
+      mover.keys = {{t0, centre - dir * reach * side, yaw}, {t1, centre + dir * reach * side, yaw}};
+      mover.quads = BodyBox(0.6 * d, 0.35 * d, 0.5 * d, texels_per_m, brightness);
+    } else {
+      // Moves along the camera's path beside it: from behind to ahead (overtaking) or back.
+      const double lateral = (unit(rng) < 0.5 ? 1.0 : -1.0) * 0.75 * d;
+      const double behind = -1.5 * d, ahead = 6 * d;
+      const bool overtaking = unit(rng) < 0.7;
+      const double gap_rate = (overtaking ? ahead - behind : behind - ahead) / window;
+      for (double t = t0;; t = std::min(t + 0.05, t1)) {
+        const double gap = (overtaking ? behind : ahead) + gap_rate * (t - t0);
+        const double s = agent.start_s + speed * t + gap;
+        Eigen::Vector3d tangent = path_->At(s + 0.05) - path_->At(s - 0.05);
+        tangent.z() = 0;
+        tangent.normalize();
+        Eigen::Vector3d p = path_->At(s) + lateral * Eigen::Vector3d(-tangent.y(), tangent.x(), 0);
+        p.z() = 0;
+        const double yaw = std::atan2(tangent.y(), tangent.x()) + (speed + gap_rate < 0 ? kPi : 0.0);
+        mover.keys.push_back({t, p, yaw});
+        if (t >= t1) break;
+      }
+      mover.quads = BodyBox(1.0 * d, 0.45 * d, 0.45 * d, texels_per_m, brightness);
+    }
+
+    // Size the object so that, over every rendered instant of its window, the bounding box of
+    // its projection covers at most the target fraction of either view.
+    std::vector<std::vector<std::pair<Eigen::Isometry3d, double>>> views;
+    const size_t first = static_cast<size_t>(std::max(0.0, std::ceil(t0 * options_.frame_rate_hz)));
+    for (size_t i = first; i < frame_count_; ++i) {
+      const double t = static_cast<double>(timestamp_ns(i)) * 1e-9;
+      if (t > t1) break;
+      std::vector<std::pair<Eigen::Isometry3d, double>> left, right;
+      for (double tau : ExposureTimes(t)) {
+        const Eigen::Isometry3d T = PoseAt(tau);
+        left.emplace_back(T, tau);
+        if (options_.sensor == Sensor::kStereo)
+          right.emplace_back(T * Eigen::Translation3d(options_.baseline_m, 0, 0), tau);
+      }
+      views.push_back(std::move(left));
+      if (!right.empty()) views.push_back(std::move(right));
+    }
+    auto coverage = [&](double scale) {
+      double worst = 0;
+      for (const auto& group : views)
+        worst = std::max(worst, BoundingCoverage(mover, scale, group, calibration_.camera));
+      return worst;
+    };
+    const double target = options_.dynamic_fraction * (k == 0 ? 1.0 : 0.5 + 0.5 * unit(rng));
+    double lo = 0, hi = 1;
+    while (coverage(hi) <= target && hi < 8) hi *= 2;
+    if (coverage(hi) <= target) {
+      lo = 1;  // never large in view: natural size
+    } else {
+      for (int iteration = 0; iteration < 30; ++iteration) {
+        const double mid = 0.5 * (lo + hi);
+        (coverage(mid) <= target ? lo : hi) = mid;
+      }
+    }
+    for (SceneQuad& q : mover.quads) {
+      q.origin *= lo;
+      q.size_u *= lo;
+      q.size_v *= lo;
+    }
+    description_.movers.push_back(std::move(mover));
+    t0 = t1 + 1.0 + 2.0 * unit(rng);
+  }
+}
 
 int64_t SyntheticScene::timestamp_ns(size_t frame) const {
   return static_cast<int64_t>(std::llround(static_cast<double>(frame) * 1e9 / options_.frame_rate_hz));
@@ -240,12 +651,21 @@ Eigen::Isometry3d SyntheticScene::PoseAt(double t) const {
   Eigen::Vector3d tangent = path_->At(s + 0.05) - path_->At(s - 0.05);
   tangent.z() = 0;
   tangent.normalize();
-  const double yaw = agent.yaw_wobble_rad * std::sin(2 * kPi * t / 7.3);
-  const double pitch = agent.pitch_wobble_rad * std::sin(2 * kPi * t / 5.1);
+  double yaw = agent.yaw_wobble_rad * std::sin(2 * kPi * t / 7.3);
+  double pitch = agent.pitch_wobble_rad * std::sin(2 * kPi * t / 5.1);
+  if (!agent.glances.empty()) {
+    const auto [glance_yaw, glance_pitch] = GlanceOffset(agent.glances, t);
+    yaw += glance_yaw;
+    pitch += glance_pitch;
+  }
   const Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
   Eigen::Vector3d forward = Eigen::AngleAxisd(yaw, up) * tangent;
   forward = (std::cos(pitch) * forward + std::sin(pitch) * up).normalized();
-  const Eigen::Vector3d right = forward.cross(up).normalized();
+  Eigen::Vector3d right = forward.cross(up).normalized();
+  if (agent.roll_wobble_rad != 0) {
+    const double roll = agent.roll_wobble_rad * std::sin(2 * kPi * t / 6.3);
+    right = std::cos(roll) * right + std::sin(roll) * forward.cross(right);
+  }
   const Eigen::Vector3d down = forward.cross(right);
   Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
   T.linear().col(0) = right;
@@ -255,45 +675,37 @@ Eigen::Isometry3d SyntheticScene::PoseAt(double t) const {
   return T;
 }
 
-namespace {
-
-// Per-thread render buffers, reused across frames.
-struct RenderScratch {
-  std::vector<float> inv_depth, s, t;
-  std::vector<int32_t> quad;
-  void Resize(size_t n) {
-    inv_depth.assign(n, 0.0f);
-    quad.assign(n, -1);
-    s.resize(n);
-    t.resize(n);
-  }
-};
-
-// log2 to within 0.09: exponent plus linear mantissa; enough to choose a mip level.
-inline float FastLog2(float x) {
-  const uint32_t bits = std::bit_cast<uint32_t>(x);
-  const float mantissa = std::bit_cast<float>((bits & 0x007fffffu) | 0x3f800000u);
-  return static_cast<float>(static_cast<int>(bits >> 23) - 127) + (mantissa - 1.0f);
+double SyntheticScene::GainAt(double t) const {
+  const SceneExposure& exposure = description_.exposure;
+  double gain = 1;
+  if (exposure.gain_wobble > 0)
+    gain *= 1 + exposure.gain_wobble *
+                    (0.6 * std::sin(2 * kPi * t / 9.7) + 0.4 * std::sin(2 * kPi * t / 3.1 + 1.3));
+  const auto next =
+      std::upper_bound(gain_steps_.begin(), gain_steps_.end(), t,
+                       [](double time, const std::pair<double, double>& step) { return time < step.first; });
+  if (next != gain_steps_.begin()) gain *= std::prev(next)->second;
+  return gain;
 }
 
-template <class Level>
-[[gnu::always_inline]] inline float SampleBilinear(const Level& img, float x, float y) {
-  x = std::clamp(x, 0.0f, static_cast<float>(img.width - 1));
-  y = std::clamp(y, 0.0f, static_cast<float>(img.height - 1));
-  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
-  const int x1 = std::min(x0 + 1, img.width - 1), y1 = std::min(y0 + 1, img.height - 1);
-  const float fx = x - x0, fy = y - y0;
-  const uint8_t* r0 = img.data + img.stride * y0;
-  const uint8_t* r1 = img.data + img.stride * y1;
-  const float top = r0[x0] + fx * (r0[x1] - r0[x0]);
-  const float bottom = r1[x0] + fx * (r1[x1] - r1[x0]);
-  return top + fy * (bottom - top);
+std::vector<double> SyntheticScene::ExposureTimes(double t) const {
+  const double exposure = description_.exposure.exposure_s;
+  if (exposure <= 0) return {t};
+  // Image motion over the exposure: rotation at the focal length plus translation seen at 1 m.
+  // Below 1.5 px the image stays sharp; above, sub-frames at most 1.5 px apart, an odd count so
+  // that the middle one is at the frame time.
+  const Eigen::Isometry3d a = PoseAt(t - 0.5 * exposure), b = PoseAt(t + 0.5 * exposure);
+  const double angle = Eigen::AngleAxisd(a.linear().transpose() * b.linear()).angle();
+  const double pixels = options_.fx * (angle + (b.translation() - a.translation()).norm() / 1.0);
+  if (pixels <= 1.5) return {t};
+  const int n = 1 + 2 * std::min(7, static_cast<int>(std::ceil(pixels / 3.0)));
+  std::vector<double> times(n);
+  for (int k = 0; k < n; ++k) times[k] = t + exposure * (static_cast<double>(k) / (n - 1) - 0.5);
+  return times;
 }
 
-}  // namespace
-
-void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t noise_seed, cv::Mat* gray,
-                                cv::Mat* depth_m) const {
+void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t_s, float* value,
+                                  cv::Mat* depth_m) const {
   const int W = options_.width, H = options_.height;
   const float fx = static_cast<float>(calibration_.camera.fx), fy = static_cast<float>(calibration_.camera.fy);
   const float cx = static_cast<float>(calibration_.camera.cx), cy = static_cast<float>(calibration_.camera.cy);
@@ -303,23 +715,20 @@ void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t n
   const Eigen::Matrix3d R_cam_world = T_world_cam.linear().transpose();
   const Eigen::Vector3d t_cam_world = -R_cam_world * T_world_cam.translation();
   const float inv_fx = 1.0f / fx, inv_fy = 1.0f / fy;
-  // Per-quad constants of the shading pass for this view.
-  struct QuadShading {
-    Eigen::Vector3f normal = Eigen::Vector3f::Zero();  // camera frame
-    float footprint_scale2 = 0;                        // (texels_per_m / fx)^2
-    float last_level = 0;                              // highest level l with l + 1 present
-    float brightness = 1;
-  };
-  std::vector<QuadShading> shading(description_.quads.size());
+  // Camera-frame normal of every quad drawn in this view (the shading pass reads only those).
+  thread_local std::vector<Eigen::Vector3f> normals;
+  normals.resize(textures_.size());
 
-  for (size_t qi = 0; qi < description_.quads.size(); ++qi) {
-    const SceneQuad& quad = description_.quads[qi];
-    const Eigen::Vector3d o = R_cam_world * quad.origin + t_cam_world;
-    const Eigen::Vector3d a = R_cam_world * quad.axis_u;
-    const Eigen::Vector3d b = R_cam_world * quad.axis_v;
+  // Rasterizes the world-frame quad origin + s axis_u + t axis_v whose texture is textures_[qi]
+  // into the z-buffer, keeping per pixel the nearest quad and its (s, t).
+  auto raster = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& axis_u,
+                    const Eigen::Vector3d& axis_v, double quad_size_u, double quad_size_v, size_t qi) {
+    const Eigen::Vector3d o = R_cam_world * origin + t_cam_world;
+    const Eigen::Vector3d a = R_cam_world * axis_u;
+    const Eigen::Vector3d b = R_cam_world * axis_v;
     // Clip the quad against the near plane, then bound its projection.
-    const std::array<Eigen::Vector3d, 4> corners = {o, o + quad.size_u * a, o + quad.size_u * a + quad.size_v * b,
-                                                    o + quad.size_v * b};
+    const std::array<Eigen::Vector3d, 4> corners = {
+        o, o + quad_size_u * a, o + quad_size_u * a + quad_size_v * b, o + quad_size_v * b};
     double u_min = W, u_max = -1, v_min = H, v_max = -1;
     bool any = false;
     auto extend = [&](const Eigen::Vector3d& p) {
@@ -337,24 +746,19 @@ void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t n
       if (p_in) extend(p);
       if (p_in != q_in) extend(p + (q - p) * ((kNearPlane - p.z()) / (q.z() - p.z())));
     }
-    if (!any) continue;
+    if (!any) return;
     const int u0 = std::max(0, static_cast<int>(std::floor(u_min)) - 1);
     const int u1 = std::min(W - 1, static_cast<int>(std::ceil(u_max)) + 1);
     const int v0 = std::max(0, static_cast<int>(std::floor(v_min)) - 1);
     const int v1 = std::min(H - 1, static_cast<int>(std::ceil(v_max)) + 1);
-    if (u0 > u1 || v0 > v1) continue;
+    if (u0 > u1 || v0 > v1) return;
 
     // Plane homography: camera point X = [a b o] (s, t, 1)^T; M maps a ray to (s, t, 1) / z.
     Eigen::Matrix3d Hm;
     Hm << a, b, o;
-    if (std::abs(Hm.determinant()) < 1e-9) continue;  // plane through the optical centre
+    if (std::abs(Hm.determinant()) < 1e-9) return;  // plane through the optical centre
     const Eigen::Matrix3f M = Hm.inverse().cast<float>();
-    QuadShading& shade = shading[qi];
-    shade.normal = a.cross(b).normalized().cast<float>();
-    shade.footprint_scale2 = std::pow(textures_[qi]->texels_per_m / fx, 2.0f);
-    shade.last_level = static_cast<float>(textures_[qi]->levels.size()) - 1.001f;
-    shade.brightness = quad.brightness;
-    const float size_u = static_cast<float>(quad.size_u), size_v = static_cast<float>(quad.size_v);
+    normals[qi] = a.cross(b).normalized().cast<float>();
     // Along a row, q(u) = q_row + u * du is linear, and the quad is exactly where
     // q.z > 0, 0 <= q.x <= size_u q.z and 0 <= q.y <= size_v q.z: five half-lines in u.
     const Eigen::Vector3d du = M.col(0).cast<double>() / fx;
@@ -369,9 +773,9 @@ void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t n
       };
       keep(q_row.z(), du.z());
       keep(q_row.x(), du.x());
-      keep(quad.size_u * q_row.z() - q_row.x(), quad.size_u * du.z() - du.x());
+      keep(quad_size_u * q_row.z() - q_row.x(), quad_size_u * du.z() - du.x());
       keep(q_row.y(), du.y());
-      keep(quad.size_v * q_row.z() - q_row.y(), quad.size_v * du.z() - du.y());
+      keep(quad_size_v * q_row.z() - q_row.y(), quad_size_v * du.z() - du.y());
       if (!(lo <= hi)) continue;  // empty (lo, hi stay within [u0, u1] otherwise)
       const int ua = static_cast<int>(std::ceil(lo)), ub = static_cast<int>(std::floor(hi));
       if (ua > ub) continue;
@@ -382,59 +786,118 @@ void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t n
         const float w = q.z();
         const size_t p = row + u;
         if (w <= scratch.inv_depth[p]) continue;
-        const float inv = 1.0f / w;
         scratch.inv_depth[p] = w;
         scratch.quad[p] = static_cast<int32_t>(qi);
-        scratch.s[p] = std::clamp(q.x() * inv, 0.0f, size_u);
-        scratch.t[p] = std::clamp(q.y() * inv, 0.0f, size_v);
+        scratch.s[p] = q.x();
+        scratch.t[p] = q.y();
       }
+    }
+  };
+  // Quads whose bounding sphere lies behind the near plane or outside a side of the view
+  // (widened by 2 px) could not cover any pixel centre: skipped before any further work.
+  const double tan_x = (std::max<double>(cx, W - 1 - cx) + 2) / fx,
+               tan_y = (std::max<double>(cy, H - 1 - cy) + 2) / fy;
+  const double norm_x = std::sqrt(1 + tan_x * tan_x), norm_y = std::sqrt(1 + tan_y * tan_y);
+  auto outside = [&](const Eigen::Vector3d& c, double r) {
+    return c.z() + r < kNearPlane || (tan_x * c.z() - std::abs(c.x())) < -r * norm_x ||
+           (tan_y * c.z() - std::abs(c.y())) < -r * norm_y;
+  };
+  for (size_t qi = 0; qi < description_.quads.size(); ++qi) {
+    if (outside(R_cam_world * bounds_[qi].head<3>() + t_cam_world, bounds_[qi].w())) continue;
+    const SceneQuad& quad = description_.quads[qi];
+    raster(quad.origin, quad.axis_u, quad.axis_v, quad.size_u, quad.size_v, qi);
+  }
+  for (size_t m = 0; m < description_.movers.size(); ++m) {
+    const SceneMover& mover = description_.movers[m];
+    if (!mover.active(t_s)) continue;
+    const Eigen::Isometry3d T_world_body = mover.PoseAt(t_s);
+    for (size_t j = 0; j < mover.quads.size(); ++j) {
+      const size_t qi = mover_texture_[m] + j;
+      if (outside(R_cam_world * (T_world_body * bounds_[qi].head<3>()) + t_cam_world, bounds_[qi].w()))
+        continue;
+      const SceneQuad& quad = mover.quads[j];
+      raster(T_world_body * quad.origin, T_world_body.linear() * quad.axis_u,
+             T_world_body.linear() * quad.axis_v, quad.size_u, quad.size_v, qi);
     }
   }
 
-  gray->create(H, W, CV_8UC1);
   if (depth_m) depth_m->create(H, W, CV_32FC1);
-  uint64_t rng = noise_seed;
-  const float sigma = noise_seed ? static_cast<float>(options_.pixel_noise_sigma) : 0.0f;
   for (int v = 0; v < H; ++v) {
-    uint8_t* out = gray->ptr<uint8_t>(v);
+    float* out = value + static_cast<size_t>(v) * W;
     float* dout = depth_m ? depth_m->ptr<float>(v) : nullptr;
     for (int u = 0; u < W; ++u) {
       const size_t p = static_cast<size_t>(v) * W + u;
       const int32_t qi = scratch.quad[p];
-      float value;
       if (qi < 0) {
-        value = 150.0f + 60.0f * static_cast<float>(v) / H;  // featureless sky / void
+        out[u] = 150.0f + 60.0f * static_cast<float>(v) / H;  // featureless sky / void
         if (dout) dout[u] = 0.0f;
-      } else {
-        const float w = scratch.inv_depth[p];
-        const QuadShading& shade = shading[qi];
-        const Texture& tex = *textures_[qi];
-        // Squared texel footprint of one pixel, widened on slanted surfaces (cosine floor
-        // 0.2), picks the mip level: footprint^2 = (tpm/fx)^2 |ray|^2 / (w^2 max(cos^2 |ray|^2)).
-        const float rx = (u - cx) * inv_fx, ry = (v - cy) * inv_fy;
-        const float ray2 = rx * rx + ry * ry + 1.0f;
-        const float dot = shade.normal.x() * rx + shade.normal.y() * ry + shade.normal.z();
-        const float footprint2 = shade.footprint_scale2 * ray2 / (w * w * std::max(dot * dot, 0.04f * ray2));
-        float level = footprint2 > 1.0f ? 0.5f * FastLog2(footprint2) : 0.0f;
-        level = std::min(level, shade.last_level);
-        const int l0 = static_cast<int>(level);
-        // Blend two levels only around the middle of a level ("brilinear"): fewer samples.
-        const float blend = std::clamp((level - l0 - 0.3f) * 2.5f, 0.0f, 1.0f);
-        const float x0 = scratch.s[p] * tex.texels_per_m, y0 = scratch.t[p] * tex.texels_per_m;
-        const auto& level0 = tex.levels[l0];
-        const float a = SampleBilinear(level0, x0 * level0.scale - 0.5f, y0 * level0.scale - 0.5f);
-        float b = a;
-        if (blend > 0.0f) {
-          const auto& level1 = tex.levels[l0 + 1];
-          b = SampleBilinear(level1, x0 * level1.scale - 0.5f, y0 * level1.scale - 0.5f);
-        }
-        value = (a + blend * (b - a)) * shade.brightness;
-        if (dout) dout[u] = 1.0f / w;
+        continue;
       }
-      if (sigma > 0) value += sigma * GaussFromBits(SplitMix(&rng));
-      out[u] = static_cast<uint8_t>(std::clamp(value + 0.5f, 0.0f, 255.0f));
+      const float w = scratch.inv_depth[p];
+      const Eigen::Vector3f& normal = normals[qi];
+      const Texture& tex = *textures_[qi];
+      // Squared texel footprint of one pixel, widened on slanted surfaces (cosine floor
+      // 0.2), picks the mip level: footprint^2 = (tpm/fx)^2 |ray|^2 / (w^2 max(cos^2 |ray|^2)).
+      const float rx = (u - cx) * inv_fx, ry = (v - cy) * inv_fy;
+      const float ray2 = rx * rx + ry * ry + 1.0f;
+      const float dot = normal.x() * rx + normal.y() * ry + normal.z();
+      const float footprint2 = tex.footprint_scale2 * ray2 / (w * w * std::max(dot * dot, 0.04f * ray2));
+      float level = footprint2 > 1.0f ? 0.5f * FastLog2(footprint2) : 0.0f;
+      level = std::min(level, tex.last_level);
+      const int l0 = static_cast<int>(level);
+      // Blend two levels only around the middle of a level ("brilinear"): fewer samples.
+      const float blend = std::clamp((level - l0 - 0.3f) * 2.5f, 0.0f, 1.0f);
+      const float inv = 1.0f / w;
+      const float s = std::clamp(scratch.s[p] * inv, 0.0f, tex.size_u);
+      const float t = std::clamp(scratch.t[p] * inv, 0.0f, tex.size_v);
+      const float x0 = s * tex.texels_per_m, y0 = t * tex.texels_per_m;
+      const auto& level0 = tex.levels[l0];
+      const float a = SampleBilinear(level0, x0 * level0.scale - 0.5f, y0 * level0.scale - 0.5f);
+      float b = a;
+      if (blend > 0.0f) {
+        const auto& level1 = tex.levels[l0 + 1];
+        b = SampleBilinear(level1, x0 * level1.scale - 0.5f, y0 * level1.scale - 0.5f);
+      }
+      out[u] = (a + blend * (b - a)) * tex.brightness;
+      if (dout) dout[u] = 1.0f / w;
     }
   }
+}
+
+void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, double t_s, uint64_t noise_seed,
+                                cv::Mat* gray, cv::Mat* depth_m) const {
+  thread_local std::vector<float> value;
+  value.resize(static_cast<size_t>(options_.width) * options_.height);
+  RenderLinear(T_world_cam, t_s, value.data(), depth_m);
+  const float sigma = noise_seed ? static_cast<float>(options_.pixel_noise_sigma) : 0.0f;
+  FinishImage(value.data(), options_.width, options_.height, 1.0f, sigma, noise_seed, gray);
+}
+
+void SyntheticScene::RenderExposure(const std::vector<double>& times, double offset_x, float gain,
+                                    uint64_t noise_seed, cv::Mat* gray, cv::Mat* depth_m) const {
+  const size_t n = static_cast<size_t>(options_.width) * options_.height;
+  auto pose = [&](double t) -> Eigen::Isometry3d {
+    const Eigen::Isometry3d T_world_cam = PoseAt(t);
+    if (offset_x == 0) return T_world_cam;
+    return T_world_cam * Eigen::Translation3d(offset_x, 0, 0);
+  };
+  thread_local std::vector<float> value, sub;
+  value.resize(n);
+  if (times.size() == 1) {
+    RenderLinear(pose(times[0]), times[0], value.data(), depth_m);
+  } else {
+    // Motion blur: the mean of the sub-frames; depth from the middle one, at the frame time.
+    sub.resize(n);
+    std::fill(value.begin(), value.end(), 0.0f);
+    for (size_t k = 0; k < times.size(); ++k) {
+      RenderLinear(pose(times[k]), times[k], sub.data(), k == times.size() / 2 ? depth_m : nullptr);
+      for (size_t p = 0; p < n; ++p) value[p] += sub[p];
+    }
+    const float scale = 1.0f / static_cast<float>(times.size());
+    for (float& x : value) x *= scale;
+  }
+  const float sigma = noise_seed ? static_cast<float>(options_.pixel_noise_sigma) : 0.0f;
+  FinishImage(value.data(), options_.width, options_.height, gain, sigma, noise_seed, gray);
 }
 
 Frame SyntheticScene::Render(size_t i) const {
@@ -442,14 +905,17 @@ Frame SyntheticScene::Render(size_t i) const {
   Frame frame;
   frame.index = i;
   frame.t_ns = timestamp_ns(i);
-  const Eigen::Isometry3d T_world_cam = PoseAt(static_cast<double>(frame.t_ns) * 1e-9);
+  // Every view of the frame (both eyes, depth, movers) is rendered at the frame's time.
+  const double t = static_cast<double>(frame.t_ns) * 1e-9;
+  const std::vector<double> times = ExposureTimes(t);
+  const float gain = static_cast<float>(GainAt(t));
   // Noise seeds depend only on (seed, agent, frame, view): any thread order gives the same pixels.
   uint64_t mix = options_.seed * 0x9e3779b97f4a7c15ull + (static_cast<uint64_t>(options_.agent) << 40) + i * 4;
   const uint64_t seed_left = SplitMix(&mix) | 1, seed_right = SplitMix(&mix) | 1, seed_depth = SplitMix(&mix);
   const bool noisy = options_.pixel_noise_sigma > 0;
   if (options_.sensor == Sensor::kRgbd) {
     cv::Mat depth;
-    RenderView(T_world_cam, noisy ? seed_left : 0, &frame.left, &depth);
+    RenderExposure(times, 0.0, gain, noisy ? seed_left : 0, &frame.left, &depth);
     uint64_t rng = seed_depth;
     const float k = static_cast<float>(options_.depth_noise_k), max_depth = static_cast<float>(options_.max_depth_m);
     for (int v = 0; v < depth.rows; ++v) {
@@ -465,11 +931,9 @@ Frame SyntheticScene::Render(size_t i) const {
     }
     frame.depth = depth;
   } else {
-    RenderView(T_world_cam, noisy ? seed_left : 0, &frame.left, nullptr);
-    if (options_.sensor == Sensor::kStereo) {
-      const Eigen::Isometry3d T_world_right = T_world_cam * Eigen::Translation3d(options_.baseline_m, 0, 0);
-      RenderView(T_world_right, noisy ? seed_right : 0, &frame.right, nullptr);
-    }
+    RenderExposure(times, 0.0, gain, noisy ? seed_left : 0, &frame.left, nullptr);
+    if (options_.sensor == Sensor::kStereo)
+      RenderExposure(times, options_.baseline_m, gain, noisy ? seed_right : 0, &frame.right, nullptr);
   }
   return frame;
 }

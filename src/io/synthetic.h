@@ -1,12 +1,15 @@
-// Synthetic scene renderer: textured planar worlds (room, corridor, street, town), camera
-// paths with loops and revisits, several agents, exact ground truth; mono, stereo, RGB-D.
+// Synthetic scene renderer: textured planar worlds (room, corridor, street, town, highway,
+// handheld), camera paths with loops and revisits, several agents, moving objects, motion blur
+// and exposure changes, exact ground truth of the camera; mono, stereo, RGB-D.
 // Concurrency: a SyntheticScene is immutable after construction; Render() is const and
 // thread-safe, so frames can be rendered in parallel.
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Core>
@@ -18,6 +21,13 @@
 
 namespace flatslam {
 
+// How a quad's procedural texture looks.
+enum class TextureStyle : uint8_t {
+  kShapes,   // multi-scale random shapes over smooth noise: walls, facades, furniture, vehicles
+  kAsphalt,  // road surface: low-contrast grain with patches, cracks and tyre marks
+  kPaint,    // road marking: bright, nearly uniform
+};
+
 // A textured rectangle: points origin + s*axis_u + t*axis_v for s in [0,size_u], t in [0,size_v].
 struct SceneQuad {
   Eigen::Vector3d origin = Eigen::Vector3d::Zero();
@@ -26,6 +36,17 @@ struct SceneQuad {
   double size_u = 1, size_v = 1;                      // metres
   double texels_per_m = 96;                           // texture resolution on this surface
   float brightness = 1.0f;                            // stands in for lighting
+  TextureStyle style = TextureStyle::kShapes;
+};
+
+// A quick look-around on top of the forward-looking path: turns by (yaw, pitch) over turn_s with a
+// raised-cosine profile (peak rate = amplitude * pi / (2 turn_s)), holds, then turns back.
+struct CameraGlance {
+  double start_s = 0;
+  double turn_s = 0.5;
+  double hold_s = 0.5;
+  double yaw_rad = 0;    // positive turns left
+  double pitch_rad = 0;  // positive looks up
 };
 
 // A closed loop through control points, followed at constant speed, forward-looking.
@@ -36,42 +57,86 @@ struct CameraPath {
   double yaw_wobble_rad = 0;  // small periodic look-around, keeps motion non-degenerate
   double pitch_wobble_rad = 0;
   double height_wobble_m = 0;
+  double roll_wobble_rad = 0;         // hand-held tilt about the viewing direction
+  std::vector<CameraGlance> glances;  // sorted by start_s, not overlapping
+};
+
+// One sample of a mover's motion: where its body frame is at time t_s.
+struct MoverKey {
+  double t_s = 0;
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();  // body origin in the world
+  double yaw_rad = 0;                                  // body x axis = (cos yaw, sin yaw, 0)
+};
+
+// A rigid group of quads (a vehicle, a box) whose world pose is a function of time: the keys
+// interpolated linearly. Its quads are in the body frame (x forward, y left, z up).
+struct SceneMover {
+  std::vector<SceneQuad> quads;
+  std::vector<MoverKey> keys;  // increasing t_s, at least one
+  double period_s = 0;         // > 0: the motion repeats with this period (keys span one period)
+  double active_from_s = -std::numeric_limits<double>::infinity();  // absent outside [from, until]
+  double active_until_s = std::numeric_limits<double>::infinity();
+
+  [[nodiscard]] bool active(double t_s) const { return t_s >= active_from_s && t_s <= active_until_s; }
+  // T_world_body at t_s (keys held before the first and after the last when not periodic).
+  [[nodiscard]] Eigen::Isometry3d PoseAt(double t_s) const;
+};
+
+// What the camera's exposure adds in Render(); RenderView() renders one instant at unit gain.
+struct SceneExposure {
+  double exposure_s = 0;         // motion blur: sub-frames averaged over this time around the frame time
+  double gain_wobble = 0;        // relative amplitude of a smooth global gain variation
+  double gain_step_every_s = 0;  // mean time between auto-exposure steps; 0 = none
+  double gain_step_min = 0.2;    // relative size of a step, drawn in [min, max]
+  double gain_step_max = 0.4;
 };
 
 struct SceneDescription {
   std::string name;
   std::vector<SceneQuad> quads;
+  std::vector<SceneMover> movers;  // moving objects; the ground truth stays the camera's pose
   std::vector<CameraPath> agents;  // at least one
   double default_duration_s = 60;
   double default_baseline_m = 0.12;  // stereo rig of the scene: a handheld rig indoors, a car rig outdoors
-  uint64_t world_seed = 1;         // textures; fixed per scene so every agent sees one world
+  // Camera of the scene; 0 = the SyntheticOptions default (640 x 480, fx = 0.75 width, 20 Hz).
+  int default_width = 0;
+  int default_height = 0;
+  double default_fx = 0;  // for default_width; scaled when the width is overridden
+  double default_frame_rate_hz = 0;
+  SceneExposure exposure;
+  double dynamic_distance_m = 0;  // how close dynamic=F objects pass; 0 = twice the camera height
+  uint64_t world_seed = 1;        // textures; fixed per scene so every agent sees one world
 };
 
-// Names accepted by MakeScene(): room, corridor, street, town (3 agents).
+// Names accepted by MakeScene(): room, corridor, street, town (3 agents), highway (KITTI-like
+// motorway with traffic), handheld (fast hand-held motion indoors, motion blur, exposure changes).
 [[nodiscard]] std::vector<std::string> SyntheticSceneNames();
 // Throws flatslam::Error listing the known names on an unknown one.
 [[nodiscard]] SceneDescription MakeScene(const std::string& name);
 
 struct SyntheticOptions {
-  int width = 640;              // pixels
-  int height = 480;
-  double fx = 0;                // 0 = 0.75 * width (about 67 degrees horizontal field of view)
-  double fy = 0;                // 0 = fx
-  double frame_rate_hz = 20;
-  double duration_s = 0;        // 0 = the scene's default
-  double baseline_m = 0;        // stereo baseline; 0 = the scene's default
+  int width = 0;             // pixels; 0 = the scene's default (640 x 480 unless it has its own)
+  int height = 0;
+  double fx = 0;             // 0 = the scene's, scaled to the width; else 0.75 * width (about 67 degrees)
+  double fy = 0;             // 0 = fx
+  double frame_rate_hz = 0;  // 0 = the scene's default (20 Hz unless it has its own)
+  double duration_s = 0;     // 0 = the scene's default
+  double baseline_m = 0;     // stereo baseline; 0 = the scene's default
   double pixel_noise_sigma = 1.5;  // grey levels, Gaussian
   double depth_noise_k = 0.0015;   // depth sigma = k * z^2 (metres), as a structured-light sensor
   double max_depth_m = 20;         // RGB-D: farther pixels read 0 (no measurement)
   int agent = 0;
   uint64_t seed = 1;            // noise; the world itself is fixed by the scene
   Sensor sensor = Sensor::kStereo;
+  // Adds moving objects that pass the camera one at a time (overtaking along its path or
+  // crossing in front of it), each covering at most this fraction of the image; in [0, 0.3].
+  double dynamic_fraction = 0;
 
   [[nodiscard]] bool Check() const;
 };
 
 // Parses "NAME[:key=value,...]" (keys: width, height, fx, fps, duration, baseline, noise,
-// depth_noise, agent, seed, sensor) into a scene name and options. Throws flatslam::Error.
+// depth_noise, agent, seed, sensor, dynamic) into a scene name and options. Throws flatslam::Error.
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options);
 
 class SyntheticScene {
@@ -81,6 +146,7 @@ class SyntheticScene {
   SyntheticScene(const SyntheticScene&) = delete;
   SyntheticScene& operator=(const SyntheticScene&) = delete;
 
+  // The scene as rendered: with dynamic=F, movers also holds the objects added for this agent.
   [[nodiscard]] const SceneDescription& description() const { return description_; }
   [[nodiscard]] const SyntheticOptions& options() const { return options_; }
   [[nodiscard]] const Calibration& calibration() const { return calibration_; }
@@ -91,11 +157,20 @@ class SyntheticScene {
   [[nodiscard]] double path_length_m() const;  // travelled in frame_count() frames
   [[nodiscard]] double loop_length_m() const;  // one lap of this agent's loop
 
-  // Renders a grey image (CV_8UC1) seen from T_world_cam; depth_m (optional) receives
-  // the noise-free z-depth in metres (0 where nothing is hit). noise_seed 0 = no noise.
-  void RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t noise_seed, cv::Mat* gray,
+  // Global gain of the image at time t (1 unless the scene has exposure changes).
+  [[nodiscard]] double GainAt(double t_s) const;
+
+  // Renders a grey image (CV_8UC1) of one instant t_s (movers where they are then) seen from
+  // T_world_cam, at unit gain and without motion blur; depth_m (optional) receives the
+  // noise-free z-depth in metres (0 where nothing is hit). noise_seed 0 = no noise.
+  void RenderView(const Eigen::Isometry3d& T_world_cam, double t_s, uint64_t noise_seed, cv::Mat* gray,
                   cv::Mat* depth_m) const;
-  // Renders frame i for the configured sensor.
+  // The same at t_s = 0.
+  void RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t noise_seed, cv::Mat* gray,
+                  cv::Mat* depth_m) const {
+    RenderView(T_world_cam, 0.0, noise_seed, gray, depth_m);
+  }
+  // Renders frame i for the configured sensor at the frame's time, with the scene's exposure.
   [[nodiscard]] Frame Render(size_t i) const;
   [[nodiscard]] Trajectory GroundTruth() const;
 
@@ -103,11 +178,23 @@ class SyntheticScene {
   struct Texture;
   struct PathTable;
 
+  void AddDynamicObjects();
+  [[nodiscard]] std::vector<double> ExposureTimes(double t_s) const;
+  // Noise-free intensities before gain (row-major floats) and z-depth (optional) of one instant.
+  void RenderLinear(const Eigen::Isometry3d& T_world_cam, double t_s, float* value, cv::Mat* depth_m) const;
+  // Averages the sub-frames at times of the view offset by offset_x along the camera's x axis,
+  // then applies gain and noise; depth_m (optional) is the exact depth at the frame time.
+  void RenderExposure(const std::vector<double>& times, double offset_x, float gain, uint64_t noise_seed,
+                      cv::Mat* gray, cv::Mat* depth_m) const;
+
   SceneDescription description_;
   SyntheticOptions options_;
   Calibration calibration_;
   size_t frame_count_ = 0;
-  std::vector<std::unique_ptr<Texture>> textures_;  // one per quad
+  std::vector<std::unique_ptr<Texture>> textures_;  // one per static quad, then one per mover quad
+  std::vector<Eigen::Vector4d> bounds_;             // per quad as textures_: bounding sphere centre, radius
+  std::vector<size_t> mover_texture_;               // index in textures_ of each mover's first quad
+  std::vector<std::pair<double, double>> gain_steps_;  // (time, gain factor from then on)
   std::unique_ptr<PathTable> path_;
 };
 

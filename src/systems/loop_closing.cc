@@ -369,10 +369,12 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
     const auto kfs = map_.keyframes().handles();
     // The gauge: the map's first keyframe (never culled), else any one.
     const KeyFrameHandle anchor = map_.keyframes().contains(first_keyframe_) ? first_keyframe_ : kfs.front();
+    std::unordered_map<KeyFrameHandle, double> far_depth;
     for (KeyFrameHandle h : kfs) {
       pose_index[h] = static_cast<uint32_t>(problem.poses.size());
       problem.poses.push_back({map_.keyframe(h).T_cam_world, h == anchor});
       pose_handles.push_back(h);
+      far_depth[h] = FarStereoDepth(map_.keyframe(h).depth);
     }
     const auto pts = map_.points().handles();
     for (PointHandle p : pts) {
@@ -387,7 +389,7 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
         obs.pose_index = pose_index.at(o.keyframe);
         obs.point_index = j;
         obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint]);
+        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], far_depth.at(o.keyframe));
         obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
         problem.observations.push_back(obs);
       }

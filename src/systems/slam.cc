@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <unordered_map>
 #include <unordered_set>
@@ -134,15 +135,36 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
   map_scales_.levels = geometry_.pyramid.levels;
 }
 
-double Slam::CloseDepth() const {
-  return monocular() ? 0.0 : options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx;
+double Slam::MedianStereoDepth(std::span<const float> depth) const {
+  if (calibration_.sensor != Sensor::kStereo) return 0;
+  thread_local std::vector<float> measured;
+  measured.clear();
+  for (float d : depth)
+    if (d > 0) measured.push_back(d);
+  if (measured.empty()) return 0;
+  std::nth_element(measured.begin(), measured.begin() + measured.size() / 2, measured.end());
+  return measured[measured.size() / 2];
 }
 
-double Slam::OptimizedRightU(float right_u, float depth) const {
-  if (options_.far_stereo_baselines > 0 && calibration_.sensor == Sensor::kStereo &&
-      depth > options_.far_stereo_baselines * calibration_.baseline_m)
-    return -1;
-  return right_u;
+// Stereo depth is "close" (trusted from one frame, counted by the keyframe rules) within
+// close_depth_baselines, and never less than the nearer half of what the frame measures: where
+// most texture is far (a motorway), a fixed cut would leave a handful of road points to hold the
+// scale, and a keyframe would be asked for on every frame as those few points stream past.
+double Slam::CloseDepth(std::span<const float> depth) const {
+  if (monocular()) return 0.0;
+  return std::max(options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx, MedianStereoDepth(depth));
+}
+
+double Slam::FarStereoDepth(std::span<const float> depth) const {
+  if (options_.far_stereo_baselines <= 0 || calibration_.sensor != Sensor::kStereo)
+    return std::numeric_limits<double>::infinity();
+  // Far stereo observations count as monocular only while the nearer half of the view keeps its
+  // stereo depth, for the same reason as in CloseDepth.
+  return std::max(options_.far_stereo_baselines * calibration_.baseline_m, MedianStereoDepth(depth));
+}
+
+double Slam::OptimizedRightU(float right_u, float depth, double far_depth) const {
+  return depth > far_depth ? -1 : right_u;
 }
 
 void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
@@ -332,6 +354,7 @@ bool Slam::InitializeMonocular(TrackedFrame& frame) {
 int Slam::OptimizeFramePose(TrackedFrame& frame) {
   std::vector<PoseObservation> observations;
   std::vector<uint32_t> index;
+  const double far_depth = FarStereoDepth(frame.keypoints.depth);
   for (uint32_t i = 0; i < frame.size(); ++i) {
     const PointHandle p = frame.points[i];
     if (p.is_null()) continue;
@@ -343,7 +366,7 @@ int Slam::OptimizeFramePose(TrackedFrame& frame) {
     PoseObservation o;
     o.X_world = point->position;
     o.uv = frame.keypoints.uv[i].cast<double>();
-    o.right_u = OptimizedRightU(frame.keypoints.right_u[i], frame.keypoints.depth[i]);
+    o.right_u = OptimizedRightU(frame.keypoints.right_u[i], frame.keypoints.depth[i], far_depth);
     o.inv_sigma2 = geometry_.pyramid.inv_sigma2[frame.keypoints.octave[i]];
     observations.push_back(o);
     index.push_back(i);
@@ -466,7 +489,7 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
     const MapPoint* point = map_.points().try_get(p);
     if (point && static_cast<int>(point->observations.size()) >= min_observations) ++reference_points;
   }
-  const double close = CloseDepth();
+  const double close = CloseDepth(frame.keypoints.depth);
   int tracked_close = 0, untracked_close = 0;
   for (size_t i = 0; i < frame.size(); ++i) {
     const float d = frame.keypoints.depth[i];
@@ -551,7 +574,7 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
     if (frame.keypoints.depth[i] > 0) by_depth.push_back(i);
   std::sort(by_depth.begin(), by_depth.end(),
             [&](uint32_t a, uint32_t b) { return frame.keypoints.depth[a] < frame.keypoints.depth[b]; });
-  const double close = all_depth_points ? 1e30 : CloseDepth();
+  const double close = all_depth_points ? 1e30 : CloseDepth({});
   int considered = 0;
   for (uint32_t i : by_depth) {
     if (frame.keypoints.depth[i] > close && considered > 100) break;
@@ -772,8 +795,10 @@ void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
       pose_handles.push_back(h);
     };
     add_pose(current, false);
-    for (const auto& [n, w] : map_.keyframe(current).covisible)
+    for (const auto& [n, w] : map_.keyframe(current).covisible) {
+      if (problem.poses.size() > options_.max_local_ba_keyframes) break;  // covisible: strongest first
       if (map_.keyframes().contains(n)) add_pose(n, false);
+    }
     std::unordered_map<PointHandle, uint32_t> point_index;
     const size_t local_count = problem.poses.size();
     for (size_t k = 0; k < local_count; ++k) {
@@ -784,15 +809,18 @@ void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
         point_handles.push_back(p);
       }
     }
+    std::unordered_map<KeyFrameHandle, double> far_depth;
     for (size_t j = 0; j < point_handles.size(); ++j) {
       for (const Observation& o : map_.point(point_handles[j]).observations) {
         if (!pose_index.count(o.keyframe)) add_pose(o.keyframe, true);  // outside the window: fixed
         const KeyFrame& kf = map_.keyframe(o.keyframe);
+        auto far = far_depth.find(o.keyframe);
+        if (far == far_depth.end()) far = far_depth.emplace(o.keyframe, FarStereoDepth(kf.depth)).first;
         BundleAdjustmentObservation obs;
         obs.pose_index = pose_index[o.keyframe];
         obs.point_index = static_cast<uint32_t>(j);
         obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint]);
+        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], far->second);
         obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
         problem.observations.push_back(obs);
       }
@@ -833,11 +861,12 @@ void Slam::CullKeyFrames(KeyFrameHandle current) {
     const KeyFrame& kf = map_.keyframe(h);
     if (!kf.loop_edges.empty()) continue;  // loop closures keep both ends
     int considered = 0, redundant = 0;
+    const double close = CloseDepth({});
     for (uint32_t i = 0; i < kf.size(); ++i) {
       const MapPoint* point = map_.points().try_get(kf.points[i]);
       if (!point) continue;
       // With depth, only reliable close points count.
-      if (!monocular() && (kf.depth[i] <= 0 || kf.depth[i] > CloseDepth())) continue;
+      if (!monocular() && (kf.depth[i] <= 0 || kf.depth[i] > close)) continue;
       ++considered;
       if (point->observations.size() <= 3) continue;
       int others = 0;

@@ -13,6 +13,7 @@
 #include <mutex>
 #include <optional>
 #include <random>
+#include <span>
 #include <string>
 #include <thread>
 #include <unordered_map>
@@ -75,6 +76,10 @@ struct SlamOptions {
   // with depth, where close points come from the stereo or depth measurement.
   double min_parallax_deg = 0;
   size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
+  // Free keyframes of local BA: the new one and its strongest covisible. Bounds a keyframe's cost where
+  // far points make every recent keyframe covisible (fast forward motion); the rest of their
+  // observers still enter as fixed poses.
+  size_t max_local_ba_keyframes = 20;
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
   // Revisits: when an older keyframe (not one of the last 20 made) already views the scene from
   // within this fraction of the median scene depth, with its optical axis within 20 degrees, a
@@ -245,10 +250,16 @@ class Slam {
   void Fuse(KeyFrameHandle current);
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
-  [[nodiscard]] double CloseDepth() const;
-  // The right-image coordinate an optimization uses for a keypoint: none beyond
-  // far_stereo_baselines (stereo sensors only).
-  [[nodiscard]] double OptimizedRightU(float right_u, float depth) const;
+  // Median of a stereo frame's measured depths (0 for other sensors or none measured).
+  [[nodiscard]] double MedianStereoDepth(std::span<const float> depth) const;
+  // Depth within which a frame's stereo/RGB-D depth is trusted: close_depth_baselines, and for
+  // stereo at least the median measured depth (0 monocular).
+  [[nodiscard]] double CloseDepth(std::span<const float> depth) const;
+  // Depth beyond which a stereo frame's observations count as monocular in optimization:
+  // far_stereo_baselines, at least the median measured depth (infinite without stereo).
+  [[nodiscard]] double FarStereoDepth(std::span<const float> depth) const;
+  // The right-image coordinate an optimization uses for a keypoint: none beyond far_depth.
+  [[nodiscard]] double OptimizedRightU(float right_u, float depth, double far_depth) const;
   void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
   // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
   [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const FramePose& f) const;

@@ -88,6 +88,7 @@ const std::vector<Entry>& Entries() {
       {"local_keyframes", [](SlamOptions& o) -> Field { return &o.local_keyframes; }},
       {"min_parallax_deg", [](SlamOptions& o) -> Field { return &o.min_parallax_deg; }},
       {"max_local_map_keyframes", [](SlamOptions& o) -> Field { return &o.max_local_map_keyframes; }},
+      {"max_local_ba_keyframes", [](SlamOptions& o) -> Field { return &o.max_local_ba_keyframes; }},
       {"redundant_keyframe_ratio", [](SlamOptions& o) -> Field { return &o.redundant_keyframe_ratio; }},
       {"revisit_radius", [](SlamOptions& o) -> Field { return &o.revisit_radius; }},
       {"loop_closing", [](SlamOptions& o) -> Field { return &o.loop_closing; }},

@@ -1,0 +1,113 @@
+// Accuracy with defaults only (no feature budget or option set by hand) on the scenes that stress
+// what the real snippets do not: a motorway at 25 m/s with most texture 20-200 m away, a hand-held
+// camera with fast turns, blur and exposure changes, and moving objects covering up to 30% of the
+// view. Thresholds are the bars of the issue on accuracy that holds on unseen cameras and motions;
+// docs/STATUS.md gives the measured figures.
+#include <algorithm>
+#include <cstdio>
+#include <string>
+
+#include <gtest/gtest.h>
+
+#include "io/dataset.h"
+#include "jobs/slam_runner.h"
+#include "systems/vocabulary.h"
+#include "test_data.h"
+#include "trajectory/metrics.h"
+
+namespace flatslam {
+namespace {
+
+struct Outcome {
+  SlamRunResult run;
+  EvalResult se3, sim3;
+  double path_m = 0;
+  size_t first_tracked = 0;  // first frame with a pose
+  size_t lost_after = 0;     // frames without a pose after it
+  double rate_hz = 0;
+};
+
+Outcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = std::nullopt) {
+  DatasetOptions dataset_options;
+  dataset_options.sensor = sensor;
+  const auto dataset = OpenDataset(spec, dataset_options);
+  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
+  SlamOptions options;  // everything left to the camera
+  options.vocabulary = &vocabulary;
+  Outcome out;
+  out.rate_hz = dataset->calibration().frame_rate_hz;
+  out.run = RunSlam(*dataset, options, SlamRunOptions{});
+  const Trajectory gt = *dataset->ground_truth();
+  EvalOptions eval;
+  eval.alignment = Alignment::kSE3;
+  out.se3 = Evaluate(gt, out.run.trajectory, eval);
+  eval.alignment = Alignment::kSim3;
+  out.sim3 = Evaluate(gt, out.run.trajectory, eval);
+  for (size_t i = 1; i < gt.size(); ++i)
+    out.path_m += (gt[i].T_world_cam.translation() - gt[i - 1].T_world_cam.translation()).norm();
+  out.first_tracked = out.run.reports.size();
+  for (const FrameReport& r : out.run.reports)
+    if (r.state == TrackingState::kOk) out.first_tracked = std::min(out.first_tracked, r.index);
+  for (const FrameReport& r : out.run.reports)
+    if (r.index > out.first_tracked && r.state != TrackingState::kOk) ++out.lost_after;
+  std::printf("%s (%s): %zu frames, first tracked %zu, %zu lost after, %zu keyframes, ATE %.4f m (%.3f%% of %.1f m), "
+              "Sim(3) %.4f m, scale %.4f\n",
+              spec.c_str(), SensorName(dataset->calibration().sensor), out.run.reports.size(), out.first_tracked,
+              out.lost_after, out.run.keyframe_count, out.se3.ate_m.rmse, 100 * out.se3.ate_m.rmse / out.path_m,
+              out.path_m, out.sim3.ate_m.rmse, out.sim3.alignment.scale);
+  return out;
+}
+
+// Bar: stereo on the motorway, 60 s: ATE under 0.5% of the path, scale within 1%, nothing lost.
+TEST(SceneAccuracy, HighwayStereo) {
+  const Outcome o = RunWithDefaults("synth:highway");
+  EXPECT_EQ(o.first_tracked, 0u);
+  EXPECT_EQ(o.lost_after, 0u);
+  EXPECT_GT(o.path_m, 1200.0);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
+  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
+}
+
+// Bar: monocular on the motorway initializes within one second and loses under 1% of frames.
+TEST(SceneAccuracy, HighwayMonocular) {
+  const Outcome o = RunWithDefaults("synth:highway", Sensor::kMonocular);
+  EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
+  EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
+  EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);  // shape, after the arbitrary scale
+}
+
+// Bar: hand-held stereo and RGB-D, 60 s: no frame lost, ATE under 1% of the path.
+TEST(SceneAccuracy, HandheldStereo) {
+  const Outcome o = RunWithDefaults("synth:handheld");
+  EXPECT_EQ(o.first_tracked, 0u);
+  EXPECT_EQ(o.lost_after, 0u);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
+}
+
+TEST(SceneAccuracy, HandheldRgbd) {
+  const Outcome o = RunWithDefaults("synth:handheld", Sensor::kRgbd);
+  EXPECT_EQ(o.first_tracked, 0u);
+  EXPECT_EQ(o.lost_after, 0u);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
+}
+
+// Moving objects covering up to 30% of the view: each sensor keeps tracking and stays within the
+// accuracy bars of the static room (1% of path with depth, 2% monocular after Sim(3)).
+TEST(SceneAccuracy, DynamicRoomEverySensor) {
+  for (const Sensor sensor : {Sensor::kStereo, Sensor::kRgbd, Sensor::kMonocular}) {
+    const Outcome o = RunWithDefaults("synth:room:dynamic=0.3,duration=30", sensor);
+    SCOPED_TRACE(SensorName(sensor));
+    EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
+    if (sensor == Sensor::kMonocular) {
+      // The two-view start takes 1.55 s here, as in the static room (docs/STATUS.md).
+      EXPECT_LT(static_cast<double>(o.first_tracked), 2 * o.rate_hz);
+      EXPECT_LT(o.sim3.ate_m.rmse, 0.02 * o.path_m);
+    } else {
+      EXPECT_EQ(o.first_tracked, 0u);
+      EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
+    }
+  }
+}
+
+}  // namespace
+}  // namespace flatslam
