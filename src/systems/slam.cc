@@ -135,32 +135,23 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
   map_scales_.levels = geometry_.pyramid.levels;
 }
 
-double Slam::MedianStereoDepth(std::span<const float> depth) const {
-  if (calibration_.sensor != Sensor::kStereo) return 0;
+double Slam::CloseDepth() const {
+  return monocular() ? 0.0 : options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx;
+}
+
+double Slam::FarStereoDepth(std::span<const float> depth) const {
+  const double fixed = options_.far_stereo_baselines * calibration_.baseline_m;
+  if (fixed <= 0 || calibration_.sensor != Sensor::kStereo) return std::numeric_limits<double>::infinity();
+  // Far stereo observations count as monocular only while the nearer half of what the frame
+  // measures keeps its stereo depth: where most texture is far (a motorway), a fixed cut would
+  // leave the scale to a few road points, and it drifted by percents.
   thread_local std::vector<float> measured;
   measured.clear();
   for (float d : depth)
     if (d > 0) measured.push_back(d);
-  if (measured.empty()) return 0;
+  if (measured.empty()) return fixed;
   std::nth_element(measured.begin(), measured.begin() + measured.size() / 2, measured.end());
-  return measured[measured.size() / 2];
-}
-
-// Stereo depth is "close" (trusted from one frame, counted by the keyframe rules) within
-// close_depth_baselines, and never less than the nearer half of what the frame measures: where
-// most texture is far (a motorway), a fixed cut would leave a handful of road points to hold the
-// scale, and a keyframe would be asked for on every frame as those few points stream past.
-double Slam::CloseDepth(std::span<const float> depth) const {
-  if (monocular()) return 0.0;
-  return std::max(options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx, MedianStereoDepth(depth));
-}
-
-double Slam::FarStereoDepth(std::span<const float> depth) const {
-  if (options_.far_stereo_baselines <= 0 || calibration_.sensor != Sensor::kStereo)
-    return std::numeric_limits<double>::infinity();
-  // Far stereo observations count as monocular only while the nearer half of the view keeps its
-  // stereo depth, for the same reason as in CloseDepth.
-  return std::max(options_.far_stereo_baselines * calibration_.baseline_m, MedianStereoDepth(depth));
+  return std::max<double>(fixed, measured[measured.size() / 2]);
 }
 
 double Slam::OptimizedRightU(float right_u, float depth, double far_depth) const {
@@ -489,7 +480,7 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
     const MapPoint* point = map_.points().try_get(p);
     if (point && static_cast<int>(point->observations.size()) >= min_observations) ++reference_points;
   }
-  const double close = CloseDepth(frame.keypoints.depth);
+  const double close = CloseDepth();
   int tracked_close = 0, untracked_close = 0;
   for (size_t i = 0; i < frame.size(); ++i) {
     const float d = frame.keypoints.depth[i];
@@ -574,7 +565,7 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
     if (frame.keypoints.depth[i] > 0) by_depth.push_back(i);
   std::sort(by_depth.begin(), by_depth.end(),
             [&](uint32_t a, uint32_t b) { return frame.keypoints.depth[a] < frame.keypoints.depth[b]; });
-  const double close = all_depth_points ? 1e30 : CloseDepth({});
+  const double close = all_depth_points ? 1e30 : CloseDepth();
   int considered = 0;
   for (uint32_t i : by_depth) {
     if (frame.keypoints.depth[i] > close && considered > 100) break;
@@ -861,7 +852,7 @@ void Slam::CullKeyFrames(KeyFrameHandle current) {
     const KeyFrame& kf = map_.keyframe(h);
     if (!kf.loop_edges.empty()) continue;  // loop closures keep both ends
     int considered = 0, redundant = 0;
-    const double close = CloseDepth({});
+    const double close = CloseDepth();
     for (uint32_t i = 0; i < kf.size(); ++i) {
       const MapPoint* point = map_.points().try_get(kf.points[i]);
       if (!point) continue;

@@ -56,7 +56,8 @@ struct SlamOptions {
   // optimization and bundle adjustment (0: never): their disparity is a few pixels, where a tenth
   // of a pixel of rectification error is a percent of depth, and it biased the trajectory's scale
   // (KITTI 06: 0.4% too long with them). They still give rotation, and depth once triangulated
-  // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC.
+  // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC. A frame whose
+  // median measured depth lies beyond it keeps stereo up to that median (the scale needs them).
   double far_stereo_baselines = 35;
   int min_init_points = 150;            // keypoints with depth needed to start a map (stereo/RGB-D)
   int min_init_matches = 100;           // monocular: matches between the two initial frames
@@ -250,13 +251,9 @@ class Slam {
   void Fuse(KeyFrameHandle current);
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
-  // Median of a stereo frame's measured depths (0 for other sensors or none measured).
-  [[nodiscard]] double MedianStereoDepth(std::span<const float> depth) const;
-  // Depth within which a frame's stereo/RGB-D depth is trusted: close_depth_baselines, and for
-  // stereo at least the median measured depth (0 monocular).
-  [[nodiscard]] double CloseDepth(std::span<const float> depth) const;
+  [[nodiscard]] double CloseDepth() const;
   // Depth beyond which a stereo frame's observations count as monocular in optimization:
-  // far_stereo_baselines, at least the median measured depth (infinite without stereo).
+  // far_stereo_baselines, at least the frame's median measured depth (infinite without stereo).
   [[nodiscard]] double FarStereoDepth(std::span<const float> depth) const;
   // The right-image coordinate an optimization uses for a keypoint: none beyond far_depth.
   [[nodiscard]] double OptimizedRightU(float right_u, float depth, double far_depth) const;
