@@ -13,6 +13,7 @@
 #include "io/dataset.h"
 #include "io/orb_settings.h"
 #include "io/synthetic.h"
+#include "expect_error.h"
 #include "test_data.h"
 #include "trajectory/trajectory_io.h"
 
@@ -21,15 +22,7 @@ namespace {
 
 namespace fs = std::filesystem;
 
-template <class Fn>
-void ExpectErrorMentions(Fn&& fn, const std::vector<std::string>& parts) {
-  try {
-    fn();
-    FAIL() << "expected flatslam::Error";
-  } catch (const Error& e) {
-    for (const auto& part : parts) EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-  }
-}
+using testing::ExpectErrorMentions;
 
 // A small room scene: 10 frames at 20 Hz, 320x240.
 SyntheticScene SmallRoom(Sensor sensor) {

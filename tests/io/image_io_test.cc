@@ -8,6 +8,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "core/error.h"
+#include "expect_error.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -16,15 +17,7 @@ namespace {
 namespace fs = std::filesystem;
 
 // Runs fn, expecting a flatslam::Error whose message holds every one of `parts`.
-template <class Fn>
-void ExpectErrorMentions(Fn&& fn, const std::vector<std::string>& parts) {
-  try {
-    fn();
-    FAIL() << "expected flatslam::Error";
-  } catch (const Error& e) {
-    for (const auto& part : parts) EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-  }
-}
+using testing::ExpectErrorMentions;
 
 // Writes the first half of a valid PNG: a truncated download.
 void WriteTruncatedPng(const fs::path& path, const cv::Mat& image) {

@@ -13,6 +13,7 @@
 #include "io/dataset.h"
 #include "io/dataset_writer.h"
 #include "io/euroc.h"
+#include "expect_error.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -20,15 +21,7 @@ namespace {
 
 namespace fs = std::filesystem;
 
-template <class Fn>
-void ExpectErrorMentions(Fn&& fn, const std::vector<std::string>& parts) {
-  try {
-    fn();
-    FAIL() << "expected flatslam::Error";
-  } catch (const Error& e) {
-    for (const auto& part : parts) EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-  }
-}
+using testing::ExpectErrorMentions;
 
 fs::path WriteFile(const std::string& name, const std::string& text) {
   static const fs::path dir = testing::FreshTempDir("orb_settings");

@@ -9,6 +9,7 @@
 
 #include "core/error.h"
 #include "io/dataset.h"
+#include "expect_error.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -16,15 +17,7 @@ namespace {
 
 namespace fs = std::filesystem;
 
-template <class Fn>
-void ExpectErrorMentions(Fn&& fn, const std::vector<std::string>& parts) {
-  try {
-    fn();
-    FAIL() << "expected flatslam::Error";
-  } catch (const Error& e) {
-    for (const auto& part : parts) EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-  }
-}
+using testing::ExpectErrorMentions;
 
 // A tiny TUM RGB-D sequence written on the fly:
 //   rgb   1.000 1.010 1.040 1.100
