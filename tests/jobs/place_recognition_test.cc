@@ -10,6 +10,7 @@
 #include "jobs/slam_runner.h"
 #include "systems/vocabulary.h"
 #include "test_data.h"
+#include "trajectory_score.h"
 #include "trajectory/metrics.h"
 
 namespace flatslam {
@@ -38,13 +39,10 @@ Outcome RunScenario(const std::string& spec, bool loop_closing, const SlamRunOpt
   Outcome out;
   out.run = RunSlam(*dataset, options, run);
   out.gt = *dataset->ground_truth();
-  EvalOptions eval;
-  eval.alignment = Alignment::kSE3;
-  out.se3 = Evaluate(out.gt, out.run.trajectory, eval);
-  eval.alignment = Alignment::kSim3;
-  out.sim3 = Evaluate(out.gt, out.run.trajectory, eval);
-  for (size_t i = 1; i < out.gt.size(); ++i)
-    out.path_m += (out.gt[i].T_world_cam.translation() - out.gt[i - 1].T_world_cam.translation()).norm();
+  const testing::TrajectoryScore score = testing::ScoreTrajectory(out.gt, out.run.trajectory);
+  out.se3 = score.se3;
+  out.sim3 = score.sim3;
+  out.path_m = score.path_m;
   for (const FrameReport& r : out.run.reports) {
     out.lost += r.state == TrackingState::kLost;
     out.relocalized += r.relocalized;

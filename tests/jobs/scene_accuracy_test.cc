@@ -13,6 +13,7 @@
 #include "jobs/slam_runner.h"
 #include "systems/vocabulary.h"
 #include "test_data.h"
+#include "trajectory_score.h"
 #include "trajectory/metrics.h"
 
 namespace flatslam {
@@ -37,14 +38,10 @@ Outcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = 
   Outcome out;
   out.rate_hz = dataset->calibration().frame_rate_hz;
   out.run = RunSlam(*dataset, options, SlamRunOptions{});
-  const Trajectory gt = *dataset->ground_truth();
-  EvalOptions eval;
-  eval.alignment = Alignment::kSE3;
-  out.se3 = Evaluate(gt, out.run.trajectory, eval);
-  eval.alignment = Alignment::kSim3;
-  out.sim3 = Evaluate(gt, out.run.trajectory, eval);
-  for (size_t i = 1; i < gt.size(); ++i)
-    out.path_m += (gt[i].T_world_cam.translation() - gt[i - 1].T_world_cam.translation()).norm();
+  const testing::TrajectoryScore score = testing::ScoreTrajectory(*dataset->ground_truth(), out.run.trajectory);
+  out.se3 = score.se3;
+  out.sim3 = score.sim3;
+  out.path_m = score.path_m;
   out.first_tracked = out.run.reports.size();
   for (const FrameReport& r : out.run.reports)
     if (r.state == TrackingState::kOk) out.first_tracked = std::min(out.first_tracked, r.index);

@@ -8,6 +8,7 @@
 #include "core/error.h"
 #include "systems/vocabulary.h"
 #include "test_data.h"
+#include "trajectory_score.h"
 #include "trajectory/metrics.h"
 
 namespace flatslam {
@@ -32,14 +33,10 @@ Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 
   run.deterministic = deterministic;
   Outcome out;
   out.run = RunSlam(*dataset, options, run);
-  const Trajectory gt = *dataset->ground_truth();
-  EvalOptions eval;
-  eval.alignment = Alignment::kSE3;
-  out.se3 = Evaluate(gt, out.run.trajectory, eval);
-  eval.alignment = Alignment::kSim3;
-  out.sim3 = Evaluate(gt, out.run.trajectory, eval);
-  for (size_t i = 1; i < gt.size(); ++i)
-    out.path_m += (gt[i].T_world_cam.translation() - gt[i - 1].T_world_cam.translation()).norm();
+  const testing::TrajectoryScore score = testing::ScoreTrajectory(*dataset->ground_truth(), out.run.trajectory);
+  out.se3 = score.se3;
+  out.sim3 = score.sim3;
+  out.path_m = score.path_m;
   for (const FrameReport& r : out.run.reports) out.lost += r.state != TrackingState::kOk;
   std::printf("%s: %zu frames, %zu lost, %zu keyframes, %zu points, ATE %.4f m (%.3f%% of %.1f m), scale %.4f\n",
               spec.c_str(), out.run.trajectory.size(), out.lost, out.run.keyframe_count, out.run.point_count,
