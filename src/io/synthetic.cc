@@ -17,6 +17,19 @@
 #include "core/error.h"
 
 namespace flatslam {
+
+SceneQuad MakeQuad(const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v,
+                   double texels_per_m, float brightness) {
+  SceneQuad q;
+  q.origin = origin;
+  q.size_u = u.norm();
+  q.size_v = v.norm();
+  q.axis_u = u / q.size_u;
+  q.axis_v = v / q.size_v;
+  q.texels_per_m = texels_per_m;
+  q.brightness = brightness;
+  return q;
+}
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
@@ -291,17 +304,7 @@ std::vector<SceneQuad> BodyBox(double length, double width, double height, doubl
   const Eigen::Vector3d lo(-0.5 * length, -0.5 * width, 0);
   const Eigen::Vector3d X(length, 0, 0), Y(0, width, 0), Z(0, 0, height);
   auto quad = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v,
-                  float light) {
-    SceneQuad q;
-    q.origin = origin;
-    q.size_u = u.norm();
-    q.size_v = v.norm();
-    q.axis_u = u / q.size_u;
-    q.axis_v = v / q.size_v;
-    q.texels_per_m = texels_per_m;
-    q.brightness = brightness * light;
-    return q;
-  };
+                  float light) { return MakeQuad(origin, u, v, texels_per_m, brightness * light); };
   return {quad(lo, X, Z, 0.9f), quad(lo + Y, X, Z, 1.0f), quad(lo, Y, Z, 0.8f), quad(lo + X, Y, Z, 1.1f),
           quad(lo + Z, X, Y, 1.15f)};
 }

@@ -39,6 +39,10 @@ struct SceneQuad {
   TextureStyle style = TextureStyle::kShapes;
 };
 
+// The quad spanned by u and v from origin (u and v orthogonal; their lengths are the sizes).
+[[nodiscard]] SceneQuad MakeQuad(const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v,
+                                 double texels_per_m, float brightness);
+
 // A quick look-around on top of the forward-looking path: turns by (yaw, pitch) over turn_s with a
 // raised-cosine profile (peak rate = amplitude * pi / (2 turn_s)), holds, then turns back.
 struct CameraGlance {

@@ -16,15 +16,7 @@ constexpr double kPi = 3.14159265358979323846;
 
 SceneQuad Quad(const Vector3d& origin, const Vector3d& u, const Vector3d& v, double texels_per_m,
                float brightness) {
-  SceneQuad q;
-  q.origin = origin;
-  q.size_u = u.norm();
-  q.size_v = v.norm();
-  q.axis_u = u / q.size_u;
-  q.axis_v = v / q.size_v;
-  q.texels_per_m = texels_per_m;
-  q.brightness = brightness;
-  return q;
+  return MakeQuad(origin, u, v, texels_per_m, brightness);
 }
 
 // Six faces of an axis-aligned box seen from inside (a room).
