@@ -19,9 +19,9 @@ struct CliResult {
   std::string output;  // stdout and stderr
 };
 
-// Runs `flatslam ARGUMENTS` through the shell (so arguments may hold quotes and redirections).
-inline CliResult RunApp(const std::string& arguments) {
-  const std::string command = AppPath() + " " + arguments + " 2>&1";
+// Runs a shell command line, stdout and stderr together.
+inline CliResult RunCommand(const std::string& command_line) {
+  const std::string command = command_line + " 2>&1";
   CliResult result;
   FILE* pipe = popen(command.c_str(), "r");
   if (!pipe) return result;
@@ -32,6 +32,9 @@ inline CliResult RunApp(const std::string& arguments) {
   result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return result;
 }
+
+// Runs `flatslam ARGUMENTS` through the shell (so arguments may hold quotes and redirections).
+inline CliResult RunApp(const std::string& arguments) { return RunCommand(AppPath() + " " + arguments); }
 
 inline bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 

@@ -4,8 +4,13 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
+#include <charconv>
 #include <chrono>
+#include <csignal>
 #include <cmath>
+#include <cstdlib>
+#include <set>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -14,10 +19,12 @@
 
 #include "args.h"
 #include "commands.h"
+#include "core/atomic_write.h"
 #include "core/error.h"
 #include "io/dataset.h"
 #include "io/orb_settings.h"
 #include "jobs/slam_runner.h"
+#include "storage/line_log.h"
 #include "storage/snapshot.h"
 #include "systems/slam_config.h"
 #include "systems/vocabulary.h"
@@ -33,11 +40,15 @@ const char* const kRunUsage =
     "                    [--skip A:B,...] [--lose-at N,...]\n"
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
     "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n"
-    "                    [--settings FILE]\n\n"
+    "                    [--settings FILE] [--strict] [--checkpoint FILE [--checkpoint-every S]]\n"
+    "       flatslam run --resume CHECKPOINT [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
     "as fast as it can read, and prints a summary: frames, frames lost, keyframes, map points, ms per\n"
     "frame, frames/s, peak RSS, and ATE/RPE when the dataset has ground truth.\n"
-    "  --out DIR        write trajectory.tum, trajectory.kitti, keyframes.tum and stats.csv\n"
+    "  --out DIR        write trajectory.tum, trajectory.kitti, keyframes.tum and stats.csv;\n"
+    "                   trajectory.tum (poses as tracked) and stats.csv grow as frames are tracked\n"
+    "                   (whole lines, flushed at least every second) and trajectory.tum is\n"
+    "                   rewritten with the refined poses at the end\n"
     "  --features N     ORB features per image (default: from the camera, see --list-options)\n"
     "  --deterministic  run local mapping inline after each keyframe: same input, same output\n"
     "  --mapping-lag N  keyframes tracking may run ahead of local mapping (default 0: wait for\n"
@@ -61,7 +72,19 @@ const char* const kRunUsage =
     "  --settings FILE  an ORB-SLAM2/3 settings YAML: its camera, distortion, baseline and frame rate\n"
     "                   replace the dataset's calibration, its ORBextractor.* and ThDepth set options\n"
     "                   (before --features, --config and --set); needed for a plain image folder\n"
-    "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n";
+    "  --strict         stop at the first unreadable frame (default: report it, skip it like a\n"
+    "                   dropped frame and go on; the summary counts skipped frames)\n"
+    "  --checkpoint F   keep an atomic snapshot of the session in F (map, trajectory, options, next\n"
+    "                   frame), written in the background every --checkpoint-every seconds (default\n"
+    "                   60) and at the end\n"
+    "  --resume F       continue the run checkpointed in F: same dataset, options and outputs, from\n"
+    "                   the frame after the checkpoint, relocalizing in its map; the trajectory\n"
+    "                   covers the frames of both parts\n"
+    "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n"
+    "The first SIGINT or SIGTERM stops reading: the frames in flight are tracked, mapping finishes, and\n"
+    "the trajectory, stats, summary, map and checkpoint are written as at a normal end; the exit code\n"
+    "is then 130 (SIGINT) or 143 (SIGTERM). A second one exits at once; files already in place stay\n"
+    "complete (each is replaced atomically).\n";
 
 namespace {
 
@@ -122,12 +145,132 @@ double Median(std::vector<float> v) {
   return v[v.size() / 2];
 }
 
+// Flags of `flatslam run` that take a value, and switches.
+const std::set<std::string> kRunFlags = {"sensor",      "out",         "seed",       "max-frames", "features",
+                                         "mapping-lag", "vocabulary",  "skip",       "lose-at",    "save-map",
+                                         "agent",       "load-map",    "first-frame", "config",    "set",
+                                         "settings",    "checkpoint",  "checkpoint-every", "resume"};
+const std::set<std::string> kRunSwitches = {"deterministic", "quiet",        "no-loop-closing", "no-global-ba",
+                                            "localize-only", "list-options", "strict"};
+
+// The run's command line as a checkpoint keeps it for --resume: one "--name=value" per flag,
+// paths made absolute (a resume may start elsewhere), without --load-map and --first-frame (the
+// checkpoint's map and next frame replace them) and without --resume itself.
+std::vector<std::string> ResumableArguments(const std::vector<std::string>& argv) {
+  static const std::set<std::string> kPaths = {"out", "save-map", "config", "settings", "vocabulary", "checkpoint"};
+  static const std::set<std::string> kReplaced = {"load-map", "first-frame", "resume"};
+  auto absolute = [](const std::string& path) { return std::filesystem::absolute(path).lexically_normal().string(); };
+  std::vector<std::string> out;
+  for (size_t i = 0; i < argv.size(); ++i) {
+    const std::string& a = argv[i];
+    if (a.size() > 2 && a.rfind("--", 0) == 0) {
+      std::string name = a.substr(2), value;
+      const size_t eq = name.find('=');
+      const bool has_value = eq != std::string::npos || kRunFlags.count(name);
+      if (eq != std::string::npos) {
+        value = name.substr(eq + 1);
+        name = name.substr(0, eq);
+      } else if (has_value && i + 1 < argv.size()) {
+        value = argv[++i];
+      }
+      if (kReplaced.count(name)) continue;
+      if (kPaths.count(name) && !(name == "vocabulary" && value == "none")) value = absolute(value);
+      out.push_back("--" + name + (has_value ? "=" + value : ""));
+    } else {
+      out.push_back(a.rfind("synth:", 0) == 0 ? a : absolute(a));
+    }
+  }
+  return out;
+}
+
+// Signals: the first SIGINT/SIGTERM asks the run to stop; a second one ends the process at once.
+std::atomic<bool> g_stop{false};
+volatile std::sig_atomic_t g_signal = 0;
+
+extern "C" void OnStopSignal(int signal) {
+  if (g_signal != 0) {
+    constexpr char kNow[] = "\nflatslam run: second interrupt: exiting now\n";
+    (void)!::write(STDERR_FILENO, kNow, sizeof(kNow) - 1);
+    ::_exit(128 + signal);
+  }
+  g_signal = signal;
+  g_stop.store(true);
+  constexpr char kStopping[] =
+      "\nflatslam run: interrupted: finishing the frames in flight, then writing the results (interrupt again "
+      "to quit at once)\n";
+  (void)!::write(STDERR_FILENO, kStopping, sizeof(kStopping) - 1);
+}
+
+// Installs OnStopSignal for SIGINT and SIGTERM while it lives; restores the previous handlers.
+class StopSignals {
+ public:
+  StopSignals() {
+    g_stop = false;
+    g_signal = 0;
+    struct sigaction action {};
+    action.sa_handler = OnStopSignal;
+    sigemptyset(&action.sa_mask);
+    ::sigaction(SIGINT, &action, &old_int_);
+    ::sigaction(SIGTERM, &action, &old_term_);
+  }
+  ~StopSignals() {
+    ::sigaction(SIGINT, &old_int_, nullptr);
+    ::sigaction(SIGTERM, &old_term_, nullptr);
+  }
+  StopSignals(const StopSignals&) = delete;
+  StopSignals& operator=(const StopSignals&) = delete;
+
+ private:
+  struct sigaction old_int_ {}, old_term_ {};
+};
+
+// Test hook: FLATSLAM_INJECT_FAULT=global-ba|loop-closing|checkpoint makes that background work
+// throw, so tests can check that its failure becomes a warning and the session goes on.
+std::string InjectedFaultName() {
+  const char* fault = std::getenv("FLATSLAM_INJECT_FAULT");
+  return fault ? fault : "";
+}
+
+// stats.csv lines of frames before `next_frame` (a resumed run keeps the first part's lines).
+std::string StatsBefore(const std::filesystem::path& path, size_t next_frame, const std::string& header) {
+  std::ifstream in(path);
+  std::string out = header, line;
+  if (!in) return out;
+  std::getline(in, line);  // header
+  while (std::getline(in, line)) {
+    if (in.eof()) break;  // a last line without its newline is incomplete
+    size_t frame = 0;
+    const auto [ptr, ec] = std::from_chars(line.data(), line.data() + line.size(), frame);
+    if (ec != std::errc() || *ptr != ',' || frame >= next_frame) continue;
+    out += line + "\n";
+  }
+  return out;
+}
+
 }  // namespace
 
-int RunRun(const std::vector<std::string>& argv) {
-  const Args args(argv, {"sensor", "out", "seed", "max-frames", "features", "mapping-lag", "vocabulary", "skip", "lose-at",
-                                 "save-map", "agent", "load-map", "first-frame", "config", "set", "settings"},
-                  {"deterministic", "quiet", "no-loop-closing", "no-global-ba", "localize-only", "list-options"});
+int RunRun(const std::vector<std::string>& original_argv) {
+  // --resume: the checkpoint's own command line, with its map and next frame.
+  std::vector<std::string> argv = original_argv;
+  std::optional<std::filesystem::path> resume_file;
+  std::optional<SnapshotSession> resume_session;
+  {
+    const Args first(original_argv, kRunFlags, kRunSwitches);
+    if (auto r = first.get("resume")) {
+      for (const std::string& a : original_argv)
+        if (a.rfind("--", 0) == 0 && a != "--quiet" && a.rfind("--resume", 0) != 0)
+          throw UsageError{"--resume takes no other option than --quiet (the checkpoint holds the run's own): " + a};
+      if (!first.positional().empty() && !(first.positional().size() == 1 && first.positional()[0] == *r))
+        throw UsageError{"--resume takes no DATASET (the checkpoint names it)"};
+      resume_file = *r;
+      const auto session = MapSnapshotView::Open(*resume_file).session_summary();
+      FLATSLAM_CHECK(session.has_value(), "--resume ", *resume_file,
+                     ": a map snapshot without a session (not written by --checkpoint); continue it with --load-map");
+      argv = session->arguments;
+      if (first.has("quiet")) argv.push_back("--quiet");
+    }
+  }
+  const Args args(argv, kRunFlags, kRunSwitches);
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
     return 0;
@@ -166,12 +309,18 @@ int RunRun(const std::vector<std::string>& argv) {
   options.loop_closing = !args.has("no-loop-closing");
   options.global_bundle_adjustment = !args.has("no-global-ba");
   options.localization_only = args.has("localize-only");
-  if (options.localization_only && !args.has("load-map")) throw UsageError{"--localize-only needs --load-map"};
-  // A saved map to continue: same camera, same vocabulary.
+  if (options.localization_only && !args.has("load-map") && !resume_file)
+    throw UsageError{"--localize-only needs --load-map"};
+  if (args.has("checkpoint") && !options.vocabulary)
+    throw UsageError{"--checkpoint needs a vocabulary (a resumed run relocalizes in the checkpoint's map)"};
+  // A saved map to continue (--load-map, or the checkpoint of --resume): same camera, same vocabulary.
   std::optional<Map> loaded_map;
   std::string loaded_note;
-  if (auto m = args.get("load-map")) {
-    FLATSLAM_CHECK(options.vocabulary, "--load-map ", *m, ": continuing a map needs a vocabulary (not 'none')");
+  const std::optional<std::string> map_to_load =
+      resume_file ? std::optional<std::string>(resume_file->string()) : args.get("load-map");
+  if (const auto& m = map_to_load) {
+    const char* flag = resume_file ? "--resume " : "--load-map ";
+    FLATSLAM_CHECK(options.vocabulary, flag, *m, ": continuing a map needs a vocabulary (not 'none')");
     SnapshotReadOptions read;
     read.vocabulary_checksum = options.vocabulary->checksum();
     LoadedSnapshot snapshot = LoadMapSnapshot(*m, read);
@@ -184,12 +333,16 @@ int RunRun(const std::vector<std::string>& argv) {
                              std::abs(have.camera.cx - want.camera.cx) < 1e-6 * want.camera.fx &&
                              std::abs(have.camera.cy - want.camera.cy) < 1e-6 * want.camera.fy &&
                              std::abs(have.baseline_m - want.baseline_m) < 1e-9 + 1e-6 * want.baseline_m;
-    FLATSLAM_CHECK(same_camera, "--load-map ", *m, ": the map was built with another camera or sensor than ",
+    FLATSLAM_CHECK(same_camera, flag, *m, ": the map was built with another camera or sensor than ",
                    args.positional()[0]);
-    FLATSLAM_CHECK(!snapshot.maps.empty(), "--load-map ", *m, ": the snapshot holds no map");
+    FLATSLAM_CHECK(!snapshot.maps.empty(), flag, *m, ": the snapshot holds no map");
     size_t best = 0;
     for (size_t k = 1; k < snapshot.maps.size(); ++k)
       if (snapshot.maps[k].map.keyframes().size() > snapshot.maps[best].map.keyframes().size()) best = k;
+    if (resume_file) {
+      best = snapshot.metadata.session->map;
+      resume_session = std::move(*snapshot.metadata.session);
+    }
     char note[256];
     std::snprintf(note, sizeof(note), "%s: map %u of %zu, %zu keyframes, %zu map points", m->c_str(),
                   snapshot.maps[best].id, snapshot.maps.size(), snapshot.maps[best].map.keyframes().size(),
@@ -220,34 +373,49 @@ int RunRun(const std::vector<std::string>& argv) {
     return 0;
   }
   const bool quiet = args.has("quiet") || !isatty(STDERR_FILENO);
+  const std::string fault = InjectedFaultName();
+  if (fault == "global-ba") options.inject_fault = InjectedFault::kGlobalBundleAdjustment;
+  if (fault == "loop-closing") options.inject_fault = InjectedFault::kLoopClosing;
   SlamRunOptions run;
   run.max_frames = frames;
   run.deterministic = args.has("deterministic");
+  run.strict = args.has("strict");
+  run.keep_results_on_error = true;  // an error ends the run, but what it computed is still written
   run.max_mapping_lag = static_cast<int>(args.get_int("mapping-lag", run.max_mapping_lag));
   if (run.max_mapping_lag < 0) throw UsageError{"--mapping-lag must be at least 0"};
   const int64_t first_frame = args.get_int("first-frame", 0);
   if (first_frame < 0 || static_cast<size_t>(first_frame) >= frames)
     throw UsageError{"--first-frame must be a frame of the dataset (0.." + std::to_string(frames - 1) + ")"};
   run.first_frame = static_cast<size_t>(first_frame);
+  if (resume_session) {
+    run.first_frame = std::min<size_t>(resume_session->next_frame, frames);
+    run.initial_frames = resume_session->frames;
+    char note[160];
+    std::snprintf(note, sizeof(note), ", %zu frames tracked before, resuming at frame %zu", resume_session->frames.size(),
+                  run.first_frame);
+    loaded_note += note;
+  }
   if (loaded_map) run.initial_map = &*loaded_map;
   if (auto skip = args.get("skip")) run.skip = ParseRanges("skip", *skip, true);
   if (auto lose = args.get("lose-at"))
     for (const auto& [n, unused] : ParseRanges("lose-at", *lose, false)) run.lose_at.push_back(n);
+  SnapshotMetadata metadata;
+  metadata.calibration = dataset->calibration();
+  metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
+  // Identity of the vocabulary the map's keyframes were indexed with (0: none).
+  metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;
   // The map is saved when every stage has drained; a failed save is reported after the summary.
   std::optional<std::filesystem::path> save_map;
   std::string save_error;
   double save_ms = 0;
+  auto check_directory = [](const char* flag, const std::filesystem::path& file) {
+    const std::filesystem::path dir = file.has_parent_path() ? file.parent_path() : ".";
+    FLATSLAM_CHECK(std::filesystem::is_directory(dir), flag, " ", file, ": directory ", dir, " does not exist");
+  };
   if (auto m = args.get("save-map")) {
     save_map = *m;
-    const std::filesystem::path dir = save_map->has_parent_path() ? save_map->parent_path() : ".";
-    FLATSLAM_CHECK(std::filesystem::is_directory(dir), "--save-map ", *save_map, ": directory ", dir,
-                   " does not exist");
-    SnapshotMetadata metadata;
-    metadata.calibration = dataset->calibration();
-    metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
-    // Identity of the vocabulary the map's keyframes were indexed with (0: none).
-    metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;
-    run.on_finished = [&, metadata](const Slam& slam) {
+    check_directory("--save-map", *save_map);
+    run.on_finished = [&](const Slam& slam) {
       const auto start = std::chrono::steady_clock::now();
       try {
         const SnapshotMapRef ref{0, &slam.map()};
@@ -258,48 +426,112 @@ int RunRun(const std::vector<std::string>& argv) {
       save_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     };
   }
-  // Per-frame statistics go to stats.csv as frames are tracked: a session of any length keeps
-  // only two timings per frame (for the medians) besides its trajectory.
-  std::ofstream csv;
+  // Checkpoints: the session's map, trajectory, command line and next frame, saved atomically.
+  std::optional<std::filesystem::path> checkpoint;
+  size_t last_checkpoint_frame = 0;
+  if (auto c = args.get("checkpoint")) {
+    checkpoint = *c;
+    check_directory("--checkpoint", *checkpoint);
+    run.checkpoint_every_s = args.get_double("checkpoint-every", 60);
+    if (!(run.checkpoint_every_s > 0)) throw UsageError{"--checkpoint-every must be a positive number of seconds"};
+    const std::vector<std::string> arguments = ResumableArguments(argv);
+    run.on_checkpoint = [&, arguments, inject = fault == "checkpoint"](const Slam::State& state, size_t next_frame) {
+      if (inject) Fail("injected failure in checkpoint write");
+      SnapshotMetadata with_session = metadata;
+      SnapshotSession session;
+      session.next_frame = next_frame;
+      session.dataset = args.positional()[0];
+      session.arguments = arguments;
+      session.frames = state.frames;
+      with_session.session = std::move(session);
+      const SnapshotMapRef ref{0, &state.map};
+      SaveMapSnapshot(*checkpoint, {&ref, 1}, with_session);
+      last_checkpoint_frame = next_frame;
+    };
+  } else if (args.has("checkpoint-every")) {
+    throw UsageError{"--checkpoint-every needs --checkpoint FILE"};
+  }
+  size_t warnings = 0;
+  run.on_warning = [&warnings](const std::string& message) {
+    ++warnings;
+    std::fprintf(stderr, "\nwarning: %s\n", message.c_str());
+  };
+  size_t skipped = 0;
+  run.on_skipped = [&skipped](size_t index, const std::string& reason) {
+    ++skipped;
+    std::fprintf(stderr, "\nwarning: frame %zu skipped: %s\n", index, reason.c_str());
+  };
+  // Per-frame statistics and the trajectory as tracked go to stats.csv and trajectory.tum as
+  // frames are tracked (whole lines, flushed at least every second): a session of any length
+  // keeps only two timings per frame (for the medians) besides its trajectory, and a killed run
+  // leaves both files readable. A resumed run keeps the first part's lines.
+  const std::string csv_header =
+      "frame,t_ns,state,keyframe,reinitialized,relocalized,features,stereo_points,matches,inliers,extract_ms,"
+      "track_ms,rss_mib,heap_mib,map_keyframes,map_points\n";
+  std::optional<LineLog> csv, streamed;
   if (out_dir) {
-    csv.open(*out_dir / "stats.csv");
-    FLATSLAM_CHECK(csv.is_open(), "cannot write ", (*out_dir / "stats.csv"));
-    csv << "frame,t_ns,state,keyframe,reinitialized,relocalized,features,stereo_points,matches,inliers,extract_ms,"
-           "track_ms,rss_mib,heap_mib,map_keyframes,map_points\n";
+    const std::filesystem::path csv_path = *out_dir / "stats.csv";
+    if (resume_session) {
+      const std::string kept = StatsBefore(csv_path, run.first_frame, csv_header);
+      WriteFileAtomically(csv_path, [&](std::FILE* f) { std::fputs(kept.c_str(), f); });
+      csv.emplace(csv_path, "", LineLog::Mode::kAppend);
+    } else {
+      csv.emplace(csv_path, csv_header);
+    }
+    std::string prefix = kTumHeader;
+    if (resume_session)
+      for (const AnchoredFramePose& f : resume_session->frames)
+        prefix += FormatTumLine({f.t_ns, f.T_cam_world.inverse()});
+    streamed.emplace(*out_dir / "trajectory.tum", prefix);
   }
   size_t done = 0, keyframes_so_far = 0, lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
   std::vector<float> track_ms, extract_ms;
   track_ms.reserve(frames);
   extract_ms.reserve(frames);
   run.keep_reports = false;
+  const size_t to_do = frames - run.first_frame;
   run.on_frame = [&](const FrameReport& r) {
     ++done;
-    keyframes_so_far += r.keyframe;
-    lost += r.state == TrackingState::kLost;
-    not_initialized += r.state == TrackingState::kNotInitialized;
-    relocalized += r.relocalized;
-    reinitialized += r.reinitialized;
-    track_ms.push_back(static_cast<float>(r.track_ms));
-    extract_ms.push_back(static_cast<float>(r.extract_ms));
+    if (!r.skipped) {
+      keyframes_so_far += r.keyframe;
+      lost += r.state == TrackingState::kLost;
+      not_initialized += r.state == TrackingState::kNotInitialized;
+      relocalized += r.relocalized;
+      reinitialized += r.reinitialized;
+      track_ms.push_back(static_cast<float>(r.track_ms));
+      extract_ms.push_back(static_cast<float>(r.extract_ms));
+    }
     // Resident set and committed heap sampled every frame: long sessions show whether memory
     // stays flat.
-    if (csv.is_open())
-      csv << r.index << "," << r.t_ns << "," << TrackingStateName(r.state) << "," << r.keyframe << ","
-          << r.reinitialized << "," << r.relocalized << "," << r.features << "," << r.stereo_points << ","
-          << r.matches << "," << r.inliers << "," << r.extract_ms << "," << r.track_ms << "," << CurrentRssMiB()
-          << "," << HeapCommittedMiB() << "," << r.map_keyframes << "," << r.map_points << "\n";
-    if (!quiet && (done % 10 == 0 || done == frames))
-      std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", done, frames,
-                   TrackingStateName(r.state), keyframes_so_far);
+    if (csv) {
+      char line[512];
+      std::snprintf(line, sizeof(line), "%zu,%lld,%s,%d,%d,%d,%d,%d,%d,%d,%g,%g,%g,%g,%zu,%zu\n", r.index,
+                    static_cast<long long>(r.t_ns), r.skipped ? "skipped" : TrackingStateName(r.state), r.keyframe,
+                    r.reinitialized, r.relocalized, r.features, r.stereo_points, r.matches, r.inliers, r.extract_ms,
+                    r.track_ms, CurrentRssMiB(), HeapCommittedMiB(), r.map_keyframes, r.map_points);
+      csv->Append(line);
+    }
+    if (streamed && r.T_world_cam) streamed->Append(FormatTumLine({r.t_ns, *r.T_world_cam}));
+    if (!quiet && (done % 10 == 0 || done == to_do))
+      std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", done, to_do,
+                   r.skipped ? "skipped" : TrackingStateName(r.state), keyframes_so_far);
   };
+  // A checkpoint's rows and poses are on disk before the checkpoint itself.
+  run.before_checkpoint = [&] {
+    if (csv) csv->Flush();
+    if (streamed) streamed->Flush();
+  };
+  const StopSignals stop_signals;
+  run.stop = &g_stop;
   const SlamRunResult result = RunSlam(*dataset, options, run);
   if (!quiet) std::fprintf(stderr, "\n");
   const double wall_s = result.wall_s;
   const Trajectory& trajectory = result.trajectory;
   const Trajectory& keyframes = result.keyframes;
   if (out_dir) {
-    csv.close();
-    FLATSLAM_CHECK(!csv.fail(), "cannot write ", (*out_dir / "stats.csv"));
+    csv->Close();
+    streamed->Close();
+    // The streamed poses as tracked give way to the refined ones (each file replaced atomically).
     if (!trajectory.empty()) {
       WriteTum(*out_dir / "trajectory.tum", trajectory);
       WriteKitti(*out_dir / "trajectory.kitti", trajectory);
@@ -319,8 +551,11 @@ int RunRun(const std::vector<std::string>& argv) {
                 c.sensor == Sensor::kStereo ? (", baseline " + std::to_string(c.baseline_m) + " m").c_str() : "",
                 resolved.orb.features, options.orb.features == 0 ? " (from the camera)" : "");
   }
-  std::printf("frames        %zu tracked, %zu lost, %zu before initialization\n", trajectory.size(), lost,
-              not_initialized);
+  std::printf("frames        %zu tracked, %zu lost, %zu before initialization, %zu skipped (unreadable)\n",
+              trajectory.size(), lost, not_initialized, result.frames_skipped);
+  if (g_signal != 0)
+    std::printf("interrupted   by %s after frame %zu of %zu: frames after it were not read\n",
+                g_signal == SIGINT ? "SIGINT" : "SIGTERM", result.next_frame == 0 ? 0 : result.next_frame - 1, frames);
   if (options.vocabulary) {
     std::printf("places        vocabulary %zu words (loaded in %.1f ms), %zu relocalizations, %zu new map segments, "
                 "%zu loop closures\n",
@@ -360,6 +595,18 @@ int RunRun(const std::vector<std::string>& argv) {
                 m.local_ba_stopped_early, m.cull_ms / n, m.place_ms / n);
   }
   std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", result.frames / wall_s, wall_s);
+  if (checkpoint) {
+    const auto& during = result.frame_ms_during_checkpoints;
+    const double longest = during.empty() ? 0 : *std::max_element(during.begin(), during.end());
+    const auto& capture = result.checkpoint_capture_ms;
+    std::vector<float> capture_f(capture.begin(), capture.end());
+    std::printf("checkpoints   %zu written to %s (last: next frame %zu), %zu failed; copy median %.1f ms (max %.1f); "
+                "longest frame while checkpointing %.1f ms; all frames: median %.1f ms, longest %.1f ms\n",
+                result.checkpoints, checkpoint->c_str(), last_checkpoint_frame, result.checkpoint_failures,
+                Median(capture_f), capture.empty() ? 0.0 : *std::max_element(capture.begin(), capture.end()), longest,
+                Median(track_ms), track_ms.empty() ? 0.0 : *std::max_element(track_ms.begin(), track_ms.end()));
+  }
+  if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
   if (auto gt = dataset->ground_truth(); gt && !trajectory.empty()) {
     EvalOptions eval;
@@ -367,29 +614,35 @@ int RunRun(const std::vector<std::string>& argv) {
     const EvalResult se3 = Evaluate(*gt, trajectory, eval);
     eval.alignment = Alignment::kSim3;
     const EvalResult sim3 = Evaluate(*gt, trajectory, eval);
+    // The path over the time the trajectory covers (an interrupted run covers a part).
     double length = 0;
     for (size_t i = 1; i < gt->size(); ++i)
-      length += ((*gt)[i].T_world_cam.translation() - (*gt)[i - 1].T_world_cam.translation()).norm();
+      if ((*gt)[i - 1].t_ns >= trajectory.front().t_ns && (*gt)[i].t_ns <= trajectory.back().t_ns)
+        length += ((*gt)[i].T_world_cam.translation() - (*gt)[i - 1].T_world_cam.translation()).norm();
     std::printf("ATE           %.4f m RMSE after SE(3) (%zu poses, %.2f%% of the %.1f m path); Sim(3) %.4f m, scale %.4f\n",
                 se3.ate_m.rmse, se3.pairs.size(), 100.0 * se3.ate_m.rmse / std::max(length, 1e-9), length,
                 sim3.ate_m.rmse, sim3.alignment.scale);
     std::printf("RPE           %.4f m / %.3f deg per frame (RMSE)\n", se3.rpe_frames.translation_m.rmse,
                 se3.rpe_frames.rotation_deg.rmse);
   }
+  if (!result.error.empty())
+    std::printf("stopped       after frame %zu by an error (results cover the frames before): %s\n",
+                result.next_frame == 0 ? 0 : result.next_frame - 1, result.error.c_str());
+  const int exit_code = g_signal != 0 ? 128 + g_signal : (result.error.empty() ? 0 : 1);
   if (trajectory.empty()) {
     std::printf("result        no frame was tracked: the map never initialized (see stats.csv)\n");
-    return 1;
+    return exit_code != 0 ? exit_code : 1;
   }
   if (out_dir) std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv}\n", out_dir->c_str());
   if (save_map) {
     if (!save_error.empty()) {
       std::printf("map snapshot  not saved: %s\n", save_error.c_str());
-      return 1;
+      return exit_code != 0 ? exit_code : 1;
     }
     std::printf("map snapshot  %s (%.2f MiB, saved in %.1f ms)\n", save_map->c_str(),
                 std::filesystem::file_size(*save_map) / 1048576.0, save_ms);
   }
-  return 0;
+  return exit_code;
 }
 
 }  // namespace flatslam::app

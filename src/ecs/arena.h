@@ -201,6 +201,16 @@ class Arena {
     handles_.reserve(n);
     slots_.reserve(n);
   }
+  // Makes this arena a copy of `other` with the same handles; each value is copied by
+  // copy(T& dst, const T& src) over whatever value was at that dense position before, so a
+  // repeated copy can reuse buffers and skip what it knows to be unchanged.
+  template <class Copy>
+  void assign_from(const Arena& other, Copy&& copy) {
+    values_.resize(other.values_.size());
+    for (size_t i = 0; i < values_.size(); ++i) copy(values_[i], other.values_[i]);
+    handles_ = other.handles_;
+    slots_ = other.slots_;
+  }
   void clear() {
     values_.clear();
     handles_.clear();

@@ -308,4 +308,34 @@ std::string Map::Validate() const {
   return {};
 }
 
+void Map::AssignForSnapshot(const Map& other) {
+  const bool same_source = snapshot_source_ == &other;
+  snapshot_source_ = &other;
+  keyframes_.assign_from(other.keyframes_, [same_source](KeyFrame& dst, const KeyFrame& src) {
+    const bool same = same_source && dst.id == src.id && dst.size() == src.size() && dst.t_ns == src.t_ns;
+    if (!same) {
+      dst.uv = src.uv;
+      dst.right_u = src.right_u;
+      dst.depth = src.depth;
+      dst.angle = src.angle;
+      dst.octave = src.octave;
+      dst.descriptor = src.descriptor;
+    }
+    dst.id = src.id;
+    dst.frame_index = src.frame_index;
+    dst.t_ns = src.t_ns;
+    dst.T_cam_world = src.T_cam_world;
+    dst.points = src.points;
+    dst.covisible = src.covisible;
+    dst.parent = src.parent;
+    dst.children = src.children;
+    dst.loop_edges = src.loop_edges;
+    dst.bow.clear();
+    dst.bow_features.clear();
+    dst.agent = src.agent;
+  });
+  points_ = other.points_;
+  next_keyframe_id_ = other.next_keyframe_id_;
+}
+
 }  // namespace flatslam

@@ -77,6 +77,15 @@ struct MapPoint {
 };
 
 // Scale pyramid facts the map needs to keep distance ranges (see ScalePyramid in systems).
+// A tracked frame's pose as a session keeps it: relative to a reference keyframe, so that map
+// corrections move it, with the pose it was tracked at for when no live keyframe is left to follow.
+struct AnchoredFramePose {
+  int64_t t_ns = 0;
+  KeyFrameHandle reference;
+  Eigen::Isometry3d T_cam_ref = Eigen::Isometry3d::Identity();
+  Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();  // at tracking time
+};
+
 struct MapScales {
   float scale_factor = 1.2f;
   int levels = 8;
@@ -131,12 +140,21 @@ class Map {
   // spanning tree links); returns an empty string when consistent, else the first problem.
   [[nodiscard]] std::string Validate() const;
 
+  // Makes this map a copy of `other` for a snapshot (a checkpoint): same handles and values, but
+  // without bags of words. When the last AssignForSnapshot into this map had the same source
+  // object, a keyframe already here at the same position with the same id keeps its per-keypoint
+  // columns (they never change after creation, and ids are never reused within a map). Called
+  // again and again from one live map, it copies little more than what changed. Contract: the
+  // source is the same map as before, not another map assigned into the same object meanwhile.
+  void AssignForSnapshot(const Map& other);
+
  private:
   void RemoveCovisibilityLinks(KeyFrameHandle kf);
 
   Arena<KeyFrame> keyframes_;
   Arena<MapPoint> points_;
   uint64_t next_keyframe_id_ = 0;
+  const Map* snapshot_source_ = nullptr;  // the source of the last AssignForSnapshot
 };
 
 }  // namespace flatslam

@@ -5,6 +5,8 @@
 #include <filesystem>
 #include <system_error>
 
+#include <opencv2/core.hpp>
+
 #include "core/error.h"
 #include "io/euroc.h"
 #include "io/image_folder.h"
@@ -18,6 +20,20 @@ namespace flatslam {
 // Defined by the synthetic renderer (io/synthetic.h); declared here so layout detection
 // does not depend on that header.
 std::unique_ptr<Dataset> OpenSyntheticDataset(const std::string& scene, const DatasetOptions& options);
+
+void CheckFrame(const Frame& frame, const Calibration& calibration) {
+  const cv::Size size(calibration.camera.width, calibration.camera.height);
+  auto check = [&](const cv::Mat& image, int type, const char* what) {
+    FLATSLAM_CHECK(!image.empty(), "frame ", frame.index, ": no ", what, " image");
+    FLATSLAM_CHECK(image.size() == size, "frame ", frame.index, ": ", what, " image is ", image.cols, "x", image.rows,
+                   ", the camera's ", size.width, "x", size.height);
+    FLATSLAM_CHECK(image.type() == type, "frame ", frame.index, ": ", what, " image has pixel type ",
+                   cv::typeToString(image.type()), ", expected ", cv::typeToString(type));
+  };
+  check(frame.left, CV_8UC1, "left");
+  if (calibration.sensor == Sensor::kStereo) check(frame.right, CV_8UC1, "right");
+  if (calibration.sensor == Sensor::kRgbd) check(frame.depth, CV_32FC1, "depth");
+}
 
 const char* SensorName(Sensor sensor) {
   switch (sensor) {

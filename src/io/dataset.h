@@ -25,6 +25,11 @@ class Dataset {
   [[nodiscard]] virtual std::optional<Trajectory> ground_truth() const = 0;
 };
 
+// Checks that a frame fits the calibration: a CV_8UC1 left image of the camera's size, a right
+// image like it for stereo, a CV_32FC1 depth image of the same size for RGB-D. Throws
+// flatslam::Error naming the frame and what is wrong (readers already name the file).
+void CheckFrame(const Frame& frame, const Calibration& calibration);
+
 struct OrbSettings;  // io/orb_settings.h
 
 struct DatasetOptions {

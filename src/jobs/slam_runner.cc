@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <mutex>
 #include <thread>
 
 #include <tbb/task_arena.h>
@@ -16,12 +17,25 @@ struct Item {
   size_t index = 0;
   TrackedFrame frame;
   double extract_ms = 0;
+  std::string unreadable;  // why the frame could not be read (empty: it was)
 };
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+// A request for a checkpoint (the job takes the copy itself).
+struct CheckpointJob {};
 
 }  // namespace
 
 SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
   Slam slam(dataset.calibration(), options);
+  if (run.on_warning) slam.SetWarningSink(run.on_warning);
+  auto warn = [&](const std::string& message) {
+    if (run.on_warning) run.on_warning(message);
+    else std::fprintf(stderr, "warning: %s\n", message.c_str());
+  };
   const size_t frames = run.max_frames == 0 ? dataset.size() : std::min(run.max_frames, dataset.size());
   SlamRunResult result;
   if (run.keep_reports) result.reports.reserve(frames);
@@ -36,10 +50,51 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   FramePipeline<Item> pipeline(pipeline_options);
   auto mapping =
       pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
+  // Checkpoint writes: one at a time, never queued behind each other (the track stage only copies
+  // the session when the last copy has been written).
+  std::atomic<bool> checkpoint_busy{false};
+  // One copy of the session, reused by every checkpoint (one is written at a time). The copy is
+  // taken by the background job, not the track stage: tracking waits only if it needs the map
+  // lock while the copy runs (measured in the frames' track_ms).
+  Slam::State checkpoint_state;
+  // Held by the track stage from Track to on_frame, and by a checkpoint's copy: a checkpoint never
+  // covers a frame whose report has not been handed out.
+  std::mutex between_frames;
+  auto take_checkpoint = [&](bool last) {
+    auto start = std::chrono::steady_clock::now();
+    {
+      std::lock_guard<std::mutex> lock(between_frames);
+      if (run.before_checkpoint) run.before_checkpoint();
+      slam.CaptureState(&checkpoint_state);
+    }
+    // The last one also covers unreadable frames at the end, which tracking never saw.
+    if (last) checkpoint_state.next_frame = std::max(checkpoint_state.next_frame, result.next_frame);
+    result.checkpoint_capture_ms.push_back(MsSince(start));
+    start = std::chrono::steady_clock::now();
+    try {
+      run.on_checkpoint(checkpoint_state, checkpoint_state.next_frame);
+      ++result.checkpoints;
+    } catch (const std::exception& e) {
+      ++result.checkpoint_failures;
+      warn(std::string("checkpoint at frame ") + std::to_string(checkpoint_state.next_frame) +
+           " not written, the session goes on: " + e.what());
+    }
+    result.checkpoint_write_ms.push_back(MsSince(start));
+  };
+  auto checkpoints = pipeline.add_background_stage<CheckpointJob>("checkpoint", [&](CheckpointJob&) {
+    take_checkpoint(false);
+    checkpoint_busy = false;
+  });
+  const bool checkpointing = run.checkpoint_every_s > 0 && run.on_checkpoint;
+  auto last_checkpoint = std::chrono::steady_clock::now();
+
   // The frames SLAM sees, in order.
   std::vector<size_t> order;
-  FLATSLAM_CHECK(run.first_frame < frames, "first frame ", run.first_frame, " is past the last frame ", frames - 1);
-  if (run.initial_map) slam.AdoptMap(std::move(*run.initial_map));
+  // A continued session may start past the last frame (a checkpoint taken at the end): it then
+  // only gives back the trajectory it continues.
+  FLATSLAM_CHECK(run.first_frame < frames || (run.initial_map && run.first_frame == frames), "first frame ",
+                 run.first_frame, " is past the last frame ", frames - 1);
+  if (run.initial_map) slam.AdoptMap(std::move(*run.initial_map), run.initial_frames);
   for (size_t i = run.first_frame; i < frames; ++i) {
     const bool skipped =
         std::any_of(run.skip.begin(), run.skip.end(), [&](const auto& r) { return i >= r.first && i < r.second; });
@@ -47,23 +102,52 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   }
   pipeline.set_source([&](size_t seq) -> std::optional<Item> {
     if (seq >= order.size()) return std::nullopt;
+    if (run.stop && run.stop->load()) {
+      result.interrupted = true;
+      return std::nullopt;
+    }
     Item item;
     item.index = order[seq];
     return item;
   });
   pipeline.add_parallel_stage("extract", [&](Item& item) {
-    const Frame frame = dataset.read(item.index);
+    Frame frame;
+    try {
+      frame = dataset.read(item.index);
+      CheckFrame(frame, dataset.calibration());
+    } catch (const Error& e) {
+      if (run.strict) throw;
+      item.unreadable = e.what();
+      return;
+    }
     const auto start = std::chrono::steady_clock::now();
     slam.Extract(frame, &item.frame);
-    item.extract_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    item.extract_ms = MsSince(start);
   });
   // One worker cannot both wait in the track stage and run mapping: map inline then.
   const bool inline_mapping = run.deterministic || tbb::this_task_arena::max_concurrency() < 2;
+  std::string first_unreadable;
   pipeline.add_serial_stage("track", [&](Item& item) {
+    ++result.frames;
+    result.next_frame = item.index + 1;
+    if (!item.unreadable.empty()) {
+      // Like a dropped frame: tracking never sees it.
+      const std::lock_guard<std::mutex> reporting(between_frames);
+      ++result.frames_skipped;
+      if (first_unreadable.empty()) first_unreadable = item.unreadable;
+      if (run.on_skipped) run.on_skipped(item.index, item.unreadable);
+      FrameReport report;
+      report.index = item.index;
+      report.skipped = true;
+      if (run.on_frame) run.on_frame(report);
+      if (run.keep_reports) result.reports.push_back(report);
+      return;
+    }
     // Mapping may run behind by max_mapping_lag keyframes, none while tracking wants one.
     while (!inline_mapping && (slam.pending_keyframes() > run.max_mapping_lag ||
                                (slam.keyframe_wanted() && slam.pending_keyframes() > 0)))
       std::this_thread::sleep_for(std::chrono::microseconds(200));
+    std::unique_lock<std::mutex> reporting(between_frames);
     std::optional<KeyFrameHandle> keyframe;
     if (std::find(run.lose_at.begin(), run.lose_at.end(), item.index) != run.lose_at.end()) slam.ForceLost();
     FrameReport report = slam.Track(std::move(item.frame), &keyframe);
@@ -72,20 +156,40 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       if (inline_mapping) slam.MapKeyFrame(*keyframe);
       else mapping.post(*keyframe);
     }
+    // Frames tracked while a checkpoint was copied or written: their tracking time includes any
+    // wait for the map lock that the copy held.
+    if (checkpoint_busy.load()) {
+      result.frame_ms_during_checkpoints.push_back(report.track_ms);
+    } else if (checkpointing && std::chrono::duration<double>(std::chrono::steady_clock::now() - last_checkpoint)
+                                        .count() >= run.checkpoint_every_s) {
+      checkpoint_busy = true;
+      checkpoints.post(CheckpointJob{});
+      last_checkpoint = std::chrono::steady_clock::now();
+    }
     if (run.on_frame) run.on_frame(report);
-    ++result.frames;
     if (run.keep_reports) result.reports.push_back(report);
   });
+  result.next_frame = run.first_frame;
   const auto start = std::chrono::steady_clock::now();
-  pipeline.run();
-  slam.WaitForBackground();
+  try {
+    pipeline.run();
+  } catch (const Error& e) {
+    if (!run.keep_results_on_error) throw;
+    result.error = e.what();
+  }
+  if (result.interrupted || !result.error.empty()) slam.AbandonBackground();
+  else slam.WaitForBackground();
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (result.error.empty() && result.frames > 0 && result.frames_skipped == result.frames)
+    Fail("none of the ", result.frames, " frames of ", dataset.name(), " could be read; the first: ", first_unreadable);
   result.trajectory = slam.FrameTrajectory();
   result.keyframes = slam.KeyFrameTrajectory();
   result.keyframe_count = slam.map().keyframes().size();
   result.point_count = slam.map().points().size();
   result.loop_closures = slam.loop_closures();
   result.mapping = slam.mapping_times();
+  // The last checkpoint: the whole session as it ends.
+  if (checkpointing && result.frames > result.frames_skipped) take_checkpoint(true);
   if (run.on_finished) run.on_finished(slam);
   return result;
 }

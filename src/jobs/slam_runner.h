@@ -1,10 +1,13 @@
 // Runs the SLAM systems over a dataset on the frame pipeline: read + extract in parallel across
-// frames, track in frame order, local mapping as a background queue.
-// Concurrency: RunSlam blocks the calling thread; it uses TBB workers for the stages.
+// frames, track in frame order, local mapping and checkpoint writes as background queues.
+// Concurrency: RunSlam blocks the calling thread; it uses TBB workers for the stages. The
+// callbacks below say which thread calls them.
 #pragma once
 
+#include <atomic>
 #include <cstddef>
 #include <functional>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -17,6 +20,9 @@ struct SlamRunOptions {
   size_t max_frames = 0;        // 0 = every frame of the dataset; else frames [first_frame, max_frames)
   size_t first_frame = 0;       // frames before it are not read (a session continuing a saved map)
   Map* initial_map = nullptr;   // moved into the SLAM system before the first frame (Slam::AdoptMap)
+  // With initial_map: the trajectory of the session it continues (a resumed checkpoint); the
+  // result's trajectory starts with these frames.
+  std::vector<AnchoredFramePose> initial_frames;
   bool deterministic = false;   // map each keyframe inline in the track stage: same input, same output
   size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = max(16, 4 x cores)
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which
@@ -35,6 +41,37 @@ struct SlamRunOptions {
   // Called once after every stage has drained, before RunSlam returns (e.g. to save the map);
   // may be empty.
   std::function<void(const Slam&)> on_finished;
+
+  // A frame whose images cannot be read or do not fit the calibration (missing, unreadable,
+  // truncated, wrong size or pixel type, a depth image unlike its colour image) is skipped like a
+  // dropped frame: on_skipped hears why (track stage, in frame order), on_frame gets a report
+  // with `skipped` set, and tracking goes on (relocalizing if it must). strict: the first such
+  // frame ends the run with its error instead. A run where every frame is bad fails either way.
+  bool strict = false;
+  std::function<void(size_t index, const std::string& reason)> on_skipped;
+  // When it becomes true (e.g. set by a signal handler) no further frame is read; frames already
+  // read are tracked, local mapping finishes its queue, global BA is abandoned, and RunSlam
+  // returns a result over the frames tracked (interrupted = true).
+  const std::atomic<bool>* stop = nullptr;
+  // Failures of background work the session survives (global BA, loop closing, checkpoint
+  // writes), one line each; any thread. Unset: stderr.
+  std::function<void(const std::string&)> on_warning;
+  // Checkpoints: every checkpoint_every_s seconds (0 = never) the track stage copies the session
+  // between two frames (Slam::CaptureState) and a background job hands the copy to on_checkpoint
+  // with the first frame not yet tracked; the next copy is taken only once that one is written.
+  // When the run ends (interrupted or not) a last one is written on the calling thread. A throw
+  // from on_checkpoint becomes a warning; the session goes on.
+  double checkpoint_every_s = 0;
+  std::function<void(const Slam::State& state, size_t next_frame)> on_checkpoint;
+  // When a stage or background job throws (strict mode's unreadable frame, a failed mapping step),
+  // the run ends there: by default RunSlam rethrows; with keep_results_on_error it returns the
+  // result over the frames tracked, with the message in SlamRunResult::error, so a caller can
+  // still write what was computed.
+  bool keep_results_on_error = false;
+  // Called on the checkpoint job right before the copy, while the track stage is held between two
+  // frames (so it may touch what on_frame writes): flush streamed outputs here, and they cover
+  // every frame the checkpoint covers. May be empty.
+  std::function<void()> before_checkpoint;
 };
 
 struct SlamRunResult {
@@ -46,6 +83,15 @@ struct SlamRunResult {
   std::vector<LoopClosure> loop_closures;
   MappingTimes mapping;  // local mapping's time per stage
   double wall_s = 0;
+  size_t frames_skipped = 0;  // unreadable frames (see SlamRunOptions::strict)
+  bool interrupted = false;   // SlamRunOptions::stop ended the run
+  std::string error;          // the error that ended the run early (keep_results_on_error)
+  size_t next_frame = 0;      // first input frame not tracked (where a continuation starts)
+  // Checkpoints written, and their cost to tracking: the copy, taken on the track stage, and the
+  // tracking time of the frames tracked while a copy was taken or written (capture included).
+  size_t checkpoints = 0, checkpoint_failures = 0;
+  std::vector<double> checkpoint_capture_ms, checkpoint_write_ms;
+  std::vector<double> frame_ms_during_checkpoints;
 };
 
 // Runs SLAM; the Slam object is created from the dataset's calibration and options.

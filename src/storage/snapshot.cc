@@ -67,6 +67,23 @@ Eigen::Isometry3d FromPose(const schema::Pose34* pose) {
   return T;
 }
 
+schema::CompactPose ToCompactPose(const Eigen::Isometry3d& T) {
+  const Eigen::Quaternionf q = Eigen::Quaterniond(T.linear()).normalized().cast<float>();
+  const float qv[4] = {q.x(), q.y(), q.z(), q.w()};
+  const Eigen::Vector3f t = T.translation().cast<float>();
+  const float tv[3] = {t.x(), t.y(), t.z()};
+  return schema::CompactPose(fb::span<const float, 4>(qv), fb::span<const float, 3>(tv));
+}
+
+Eigen::Isometry3d FromCompactPose(const schema::CompactPose& pose) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  const Eigen::Quaterniond q(pose.q()->Get(3), pose.q()->Get(0), pose.q()->Get(1), pose.q()->Get(2));
+  // A zero quaternion (corrupt record) becomes the identity rather than NaN.
+  if (q.norm() > 0) T.linear() = q.normalized().toRotationMatrix();
+  T.translation() = Eigen::Vector3d(pose.t()->Get(0), pose.t()->Get(1), pose.t()->Get(2));
+  return T;
+}
+
 schema::Vec3d ToVec(const Eigen::Vector3d& v) { return schema::Vec3d(v.x(), v.y(), v.z()); }
 Eigen::Vector3d FromVec(const schema::Vec3d& v) { return {v.x(), v.y(), v.z()}; }
 
@@ -82,8 +99,12 @@ Descriptor FromDescriptor(const schema::Descriptor256& d) {
 // Upper bound of the serialized size, to size the builder once and to refuse >2 GiB early. It
 // counts only what is written (edges to live keyframes), so a map and its reload estimate alike:
 // the estimate sets the file's layout (see SnapshotImage).
-size_t EstimateSize(std::span<const SnapshotMapRef> maps) {
+size_t EstimateSize(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata) {
   size_t bytes = 4096;
+  if (const auto& session = metadata.session) {
+    bytes += 256 + session->dataset.size() + session->frames.size() * sizeof(schema::FramePoseRecord);
+    for (const std::string& a : session->arguments) bytes += 16 + a.size();
+  }
   for (const SnapshotMapRef& ref : maps) {
     const auto& keyframes = ref.map->keyframes();
     bytes += 256;
@@ -314,11 +335,11 @@ class BuilderAllocator : public fb::Allocator {
 
 // A builder whose buffer holds the maps' estimated size times 2^attempt, plus a page (rounded up).
 struct SizedBuilder {
-  SizedBuilder(std::span<const SnapshotMapRef> maps, int attempt)
-      : allocator(Reserve(maps, attempt)), builder(allocator.reserved(), &allocator) {}
-  static size_t Reserve(std::span<const SnapshotMapRef> maps, int attempt) {
+  SizedBuilder(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata, int attempt)
+      : allocator(Reserve(maps, metadata, attempt)), builder(allocator.reserved(), &allocator) {}
+  static size_t Reserve(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata, int attempt) {
     for (const SnapshotMapRef& ref : maps) FLATSLAM_CHECK(ref.map != nullptr, "map snapshot: map ", ref.id, " is null");
-    const size_t estimate = EstimateSize(maps);
+    const size_t estimate = EstimateSize(maps, metadata);
     FLATSLAM_CHECK(estimate < kMaxBufferSize, "map snapshot: about ", estimate >> 20,
                    " MiB exceeds the 2 GiB limit of one snapshot buffer");
     constexpr size_t kPage = 4096;
@@ -345,9 +366,27 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
       builder, static_cast<schema::Sensor>(calib.sensor), calib.camera.fx, calib.camera.fy, calib.camera.cx,
       calib.camera.cy, calib.camera.width, calib.camera.height, calib.baseline_m, calib.frame_rate_hz, &T_body_cam);
   const auto scales = schema::CreateScalePyramid(builder, metadata.scales.scale_factor, metadata.scales.levels);
+  fb::Offset<schema::Session> session;
+  if (const auto& s = metadata.session) {
+    FLATSLAM_CHECK(s->map < maps.size(), "map snapshot: the session's map ", s->map, " is not among the ",
+                   maps.size(), " maps saved");
+    const auto& keyframes = maps[s->map].map->keyframes();
+    std::vector<schema::FramePoseRecord> frames;
+    frames.reserve(s->frames.size());
+    for (const AnchoredFramePose& f : s->frames) {
+      const uint32_t reference =
+          keyframes.contains(f.reference) ? static_cast<uint32_t>(keyframes.dense_index(f.reference)) : kNoIndex;
+      frames.emplace_back(f.t_ns, reference, ToCompactPose(f.T_cam_ref), ToCompactPose(f.T_cam_world));
+    }
+    const auto frame_vector = builder.CreateVectorOfStructs(frames);
+    const auto arguments = builder.CreateVectorOfStrings(s->arguments);
+    const auto dataset = builder.CreateString(s->dataset);
+    session = schema::CreateSession(builder, s->next_frame, s->map, dataset, arguments, frame_vector);
+  }
   const schema::ContentHash placeholder(0);
   const auto root = schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder,
-                                              metadata.vocabulary_checksum, calibration, scales, segment_vector);
+                                              metadata.vocabulary_checksum, calibration, scales, segment_vector,
+                                              session);
   schema::FinishMapSnapshotBuffer(builder, root);
 }
 
@@ -478,7 +517,7 @@ template <class Use>
 void WithSnapshot(std::span<const SnapshotMapRef> maps, const SnapshotMetadata& metadata, int fd, Use use) {
   for (int attempt = 0;; ++attempt) {
     try {
-      SizedBuilder sized(maps, attempt);
+      SizedBuilder sized(maps, metadata, attempt);
       const size_t reserved = sized.allocator.reserved();
       std::optional<TailWriter> tail;  // declared after sized: stopped before its memory goes
       BuildProgress progress;
@@ -754,6 +793,30 @@ void MapSnapshotView::Verify(const SnapshotReadOptions& options) {
             keypoints[kf], ")");
     }
   }
+  if (const schema::Session* session = root.session()) {
+    FLATSLAM_CHECK(session->map() < maps, "map snapshot ", file, ": session: map ", session->map(), " of ", maps);
+    const size_t nk = Size(root.maps()->Get(session->map())->keyframes());
+    const auto frames = Span(session->frames());
+    for (size_t f = 0; f < frames.size(); ++f)
+      FLATSLAM_CHECK(frames[f].reference() == kNoIndex || frames[f].reference() < nk, "map snapshot ", file,
+                     ": session: frame ", f, " refers to keyframe ", frames[f].reference(), " of ", nk);
+  }
+}
+
+std::optional<SnapshotSession> MapSnapshotView::session_summary() const {
+  const schema::Session* s = root_->session();
+  if (!s) return std::nullopt;
+  SnapshotSession session;
+  session.next_frame = s->next_frame();
+  session.map = s->map();
+  if (s->dataset()) session.dataset = s->dataset()->str();
+  if (s->arguments())
+    for (const fb::String* a : *s->arguments()) session.arguments.push_back(a->str());
+  return session;
+}
+
+size_t MapSnapshotView::session_frame_count() const {
+  return root_->session() ? Size(root_->session()->frames()) : 0;
 }
 
 uint32_t MapSnapshotView::format_version() const { return root_->format_version(); }
@@ -845,6 +908,7 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
   out.metadata.scales = view.scales();
   out.metadata.vocabulary_checksum = view.vocabulary_checksum();
   out.maps.resize(view.map_count());
+  std::vector<std::vector<KeyFrameHandle>> kf_handles_of(view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {
     const schema::MapSegment& seg = view.segment(m);
     LoadedMap& loaded = out.maps[m];
@@ -884,6 +948,7 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
       kf.points.resize(n);
       kf_handles[k] = map.RestoreKeyFrame(std::move(kf));
     }
+    kf_handles_of[m] = kf_handles;
     std::vector<PointHandle> point_handles(np);
     const schema::PointRecord* records = Span(seg.points()).data();
     const uint32_t* offsets = Span(seg.observation_offsets()).data();
@@ -919,6 +984,19 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
     }
     const std::string problem = map.Validate();
     FLATSLAM_CHECK(problem.empty(), "map snapshot ", view.name(), ": map ", m, " is inconsistent: ", problem);
+  }
+  if (const schema::Session* s = view.root().session()) {
+    SnapshotSession session = *view.session_summary();
+    const std::vector<KeyFrameHandle>& handles = kf_handles_of[s->map()];
+    for (const schema::FramePoseRecord& r : Span(s->frames())) {
+      AnchoredFramePose f;
+      f.t_ns = r.t_ns();
+      f.reference = r.reference() == kNoIndex ? KeyFrameHandle::null() : handles[r.reference()];
+      f.T_cam_ref = FromCompactPose(r.cam_from_ref());
+      f.T_cam_world = FromCompactPose(r.cam_from_world());
+      session.frames.push_back(f);
+    }
+    out.metadata.session = std::move(session);
   }
   return out;
 }

@@ -29,11 +29,23 @@ struct MapSegment;
 inline constexpr uint32_t kMapSnapshotFormatVersion = 1;
 inline constexpr uint32_t kNoIndex = 0xffffffffu;  // "none" for an index in a snapshot
 
+// Where a session stood when a checkpoint was taken, so that it can be resumed.
+struct SnapshotSession {
+  uint64_t next_frame = 0;             // first input frame not yet processed
+  uint32_t map = 0;                    // position in the snapshot's maps of the session's map
+  std::string dataset;                 // as given to flatslam run
+  std::vector<std::string> arguments;  // the run's command line after "run"
+  // The trajectory so far, in frame order; references are keyframes of that map (handles of the
+  // saved map when saving, of the loaded one after LoadMapSnapshot).
+  std::vector<AnchoredFramePose> frames;
+};
+
 // What a snapshot records besides the maps.
 struct SnapshotMetadata {
   Calibration calibration;
   MapScales scales;
   uint64_t vocabulary_checksum = 0;  // identity of the vocabulary the map was built with; 0 = none
+  std::optional<SnapshotSession> session;  // checkpoints only
 };
 
 // One map to save. Its agents are the distinct KeyFrame::agent values.
@@ -115,6 +127,10 @@ class MapSnapshotView {
   [[nodiscard]] Eigen::Vector3d point_position(size_t m, size_t i) const;
   // Keyframe poses as T_world_cam, sorted by time.
   [[nodiscard]] Trajectory KeyFrameTrajectory(size_t m) const;
+  // A checkpoint's session without its trajectory (frames stays empty; LoadMapSnapshot gives it
+  // with handles); nullopt for a snapshot that is not a checkpoint.
+  [[nodiscard]] std::optional<SnapshotSession> session_summary() const;
+  [[nodiscard]] size_t session_frame_count() const;
 
   // The verified flatbuffers root and segments, for readers that want every field in place.
   [[nodiscard]] const schema::MapSnapshot& root() const { return *root_; }

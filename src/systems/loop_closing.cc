@@ -2,6 +2,7 @@
 // keyframe database, loop detection with temporal consistency and geometric verification, loop
 // correction through the essential graph, and global bundle adjustment in the background.
 #include <algorithm>
+#include <cstdio>
 #include <chrono>
 #include <unordered_map>
 #include <unordered_set>
@@ -43,7 +44,7 @@ void Slam::ForceLost() {
 
 Slam::~Slam() { WaitForBackground(); }
 
-void Slam::AdoptMap(Map&& map) {
+void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
   FLATSLAM_CHECK(options_.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
   std::lock_guard<std::mutex> lock(map_mutex_);
   FLATSLAM_CHECK(state_ == TrackingState::kNotInitialized && map_.keyframes().empty(),
@@ -60,12 +61,51 @@ void Slam::AdoptMap(Map&& map) {
     if (first_keyframe_.is_null() || (kf.parent.is_null() && !map_.keyframe(first_keyframe_).parent.is_null()))
       first_keyframe_ = h;
   }
+  for (const AnchoredFramePose& f : frames) {
+    FramePose pose;
+    pose.t_ns = f.t_ns;
+    pose.reference = map_.keyframes().contains(f.reference) ? f.reference : KeyFrameHandle::null();
+    pose.T_cam_ref = CompactPose(f.T_cam_ref);
+    pose.T_cam_world = CompactPose(f.T_cam_world);
+    frame_poses_.push_back(pose);
+  }
   state_ = TrackingState::kLost;
   allow_new_segments_ = false;
 }
 
+void Slam::CaptureState(State* out) const {
+  State& state = *out;
+  state.frames.clear();
+  state.frames.reserve(frame_poses_.size());
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  state.map.AssignForSnapshot(map_);
+  state.next_frame = next_frame_;
+  for (const FramePose& f : frame_poses_) {
+    AnchoredFramePose a;
+    a.t_ns = f.t_ns;
+    a.T_cam_world = f.T_cam_world.isometry();
+    Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
+    KeyFrameHandle ref = f.reference;
+    if (FollowToLiveKeyFrame(&ref, &T_cam_ref)) {
+      a.reference = ref;
+      a.T_cam_ref = T_cam_ref;
+    }
+    state.frames.push_back(a);
+  }
+}
+
 void Slam::WaitForBackground() {
   if (global_ba_.joinable()) global_ba_.join();
+}
+
+void Slam::AbandonBackground() {
+  abandon_background_ = true;
+  WaitForBackground();
+}
+
+void Slam::Warn(const std::string& message) const {
+  if (warning_sink_) warning_sink_(message);
+  else std::fprintf(stderr, "warning: %s\n", message.c_str());
 }
 
 void Slam::EraseKeyFrame(KeyFrameHandle kf) {
@@ -78,16 +118,21 @@ void Slam::EraseKeyFrame(KeyFrameHandle kf) {
   map_.EraseKeyFrame(kf);
 }
 
+bool Slam::FollowToLiveKeyFrame(KeyFrameHandle* ref, Eigen::Isometry3d* T_cam_ref) const {
+  for (int hops = 0; hops < 1000 && !ref->is_null(); ++hops) {
+    if (map_.keyframes().contains(*ref)) return true;
+    const auto it = culled_.find(*ref);
+    if (it == culled_.end()) return false;
+    *T_cam_ref = *T_cam_ref * it->second.T_kf_parent;
+    *ref = it->second.parent;
+  }
+  return false;
+}
+
 Eigen::Isometry3d Slam::ResolveFramePose(const FramePose& f) const {
   Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
   KeyFrameHandle ref = f.reference;
-  for (int hops = 0; hops < 1000; ++hops) {
-    if (const KeyFrame* kf = map_.keyframes().try_get(ref)) return T_cam_ref * kf->T_cam_world;
-    const auto it = culled_.find(ref);
-    if (it == culled_.end()) break;
-    T_cam_ref = T_cam_ref * it->second.T_kf_parent;
-    ref = it->second.parent;
-  }
+  if (FollowToLiveKeyFrame(&ref, &T_cam_ref)) return T_cam_ref * map_.keyframe(ref).T_cam_world;
   return f.T_cam_world.isometry();  // no live keyframe to follow: the pose as tracked
 }
 
@@ -196,13 +241,22 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
   for (KeyFrameHandle candidate : consistent) {
     LoopMatch match;
     if (!VerifyLoop(current, candidate, &match)) continue;
+    if (options_.inject_fault == InjectedFault::kLoopClosing) Fail("injected failure in loop correction");
     CorrectLoop(current, match);
     consistent_groups_.clear();
     keyframes_since_loop_ = 0;
-    if (options_.global_bundle_adjustment) {
+    if (options_.global_bundle_adjustment && !abandon_background_) {
       WaitForBackground();
       global_ba_running_ = true;
-      global_ba_ = std::thread([this, loops = loop_closures_.size()] { GlobalBundleAdjustment(loops); });
+      // A failure here costs the refinement, not the session: it becomes a warning.
+      global_ba_ = std::thread([this, loops = loop_closures_.size()] {
+        try {
+          GlobalBundleAdjustment(loops);
+        } catch (const std::exception& e) {
+          global_ba_running_ = false;
+          Warn(std::string("global bundle adjustment failed, the map keeps its loop correction: ") + e.what());
+        }
+      });
     }
     return;
   }
@@ -358,6 +412,8 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
     std::atomic<bool>& flag;
     ~Clear() { flag = false; }
   } clear{global_ba_running_};
+  if (options_.inject_fault == InjectedFault::kGlobalBundleAdjustment)
+    Fail("injected failure in global bundle adjustment");
   BundleAdjustmentProblem problem;
   std::vector<KeyFrameHandle> pose_handles;
   std::vector<PointHandle> point_handles;
@@ -398,8 +454,9 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
   if (problem.observations.empty()) return;
   BundleAdjustmentOptions ba = options_.bundle_adjustment;
   ba.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+  ba.stop_early = [this] { return abandon_background_.load(); };
   const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba);
-  if (!result.success) return;
+  if (!result.success || abandon_background_) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
   if (loop_closures_.size() != loops) return;  // a newer loop moved the map: this solution is stale

@@ -196,6 +196,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   for (float d : frame.keypoints.depth) report.stereo_points += d > 0 ? 1 : 0;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
+  next_frame_ = frame.index + 1;
   bool ok = false;
   int matches = 0;
   if (state_ == TrackingState::kNotInitialized) {
@@ -269,6 +270,7 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
     pose.T_cam_world = CompactPose(frame.T_cam_world);
     pose.T_cam_ref = CompactPose(frame.T_cam_world * map_.keyframe(reference_keyframe_).T_cam_world.inverse());
     frame_poses_.push_back(pose);
+    report.T_world_cam = frame.T_cam_world.inverse();
     frame.has_pose = true;
     last_frame_ = std::move(frame);
   }
@@ -589,6 +591,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
   std::vector<KeyFrameHandle> neighbours;
   std::pair<double, double> depth_range;
   uint64_t epoch = 0;
+  size_t frame_index = 0;
   struct Done {
     std::atomic<int>& pending;
     ~Done() { --pending; }
@@ -602,6 +605,7 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(keyframe)) return;
+    frame_index = map_.keyframe(keyframe).frame_index;
     for (PointHandle p : map_.keyframe(keyframe).points)
       if (map_.points().contains(p)) map_.UpdatePointStats(p, map_scales_);
     map_.UpdateCovisibility(keyframe);
@@ -641,7 +645,15 @@ void Slam::MapKeyFrame(KeyFrameHandle keyframe) {
     if (map_.keyframes().contains(keyframe)) CullKeyFrames(keyframe);
   }
   lap(&mapping_times_.cull_ms);
-  DetectAndCloseLoop(keyframe);
+  // A failed loop correction costs that loop, not the session: it becomes a warning and the next
+  // keyframes are searched as usual.
+  try {
+    DetectAndCloseLoop(keyframe);
+  } catch (const std::exception& e) {
+    consistent_groups_.clear();
+    Warn("loop closing failed at the keyframe of frame " + std::to_string(frame_index) +
+         ", the session goes on without this loop: " + e.what());
+  }
   lap(&mapping_times_.place_ms);
 }
 

@@ -10,6 +10,7 @@
 #include <atomic>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <mutex>
 #include <optional>
 #include <random>
@@ -33,6 +34,10 @@
 namespace flatslam {
 
 class Vocabulary;
+
+// Test hook: background work that throws on purpose, to check that failures surface as warnings
+// and the session goes on. Never set by a user option.
+enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosing };
 
 // The ORB options SLAM starts from: the extractor's, with the feature budget left to the camera.
 [[nodiscard]] inline OrbOptions SlamOrbDefaults() {
@@ -96,6 +101,7 @@ struct SlamOptions {
   int relocalization_frames = 10;          // lost frames spent relocalizing before a new map segment starts
   int loop_consistency = 3;                // consecutive keyframes that must agree on a loop
   int min_loop_matches = 40;               // map points matched across the loop after the Sim(3)/SE(3) search
+  InjectedFault inject_fault = InjectedFault::kNone;  // tests only (see InjectedFault)
 
   [[nodiscard]] bool Check() const;
 };
@@ -146,6 +152,10 @@ struct FrameReport {
   size_t map_points = 0;       // map points after this frame
   double extract_ms = 0;
   double track_ms = 0;
+  // The frame's image could not be read; it was never given to tracking (see SlamRunOptions).
+  bool skipped = false;
+  // The pose tracking gave the frame (T_world_cam), when it joined the trajectory.
+  std::optional<Eigen::Isometry3d> T_world_cam;
 };
 
 // Where local mapping spends its time, summed over the keyframes it mapped (milliseconds).
@@ -189,12 +199,33 @@ class Slam {
   [[nodiscard]] const MappingTimes& mapping_times() const { return mapping_times_; }
   // Blocks until background work (global bundle adjustment) has finished.
   void WaitForBackground();
+  // Ends background work at once (an interrupted session): a running global bundle adjustment
+  // stops at its next iteration and its result is dropped; none starts afterwards. Blocks until
+  // it has stopped.
+  void AbandonBackground();
+  // Receives one line when background work fails and the session goes on without it (global
+  // bundle adjustment, loop closing). Called on the failing thread; set before the first frame.
+  // Unset: the line goes to stderr.
+  void SetWarningSink(std::function<void(const std::string&)> sink) { warning_sink_ = std::move(sink); }
   // Forces tracking lost from the next frame on (tests and the --lose-at option).
   void ForceLost();
   // Continues a saved map (call before the first frame): its keyframes are indexed for place
   // recognition and tracking starts by relocalizing in it. Needs a vocabulary. A session on an
-  // adopted map never starts a new map segment: it stays lost until it relocalizes.
-  void AdoptMap(Map&& map);
+  // adopted map never starts a new map segment: it stays lost until it relocalizes. `frames` is the
+  // trajectory of the session being continued (references are keyframes of `map`, or null):
+  // FrameTrajectory() starts with them, and later corrections of the map move them too.
+  void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {});
+  // The session between two frames, for a checkpoint: a copy of the map (Map::AssignForSnapshot:
+  // no bags of words), every tracked frame's pose anchored at a live keyframe of that copy, and
+  // the frame after the last one tracked. Any thread; holds the map lock while copying (Track and
+  // mapping wait meanwhile). Pass the same State each time: the copy then moves little more than
+  // what changed since the last.
+  struct State {
+    Map map;
+    std::vector<AnchoredFramePose> frames;
+    size_t next_frame = 0;  // input index after the last frame given to Track
+  };
+  void CaptureState(State* out) const;
   ~Slam();
 
  private:
@@ -260,6 +291,9 @@ class Slam {
   void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
   // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
   [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const FramePose& f) const;
+  // Moves *ref along culled keyframes' parents to a live keyframe, composing *T_cam_ref; false
+  // when none is left.
+  bool FollowToLiveKeyFrame(KeyFrameHandle* ref, Eigen::Isometry3d* T_cam_ref) const;
 
   // Place recognition (loop_closing.cc).
   void ComputeBow(TrackedFrame& frame) const;
@@ -291,6 +325,7 @@ class Slam {
   std::vector<KeyFrameHandle> local_keyframes_;
   std::vector<PointHandle> local_points_;
   int last_inliers_ = 0;  // of the last frame's local-map tracking
+  size_t next_frame_ = 0;  // input index after the last frame tracked (under map_mutex_)
   // One per tracked frame, for the trajectory. A deque grows by fixed blocks: a vector's doubling
   // would leave up to half its capacity unused and briefly hold both copies in a long session.
   std::deque<FramePose> frame_poses_;
@@ -332,6 +367,9 @@ class Slam {
   std::mt19937_64 loop_rng_;
   std::thread global_ba_;
   std::atomic<bool> global_ba_running_{false};
+  std::atomic<bool> abandon_background_{false};
+  std::function<void(const std::string&)> warning_sink_;
+  void Warn(const std::string& message) const;
 };
 
 }  // namespace flatslam

@@ -23,6 +23,7 @@
 #include <utility>
 #include <vector>
 
+#include "core/atomic_write.h"
 #include "core/error.h"
 #include "flatslam/schemas/vocabulary_generated.h"
 
@@ -677,24 +678,10 @@ Vocabulary Vocabulary::FromNodes(int branching, int levels, std::span<const Desc
 
 void Vocabulary::Save(const std::filesystem::path& path) const {
   FLATSLAM_CHECK(impl_ != nullptr, "Vocabulary::Save: empty vocabulary, nothing to write to '", path.string(), "'");
-  std::filesystem::path temp = path;
-  temp += ".tmp." + std::to_string(::getpid());
-  std::FILE* file = std::fopen(temp.c_str(), "wb");
-  FLATSLAM_CHECK(file != nullptr, "vocabulary file '", path.string(), "': cannot create '", temp.string(), "' (",
-                 std::strerror(errno), ")");
-  const bool written = std::fwrite(impl_->bytes, 1, impl_->size, file) == impl_->size && std::fflush(file) == 0 &&
-                       ::fsync(::fileno(file)) == 0;
-  const int write_errno = errno;
-  const bool closed = std::fclose(file) == 0;
-  if (!written || !closed) {
-    std::filesystem::remove(temp);
-    Fail("vocabulary file '", path.string(), "': write failed (", std::strerror(write_errno), ")");
-  }
-  std::error_code ec;
-  std::filesystem::rename(temp, path, ec);
-  if (ec) {
-    std::filesystem::remove(temp);
-    Fail("vocabulary file '", path.string(), "': cannot rename the temporary file (", ec.message(), ")");
+  try {
+    WriteFileAtomically(path, [&](std::FILE* file) { std::fwrite(impl_->bytes, 1, impl_->size, file); });
+  } catch (const Error& e) {
+    Fail("vocabulary file: ", e.what());
   }
 }
 

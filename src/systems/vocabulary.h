@@ -47,7 +47,8 @@ class Vocabulary {
   // too few descriptors. Every word of the result is reachable and has a positive weight.
   [[nodiscard]] static Vocabulary Train(std::span<const Descriptor> descriptors, std::span<const uint32_t> image_of,
                                         size_t image_count, const VocabularyTrainOptions& options);
-  // Writes the flatbuffers file atomically (temporary file, flush, rename).
+  // Writes the flatbuffers file atomically (core/atomic_write.h: temporary file, fsync, rename,
+  // directory fsync).
   void Save(const std::filesystem::path& path) const;
   // Memory-maps and verifies a vocabulary file; throws flatslam::Error naming the file and the
   // problem (missing, truncated, not a vocabulary, unsupported version, inconsistent tree).

@@ -9,6 +9,7 @@
 #include <fstream>
 #include <limits>
 
+#include "core/atomic_write.h"
 #include "core/error.h"
 
 namespace flatslam {
@@ -130,18 +131,6 @@ std::string Lowercase(std::string s) {
 }
 
 // Opens a file for writing; throws naming the file on failure.
-std::FILE* OpenForWriting(const fs::path& path) {
-  std::FILE* file = std::fopen(path.c_str(), "w");
-  FLATSLAM_CHECK(file != nullptr, path.string(), ": cannot open for writing");
-  return file;
-}
-
-void CloseWritten(const fs::path& path, std::FILE* file) {
-  const bool had_error = std::ferror(file) != 0;
-  const bool close_failed = std::fclose(file) != 0;
-  FLATSLAM_CHECK(!had_error && !close_failed, path.string(), ": write failed");
-}
-
 void CheckWritable(const fs::path& path, const Trajectory& trajectory) {
   FLATSLAM_CHECK(!trajectory.empty(), path.string(), ": refusing to write an empty trajectory");
   for (size_t i = 0; i < trajectory.size(); ++i) {
@@ -373,37 +362,41 @@ Trajectory ReadTrajectory(const fs::path& path, const TrajectoryReadOptions& opt
   Fail(path.string(), ": unknown trajectory format");
 }
 
+std::string FormatTumLine(const TimedPose& pose) {
+  Eigen::Quaterniond q(pose.T_world_cam.linear());
+  q.normalize();
+  if (q.w() < 0) q.coeffs() = -q.coeffs();  // one canonical sign, so output is deterministic
+  const Eigen::Vector3d t = pose.T_world_cam.translation();
+  char line[256];
+  std::snprintf(line, sizeof(line), "%s %.17g %.17g %.17g %.17g %.17g %.17g %.17g\n",
+                FormatNsAsSeconds(pose.t_ns).c_str(), t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w());
+  return line;
+}
+
 void WriteTum(const fs::path& path, const Trajectory& trajectory) {
   CheckWritable(path, trajectory);
-  std::FILE* file = OpenForWriting(path);
-  std::fputs("# timestamp tx ty tz qx qy qz qw\n", file);
-  for (const TimedPose& pose : trajectory) {
-    Eigen::Quaterniond q(pose.T_world_cam.linear());
-    q.normalize();
-    if (q.w() < 0) q.coeffs() = -q.coeffs();  // one canonical sign, so output is deterministic
-    const Eigen::Vector3d t = pose.T_world_cam.translation();
-    std::fprintf(file, "%s %.17g %.17g %.17g %.17g %.17g %.17g %.17g\n", FormatNsAsSeconds(pose.t_ns).c_str(),
-                 t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w());
-  }
-  CloseWritten(path, file);
+  WriteFileAtomically(path, [&](std::FILE* file) {
+    std::fputs(kTumHeader, file);
+    for (const TimedPose& pose : trajectory) std::fputs(FormatTumLine(pose).c_str(), file);
+  });
 }
 
 void WriteKitti(const fs::path& path, const Trajectory& trajectory) {
   CheckWritable(path, trajectory);
-  std::FILE* file = OpenForWriting(path);
-  for (const TimedPose& pose : trajectory) {
-    const Eigen::Matrix<double, 3, 4> m = pose.T_world_cam.matrix().topRows<3>();
-    for (int k = 0; k < 12; ++k) std::fprintf(file, k == 0 ? "%.17g" : " %.17g", m(k / 4, k % 4));
-    std::fputc('\n', file);
-  }
-  CloseWritten(path, file);
+  WriteFileAtomically(path, [&](std::FILE* file) {
+    for (const TimedPose& pose : trajectory) {
+      const Eigen::Matrix<double, 3, 4> m = pose.T_world_cam.matrix().topRows<3>();
+      for (int k = 0; k < 12; ++k) std::fprintf(file, k == 0 ? "%.17g" : " %.17g", m(k / 4, k % 4));
+      std::fputc('\n', file);
+    }
+  });
 }
 
 void WriteKittiTimes(const fs::path& path, const Trajectory& trajectory) {
   CheckWritable(path, trajectory);
-  std::FILE* file = OpenForWriting(path);
-  for (const TimedPose& pose : trajectory) std::fprintf(file, "%s\n", FormatNsAsSeconds(pose.t_ns).c_str());
-  CloseWritten(path, file);
+  WriteFileAtomically(path, [&](std::FILE* file) {
+    for (const TimedPose& pose : trajectory) std::fprintf(file, "%s\n", FormatNsAsSeconds(pose.t_ns).c_str());
+  });
 }
 
 }  // namespace flatslam

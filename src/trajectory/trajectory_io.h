@@ -58,11 +58,17 @@ struct TrajectoryReadOptions {
 [[nodiscard]] std::vector<int64_t> ReadKittiTimes(const std::filesystem::path& path);
 
 // Writers use max_digits10 so that reading back gives the same poses (to ~1e-15) and the
-// same nanosecond timestamps. Throw flatslam::Error naming the file when it cannot be written.
+// same nanosecond timestamps. They replace the file atomically (core/atomic_write.h): a reader
+// or a crash sees the old file or the new one, never a mix. Throw flatslam::Error naming the
+// file when it cannot be written.
 void WriteTum(const std::filesystem::path& path, const Trajectory& trajectory);
 // KITTI drops the timestamps (write them with WriteKittiTimes if needed).
 void WriteKitti(const std::filesystem::path& path, const Trajectory& trajectory);
 void WriteKittiTimes(const std::filesystem::path& path, const Trajectory& trajectory);
+// The first line of a TUM file written here, and one pose as a TUM line (with its newline), for
+// writers that append poses as they come (flatslam run's streamed trajectory).
+inline constexpr const char* kTumHeader = "# timestamp tx ty tz qx qy qz qw\n";
+[[nodiscard]] std::string FormatTumLine(const TimedPose& pose);
 
 // Parses a decimal time in seconds ("1311868164.363181", "1.4037e+09") into exact
 // nanoseconds, rounding half away from zero below 1 ns; nullopt when it is not a number.

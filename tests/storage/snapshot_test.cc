@@ -229,6 +229,85 @@ TEST(MapSnapshot, RandomMapsRoundTripWithMetadataAndAgents) {
   EXPECT_EQ(SerializeMapSnapshot(again, loaded.metadata), bytes);
 }
 
+// A checkpoint's copy of a map serializes exactly like the map: assigned over a copy of another
+// map (with the same keyframe ids), then again after the source lost and gained keyframes.
+TEST(MapSnapshot, SnapshotCopySerializesLikeItsSource) {
+  testing::RandomMapOptions o;
+  Map source = testing::RandomMap(o);
+  o.seed = 3;
+  o.keyframes = 25;
+  Map copy = testing::RandomMap(o);
+  const SnapshotMetadata metadata = TestMetadata(1);
+  const SnapshotMapRef a{0, &source}, b{0, &copy};
+  for (int round = 0; round < 3; ++round) {
+    copy.AssignForSnapshot(source);
+    EXPECT_EQ(copy.Validate(), "");
+    EXPECT_EQ(SerializeMapSnapshot({&b, 1}, metadata), SerializeMapSnapshot({&a, 1}, metadata)) << "round " << round;
+    // The source moves on: a keyframe goes (the last one moves into its dense position), one
+    // comes, and a point changes.
+    source.EraseKeyFrame(source.keyframes().handles()[2 + round]);
+    KeyFrame fresh = source.keyframes().values()[0];
+    fresh.points.assign(fresh.size(), PointHandle::null());
+    fresh.covisible.clear();
+    fresh.children.clear();
+    fresh.loop_edges.clear();
+    fresh.parent = KeyFrameHandle::null();
+    fresh.uv[0].x() += 1.0f;
+    (void)source.AddKeyFrame(std::move(fresh));
+    source.points().values()[0].position.x() += 1.0;
+    ASSERT_EQ(source.Validate(), "");
+  }
+}
+
+// A checkpoint's session (next frame, dataset, command line, trajectory anchored at keyframes)
+// comes back from the file with handles of the loaded map.
+TEST(MapSnapshot, SessionRoundTrips) {
+  testing::RandomMapOptions o;
+  const Map map = testing::RandomMap(o);
+  SnapshotMetadata metadata = TestMetadata(5);
+  SnapshotSession session;
+  session.next_frame = 1234;
+  session.dataset = "synth:room";
+  session.arguments = {"synth:room", "--out=/tmp/x", "--checkpoint-every=2"};
+  const auto handles = map.keyframes().handles();
+  for (size_t i = 0; i < 40; ++i) {
+    AnchoredFramePose f;
+    f.t_ns = 1000 + static_cast<int64_t>(i);
+    f.reference = i % 7 == 3 ? KeyFrameHandle::null() : handles[i % handles.size()];
+    f.T_cam_ref = Eigen::Translation3d(0.1 * i, 0, 1) * Eigen::AngleAxisd(0.01 * i, Eigen::Vector3d::UnitY());
+    f.T_cam_world = Eigen::Translation3d(0, 0.2 * i, 0) * Eigen::AngleAxisd(0.02 * i, Eigen::Vector3d::UnitZ());
+    session.frames.push_back(f);
+  }
+  metadata.session = session;
+  const SnapshotMapRef ref{0, &map};
+  const std::vector<uint8_t> bytes = SerializeMapSnapshot({&ref, 1}, metadata);
+  const MapSnapshotView view = MapSnapshotView::FromBytes(bytes, "memory");
+  ASSERT_TRUE(view.session_summary().has_value());
+  EXPECT_EQ(view.session_summary()->next_frame, 1234u);
+  EXPECT_EQ(view.session_summary()->arguments, session.arguments);
+  EXPECT_EQ(view.session_frame_count(), 40u);
+  const LoadedSnapshot loaded = LoadMapSnapshotFromBytes(bytes, "memory");
+  ASSERT_TRUE(loaded.metadata.session.has_value());
+  const SnapshotSession& back = *loaded.metadata.session;
+  EXPECT_EQ(back.dataset, "synth:room");
+  ASSERT_EQ(back.frames.size(), 40u);
+  const Map& loaded_map = loaded.maps[0].map;
+  for (size_t i = 0; i < 40; ++i) {
+    const AnchoredFramePose& f = back.frames[i];
+    EXPECT_EQ(f.t_ns, session.frames[i].t_ns);
+    if (session.frames[i].reference.is_null()) {
+      EXPECT_TRUE(f.reference.is_null());
+    } else {
+      // The same keyframe: dense positions are kept by a load.
+      EXPECT_EQ(loaded_map.keyframes().dense_index(f.reference), map.keyframes().dense_index(session.frames[i].reference));
+    }
+    EXPECT_TRUE(f.T_cam_ref.isApprox(session.frames[i].T_cam_ref, 1e-6));
+    EXPECT_TRUE(f.T_cam_world.isApprox(session.frames[i].T_cam_world, 1e-6));
+  }
+  // A plain map snapshot has no session.
+  EXPECT_FALSE(MapSnapshotView::FromBytes(SerializeMapSnapshot({&ref, 1}, TestMetadata(5)), "plain").session_summary());
+}
+
 class MapSnapshotBadInput : public ::testing::Test {
  protected:
   void SetUp() override {

@@ -1,0 +1,154 @@
+// RunSlam keeps a session going and resumable: unreadable frames are skipped (or stop a strict
+// run), a stop request ends the run with results over the frames tracked, and checkpoints carry
+// what a continuation needs to give the trajectory of every frame.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <set>
+#include <string>
+
+#include "core/error.h"
+#include "jobs/slam_runner.h"
+#include "systems/vocabulary.h"
+#include "trajectory_score.h"
+
+namespace flatslam {
+namespace {
+
+// A synthetic dataset whose listed frames cannot be read.
+class DamagedDataset final : public Dataset {
+ public:
+  DamagedDataset(std::unique_ptr<Dataset> inner, std::set<size_t> bad) : inner_(std::move(inner)), bad_(std::move(bad)) {}
+  std::string name() const override { return inner_->name(); }
+  const Calibration& calibration() const override { return inner_->calibration(); }
+  size_t size() const override { return inner_->size(); }
+  Frame read(size_t i) const override {
+    if (bad_.count(i)) Fail("cannot decode image (unreadable or truncated): frame_", i, ".png");
+    return inner_->read(i);
+  }
+  std::optional<Trajectory> ground_truth() const override { return inner_->ground_truth(); }
+
+ private:
+  std::unique_ptr<Dataset> inner_;
+  std::set<size_t> bad_;
+};
+
+const char* const kScene = "synth:room:duration=8,width=480,height=360";
+
+SlamOptions Options() {
+  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
+  SlamOptions options;
+  options.vocabulary = &vocabulary;
+  return options;
+}
+
+TEST(SessionRun, UnreadableFramesAreSkippedLikeDroppedFrames) {
+  const DamagedDataset dataset(OpenDataset(kScene), {10, 11, 40});
+  SlamRunOptions run;
+  std::vector<std::pair<size_t, std::string>> heard;
+  run.on_skipped = [&](size_t index, const std::string& reason) { heard.emplace_back(index, reason); };
+  const SlamRunResult result = RunSlam(dataset, Options(), run);
+  EXPECT_EQ(result.frames, dataset.size());
+  EXPECT_EQ(result.frames_skipped, 3u);
+  ASSERT_EQ(heard.size(), 3u);
+  EXPECT_EQ(heard[0].first, 10u);
+  EXPECT_EQ(heard[2].first, 40u);
+  EXPECT_NE(heard[0].second.find("frame_10.png"), std::string::npos) << heard[0].second;
+  ASSERT_EQ(result.reports.size(), dataset.size());
+  EXPECT_TRUE(result.reports[11].skipped);
+  EXPECT_FALSE(result.reports[12].skipped);
+  // Tracking went on around the gaps: every other frame is in the trajectory.
+  EXPECT_EQ(result.trajectory.size(), dataset.size() - 3);
+  const auto score = testing::ScoreTrajectory(*dataset.ground_truth(), result.trajectory);
+  EXPECT_LT(score.se3.ate_m.rmse, 0.01 * score.path_m);
+}
+
+TEST(SessionRun, StrictRunStopsAtTheFirstUnreadableFrame) {
+  const DamagedDataset dataset(OpenDataset(kScene), {10});
+  SlamRunOptions run;
+  run.strict = true;
+  try {
+    (void)RunSlam(dataset, Options(), run);
+    FAIL() << "expected an error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("frame_10.png"), std::string::npos) << e.what();
+  }
+}
+
+TEST(SessionRun, NoReadableFrameIsAnError) {
+  std::set<size_t> all;
+  for (size_t i = 0; i < 30; ++i) all.insert(i);
+  const DamagedDataset dataset(OpenDataset(kScene), all);
+  SlamRunOptions run;
+  run.max_frames = 30;
+  try {
+    (void)RunSlam(dataset, Options(), run);
+    FAIL() << "expected an error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("none of the 30 frames"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("frame_0.png"), std::string::npos) << e.what();
+  }
+}
+
+TEST(SessionRun, StopEndsTheRunWithResultsOverTheFramesTracked) {
+  const auto dataset = OpenDataset(kScene);
+  std::atomic<bool> stop{false};
+  SlamRunOptions run;
+  run.stop = &stop;
+  run.on_frame = [&](const FrameReport& r) {
+    if (r.index == 50) stop = true;
+  };
+  const SlamRunResult result = RunSlam(*dataset, Options(), run);
+  EXPECT_TRUE(result.interrupted);
+  // Frames already read when the stop came are tracked; none after.
+  EXPECT_GE(result.frames, 51u);
+  EXPECT_LT(result.frames, 51u + 64u);
+  EXPECT_EQ(result.next_frame, result.frames);
+  EXPECT_EQ(result.trajectory.size(), result.frames);
+}
+
+// Checkpoints every 50 ms; a continuation from one of them (the checkpoint's map, trajectory and
+// next frame) gives a trajectory of every frame, as accurate as the run's own.
+TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
+  const auto dataset = OpenDataset(kScene);
+  const SlamOptions options = Options();
+  SlamRunOptions run;
+  run.checkpoint_every_s = 0.05;
+  std::vector<Slam::State> states;
+  std::vector<size_t> next_frames;
+  size_t flushed_before = 0, reported = 0;
+  run.on_frame = [&](const FrameReport&) { ++reported; };
+  run.before_checkpoint = [&] { flushed_before = reported; };
+  run.on_checkpoint = [&](const Slam::State& state, size_t next_frame) {
+    EXPECT_EQ(next_frame, state.next_frame);
+    // Every frame the checkpoint covers was reported before it was taken.
+    EXPECT_LE(next_frame, flushed_before);
+    EXPECT_TRUE(state.map.Validate().empty()) << state.map.Validate();
+    states.push_back(state);
+    next_frames.push_back(next_frame);
+  };
+  const SlamRunResult whole = RunSlam(*dataset, options, run);
+  ASSERT_GE(states.size(), 3u);
+  EXPECT_EQ(whole.checkpoints, states.size());
+  EXPECT_EQ(next_frames.back(), dataset->size());  // the last one covers the whole run
+  EXPECT_EQ(states.back().frames.size(), whole.trajectory.size());
+  const auto whole_score = testing::ScoreTrajectory(*dataset->ground_truth(), whole.trajectory);
+
+  // Continue from a checkpoint in the middle.
+  const size_t middle = states.size() / 2;
+  ASSERT_LT(next_frames[middle], dataset->size());
+  SlamRunOptions rest;
+  Map map = states[middle].map;
+  rest.initial_map = &map;
+  rest.initial_frames = states[middle].frames;
+  rest.first_frame = next_frames[middle];
+  const SlamRunResult continued = RunSlam(*dataset, options, rest);
+  EXPECT_EQ(continued.trajectory.size(), dataset->size());
+  const auto score = testing::ScoreTrajectory(*dataset->ground_truth(), continued.trajectory);
+  std::printf("whole run ATE %.4f m; continued from frame %zu: ATE %.4f m\n", whole_score.se3.ate_m.rmse,
+              next_frames[middle], score.se3.ate_m.rmse);
+  EXPECT_LT(score.se3.ate_m.rmse, 1.5 * whole_score.se3.ate_m.rmse);
+}
+
+}  // namespace
+}  // namespace flatslam
