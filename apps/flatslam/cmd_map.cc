@@ -14,6 +14,7 @@
 #include "core/error.h"
 #include "storage/snapshot.h"
 #include "systems/map_merge.h"
+#include "systems/slam.h"
 #include "systems/vocabulary.h"
 #include "trajectory/trajectory_io.h"
 
@@ -64,8 +65,15 @@ int Info(const std::string& file) {
   std::printf("sensor        %s, %dx%d, fx %.3f fy %.3f cx %.3f cy %.3f", SensorName(calib.sensor), calib.camera.width,
               calib.camera.height, calib.camera.fx, calib.camera.fy, calib.camera.cx, calib.camera.cy);
   if (calib.sensor == Sensor::kStereo) std::printf(", baseline %.4f m", calib.baseline_m);
+  if (calib.sensor == Sensor::kRgbd && view.rgbd_virtual_baseline_m() > 0)
+    std::printf(", virtual baseline %.4f m", view.rgbd_virtual_baseline_m());
   if (calib.frame_rate_hz > 0) std::printf(", %.1f Hz", calib.frame_rate_hz);
   std::printf("\nscales        factor %.3f, %d levels\n", view.scales().scale_factor, view.scales().levels);
+  if (const auto session = view.session_summary()) {
+    std::printf("session       checkpoint of %s: %zu frames tracked, resumes at frame %llu (flatslam run --resume)\n",
+                session->dataset.c_str(), view.session_frame_count(),
+                static_cast<unsigned long long>(session->next_frame));
+  }
   std::printf("maps          %zu\n", view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {
     std::string agents;
@@ -165,6 +173,12 @@ bool SameCalibration(const Calibration& a, const Calibration& b) {
          near(a.camera.cy, b.camera.cy) && near(a.baseline_m, b.baseline_m);
 }
 
+// The virtual stereo baseline of an RGB-D map's keyframes; files that do not record it were
+// written with SLAM's default.
+double VirtualBaseline(const SnapshotMetadata& metadata) {
+  return metadata.rgbd_virtual_baseline_m > 0 ? metadata.rgbd_virtual_baseline_m : SlamOptions{}.rgbd_virtual_baseline_m;
+}
+
 std::string Agents(const Map& map) {
   std::vector<uint32_t> agents;
   for (const KeyFrame& kf : map.keyframes().values()) agents.push_back(kf.agent);
@@ -215,6 +229,9 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
       std::snprintf(text, sizeof(text), "vocabulary %016llx", static_cast<unsigned long long>(checksum));
       return checksum == 0 ? std::string("no vocabulary") : std::string(text);
     };
+    FLATSLAM_CHECK(VirtualBaseline(first) == VirtualBaseline(m) || first.calibration.sensor != Sensor::kRgbd,
+                   "cannot merge ", in, ": its RGB-D virtual baseline (", VirtualBaseline(m), " m) differs from ",
+                   inputs.front(), " (", VirtualBaseline(first), " m)");
     FLATSLAM_CHECK(first.vocabulary_checksum == m.vocabulary_checksum, "cannot merge ", in, ": built with ",
                    vocabulary_name(m.vocabulary_checksum), ", ", inputs.front(), " with ",
                    vocabulary_name(first.vocabulary_checksum));
@@ -244,7 +261,8 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
                 Agents(maps[i]).c_str(), maps[i].keyframes().size(), maps[i].points().size());
   const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 
-  const MergeCamera camera = MergeCamera::FromCalibration(metadata.calibration, metadata.scales);
+  const MergeCamera camera =
+      MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
   const auto merge_start = std::chrono::steady_clock::now();
   MultiMapMerge merged = MergeMapsGreedy(std::move(maps), vocabulary, camera, options);
   const double merge_ms =

@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <charconv>
 #include <chrono>
@@ -14,7 +15,6 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <numeric>
 #include <optional>
 
 #include "args.h"
@@ -138,6 +138,35 @@ std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, cons
   }
   return out;
 }
+
+// Per-frame times of a session of any length in fixed memory: log-spaced bins 1% apart from
+// 1 us to 100 s give the median within 1%; mean and maximum are exact.
+class TimeStats {
+ public:
+  void Add(double ms) {
+    const double clamped = std::clamp(ms, kMinMs, kMaxMs);
+    ++bins_[static_cast<size_t>(std::log(clamped / kMinMs) / std::log(kStep))];
+    ++count_;
+    sum_ += ms;
+    max_ = std::max(max_, ms);
+  }
+  [[nodiscard]] double Median() const {
+    size_t seen = 0;
+    for (size_t b = 0; b < bins_.size(); ++b) {
+      seen += bins_[b];
+      if (2 * seen > count_) return kMinMs * std::pow(kStep, static_cast<double>(b) + 0.5);
+    }
+    return 0;
+  }
+  [[nodiscard]] double Mean() const { return count_ == 0 ? 0 : sum_ / static_cast<double>(count_); }
+  [[nodiscard]] double Max() const { return max_; }
+
+ private:
+  static constexpr double kMinMs = 1e-3, kMaxMs = 1e5, kStep = 1.01;
+  std::array<uint32_t, 1900> bins_{};  // log(1e8) / log(1.01) = 1852 bins
+  size_t count_ = 0;
+  double sum_ = 0, max_ = 0;
+};
 
 double Median(std::vector<float> v) {
   if (v.empty()) return 0;
@@ -404,6 +433,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
   // Identity of the vocabulary the map's keyframes were indexed with (0: none).
   metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;
+  if (dataset->calibration().sensor == Sensor::kRgbd) metadata.rgbd_virtual_baseline_m = options.rgbd_virtual_baseline_m;
   // The map is saved when every stage has drained; a failed save is reported after the summary.
   std::optional<std::filesystem::path> save_map;
   std::string save_error;
@@ -442,7 +472,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
       session.next_frame = next_frame;
       session.dataset = args.positional()[0];
       session.arguments = arguments;
-      session.frames = state.frames;
+      state.AnchoredToMap(&session.frames);
       with_session.session = std::move(session);
       const SnapshotMapRef ref{0, &state.map};
       SaveMapSnapshot(*checkpoint, {&ref, 1}, with_session);
@@ -481,13 +511,11 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::string prefix = kTumHeader;
     if (resume_session)
       for (const AnchoredFramePose& f : resume_session->frames)
-        prefix += FormatTumLine({f.t_ns, f.T_cam_world.inverse()});
+        prefix += FormatTumLine({f.t_ns, f.T_cam_world.isometry().inverse()});
     streamed.emplace(*out_dir / "trajectory.tum", prefix);
   }
   size_t done = 0, keyframes_so_far = 0, lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
-  std::vector<float> track_ms, extract_ms;
-  track_ms.reserve(frames);
-  extract_ms.reserve(frames);
+  TimeStats track_ms, extract_ms;
   run.keep_reports = false;
   const size_t to_do = frames - run.first_frame;
   run.on_frame = [&](const FrameReport& r) {
@@ -498,8 +526,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
       not_initialized += r.state == TrackingState::kNotInitialized;
       relocalized += r.relocalized;
       reinitialized += r.reinitialized;
-      track_ms.push_back(static_cast<float>(r.track_ms));
-      extract_ms.push_back(static_cast<float>(r.extract_ms));
+      track_ms.Add(r.track_ms);
+      extract_ms.Add(r.extract_ms);
     }
     // Resident set and committed heap sampled every frame: long sessions show whether memory
     // stays flat.
@@ -539,9 +567,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
     }
   }
 
-  const double mean_track = std::accumulate(track_ms.begin(), track_ms.end(), 0.0) / std::max<size_t>(1, track_ms.size());
-  const double mean_extract =
-      std::accumulate(extract_ms.begin(), extract_ms.end(), 0.0) / std::max<size_t>(1, extract_ms.size());
+  const double mean_track = track_ms.Mean();
+  const double mean_extract = extract_ms.Mean();
   std::printf("dataset       %s\n", dataset->name().c_str());
   {
     const Calibration& c = dataset->calibration();
@@ -586,7 +613,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::printf("continued     %s%s\n", loaded_note.c_str(), options.localization_only ? " (localization only)" : "");
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
-              Median(extract_ms), mean_extract, Median(track_ms), mean_track);
+              extract_ms.Median(), mean_extract, track_ms.Median(), mean_track);
   if (const MappingTimes& m = result.mapping; m.keyframes > 0) {
     const double n = static_cast<double>(m.keyframes);
     std::printf("mapping       %zu keyframes mapped, ms per keyframe: prepare %.1f, triangulate %.1f, fuse %.1f, "
@@ -604,7 +631,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
                 "longest frame while checkpointing %.1f ms; all frames: median %.1f ms, longest %.1f ms\n",
                 result.checkpoints, checkpoint->c_str(), last_checkpoint_frame, result.checkpoint_failures,
                 Median(capture_f), capture.empty() ? 0.0 : *std::max_element(capture.begin(), capture.end()), longest,
-                Median(track_ms), track_ms.empty() ? 0.0 : *std::max_element(track_ms.begin(), track_ms.end()));
+                track_ms.Median(), track_ms.Max());
   }
   if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());

@@ -77,13 +77,32 @@ struct MapPoint {
 };
 
 // Scale pyramid facts the map needs to keep distance ranges (see ScalePyramid in systems).
+// A pose in 28 bytes (single precision: 1e-7 relative, 0.1 mm at 1 km from the origin).
+struct CompactPose {
+  float q[4] = {0, 0, 0, 1};  // x y z w
+  float t[3] = {0, 0, 0};
+  CompactPose() = default;
+  explicit CompactPose(const Eigen::Isometry3d& T) {
+    const Eigen::Quaternionf rotation = Eigen::Quaterniond(T.linear()).normalized().cast<float>();
+    q[0] = rotation.x(), q[1] = rotation.y(), q[2] = rotation.z(), q[3] = rotation.w();
+    for (int k = 0; k < 3; ++k) t[k] = static_cast<float>(T.translation()[k]);
+  }
+  [[nodiscard]] Eigen::Isometry3d isometry() const {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized().toRotationMatrix();
+    T.translation() = Eigen::Vector3d(t[0], t[1], t[2]);
+    return T;
+  }
+};
+
 // A tracked frame's pose as a session keeps it: relative to a reference keyframe, so that map
-// corrections move it, with the pose it was tracked at for when no live keyframe is left to follow.
+// corrections move it, with the pose it was tracked at for when no live keyframe is left to
+// follow. 72 bytes: a session of 100,000 frames keeps 7 MiB of them.
 struct AnchoredFramePose {
   int64_t t_ns = 0;
   KeyFrameHandle reference;
-  Eigen::Isometry3d T_cam_ref = Eigen::Isometry3d::Identity();
-  Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();  // at tracking time
+  CompactPose T_cam_ref;
+  CompactPose T_cam_world;  // at tracking time
 };
 
 struct MapScales {

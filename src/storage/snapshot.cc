@@ -67,21 +67,17 @@ Eigen::Isometry3d FromPose(const schema::Pose34* pose) {
   return T;
 }
 
-schema::CompactPose ToCompactPose(const Eigen::Isometry3d& T) {
-  const Eigen::Quaternionf q = Eigen::Quaterniond(T.linear()).normalized().cast<float>();
-  const float qv[4] = {q.x(), q.y(), q.z(), q.w()};
-  const Eigen::Vector3f t = T.translation().cast<float>();
-  const float tv[3] = {t.x(), t.y(), t.z()};
-  return schema::CompactPose(fb::span<const float, 4>(qv), fb::span<const float, 3>(tv));
+schema::CompactPose ToSchema(const CompactPose& pose) {
+  return schema::CompactPose(fb::span<const float, 4>(pose.q), fb::span<const float, 3>(pose.t));
 }
 
-Eigen::Isometry3d FromCompactPose(const schema::CompactPose& pose) {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  const Eigen::Quaterniond q(pose.q()->Get(3), pose.q()->Get(0), pose.q()->Get(1), pose.q()->Get(2));
-  // A zero quaternion (corrupt record) becomes the identity rather than NaN.
-  if (q.norm() > 0) T.linear() = q.normalized().toRotationMatrix();
-  T.translation() = Eigen::Vector3d(pose.t()->Get(0), pose.t()->Get(1), pose.t()->Get(2));
-  return T;
+CompactPose FromSchema(const schema::CompactPose& pose) {
+  CompactPose out;
+  for (int k = 0; k < 4; ++k) out.q[k] = pose.q()->Get(k);
+  for (int k = 0; k < 3; ++k) out.t[k] = pose.t()->Get(k);
+  // A zero quaternion (a crafted record) reads as the identity rather than NaN.
+  if (out.q[0] == 0 && out.q[1] == 0 && out.q[2] == 0 && out.q[3] == 0) out.q[3] = 1;
+  return out;
 }
 
 schema::Vec3d ToVec(const Eigen::Vector3d& v) { return schema::Vec3d(v.x(), v.y(), v.z()); }
@@ -376,7 +372,7 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
     for (const AnchoredFramePose& f : s->frames) {
       const uint32_t reference =
           keyframes.contains(f.reference) ? static_cast<uint32_t>(keyframes.dense_index(f.reference)) : kNoIndex;
-      frames.emplace_back(f.t_ns, reference, ToCompactPose(f.T_cam_ref), ToCompactPose(f.T_cam_world));
+      frames.emplace_back(f.t_ns, reference, ToSchema(f.T_cam_ref), ToSchema(f.T_cam_world));
     }
     const auto frame_vector = builder.CreateVectorOfStructs(frames);
     const auto arguments = builder.CreateVectorOfStrings(s->arguments);
@@ -386,7 +382,7 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
   const schema::ContentHash placeholder(0);
   const auto root = schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder,
                                               metadata.vocabulary_checksum, calibration, scales, segment_vector,
-                                              session);
+                                              session, metadata.rgbd_virtual_baseline_m);
   schema::FinishMapSnapshotBuffer(builder, root);
 }
 
@@ -820,6 +816,7 @@ size_t MapSnapshotView::session_frame_count() const {
 }
 
 uint32_t MapSnapshotView::format_version() const { return root_->format_version(); }
+double MapSnapshotView::rgbd_virtual_baseline_m() const { return root_->rgbd_virtual_baseline_m(); }
 uint64_t MapSnapshotView::vocabulary_checksum() const { return root_->vocabulary_checksum(); }
 uint64_t MapSnapshotView::content_hash() const { return root_->content_hash()->value(); }
 
@@ -907,6 +904,7 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
   out.metadata.calibration = view.calibration();
   out.metadata.scales = view.scales();
   out.metadata.vocabulary_checksum = view.vocabulary_checksum();
+  out.metadata.rgbd_virtual_baseline_m = view.rgbd_virtual_baseline_m();
   out.maps.resize(view.map_count());
   std::vector<std::vector<KeyFrameHandle>> kf_handles_of(view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {
@@ -992,8 +990,8 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
       AnchoredFramePose f;
       f.t_ns = r.t_ns();
       f.reference = r.reference() == kNoIndex ? KeyFrameHandle::null() : handles[r.reference()];
-      f.T_cam_ref = FromCompactPose(r.cam_from_ref());
-      f.T_cam_world = FromCompactPose(r.cam_from_world());
+      f.T_cam_ref = FromSchema(r.cam_from_ref());
+      f.T_cam_world = FromSchema(r.cam_from_world());
       session.frames.push_back(f);
     }
     out.metadata.session = std::move(session);

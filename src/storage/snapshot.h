@@ -46,6 +46,8 @@ struct SnapshotMetadata {
   MapScales scales;
   uint64_t vocabulary_checksum = 0;  // identity of the vocabulary the map was built with; 0 = none
   std::optional<SnapshotSession> session;  // checkpoints only
+  // RGB-D maps: the virtual stereo baseline of the keyframes' right_u (0 = not recorded).
+  double rgbd_virtual_baseline_m = 0;
 };
 
 // One map to save. Its agents are the distinct KeyFrame::agent values.
@@ -114,6 +116,7 @@ class MapSnapshotView {
   [[nodiscard]] uint64_t content_hash() const;
   [[nodiscard]] Calibration calibration() const;
   [[nodiscard]] MapScales scales() const;
+  [[nodiscard]] double rgbd_virtual_baseline_m() const;  // 0: not recorded
 
   [[nodiscard]] size_t map_count() const;
   [[nodiscard]] uint32_t map_id(size_t m) const;

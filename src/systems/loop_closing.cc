@@ -61,12 +61,8 @@ void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
     if (first_keyframe_.is_null() || (kf.parent.is_null() && !map_.keyframe(first_keyframe_).parent.is_null()))
       first_keyframe_ = h;
   }
-  for (const AnchoredFramePose& f : frames) {
-    FramePose pose;
-    pose.t_ns = f.t_ns;
-    pose.reference = map_.keyframes().contains(f.reference) ? f.reference : KeyFrameHandle::null();
-    pose.T_cam_ref = CompactPose(f.T_cam_ref);
-    pose.T_cam_world = CompactPose(f.T_cam_world);
+  for (FramePose pose : frames) {
+    if (!map_.keyframes().contains(pose.reference)) pose.reference = KeyFrameHandle::null();
     frame_poses_.push_back(pose);
   }
   state_ = TrackingState::kLost;
@@ -74,23 +70,21 @@ void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
 }
 
 void Slam::CaptureState(State* out) const {
-  State& state = *out;
-  state.frames.clear();
-  state.frames.reserve(frame_poses_.size());
   std::lock_guard<std::mutex> lock(map_mutex_);
-  state.map.AssignForSnapshot(map_);
-  state.next_frame = next_frame_;
-  for (const FramePose& f : frame_poses_) {
-    AnchoredFramePose a;
-    a.t_ns = f.t_ns;
-    a.T_cam_world = f.T_cam_world.isometry();
-    Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
-    KeyFrameHandle ref = f.reference;
-    if (FollowToLiveKeyFrame(&ref, &T_cam_ref)) {
-      a.reference = ref;
-      a.T_cam_ref = T_cam_ref;
-    }
-    state.frames.push_back(a);
+  out->map.AssignForSnapshot(map_);
+  frame_poses_.TakeView(&out->frames);
+  out->culled = culled_;
+  out->next_frame = next_frame_;
+}
+
+void Slam::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {
+  out->resize(frames.size());
+  for (size_t i = 0; i < frames.size(); ++i) {
+    AnchoredFramePose a = frames[i];
+    Eigen::Isometry3d T_cam_ref = a.T_cam_ref.isometry();
+    if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref)) a.T_cam_ref = CompactPose(T_cam_ref);
+    else a.reference = KeyFrameHandle::null();
+    (*out)[i] = a;
   }
 }
 
@@ -118,11 +112,12 @@ void Slam::EraseKeyFrame(KeyFrameHandle kf) {
   map_.EraseKeyFrame(kf);
 }
 
-bool Slam::FollowToLiveKeyFrame(KeyFrameHandle* ref, Eigen::Isometry3d* T_cam_ref) const {
+bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFrameHandle* ref,
+                          Eigen::Isometry3d* T_cam_ref) {
   for (int hops = 0; hops < 1000 && !ref->is_null(); ++hops) {
-    if (map_.keyframes().contains(*ref)) return true;
-    const auto it = culled_.find(*ref);
-    if (it == culled_.end()) return false;
+    if (map.keyframes().contains(*ref)) return true;
+    const auto it = culled.find(*ref);
+    if (it == culled.end()) return false;
     *T_cam_ref = *T_cam_ref * it->second.T_kf_parent;
     *ref = it->second.parent;
   }
@@ -132,7 +127,7 @@ bool Slam::FollowToLiveKeyFrame(KeyFrameHandle* ref, Eigen::Isometry3d* T_cam_re
 Eigen::Isometry3d Slam::ResolveFramePose(const FramePose& f) const {
   Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
   KeyFrameHandle ref = f.reference;
-  if (FollowToLiveKeyFrame(&ref, &T_cam_ref)) return T_cam_ref * map_.keyframe(ref).T_cam_world;
+  if (FollowToLiveKeyFrame(map_, culled_, &ref, &T_cam_ref)) return T_cam_ref * map_.keyframe(ref).T_cam_world;
   return f.T_cam_world.isometry();  // no live keyframe to follow: the pose as tracked
 }
 

@@ -112,11 +112,14 @@ size_t IndependentPairs(const std::vector<MergePair>& pairs, const std::vector<s
 
 }  // namespace
 
-MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const MapScales& scales) {
+MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const MapScales& scales,
+                                         double rgbd_virtual_baseline_m) {
+  FLATSLAM_CHECK(calibration.sensor != Sensor::kRgbd || rgbd_virtual_baseline_m > 0,
+                 "map merge: RGB-D maps need their virtual stereo baseline (got ", rgbd_virtual_baseline_m, ")");
   MergeCamera out;
   out.geometry.camera = calibration.camera;
   const double baseline = calibration.sensor == Sensor::kStereo ? calibration.baseline_m
-                          : calibration.sensor == Sensor::kRgbd ? SlamOptions{}.rgbd_virtual_baseline_m
+                          : calibration.sensor == Sensor::kRgbd ? rgbd_virtual_baseline_m
                                                                 : 0.0;
   out.geometry.bf = baseline * calibration.camera.fx;
   out.geometry.pyramid = ScalePyramid::Make(scales.levels, scales.scale_factor);

@@ -26,9 +26,10 @@ struct MergeCamera {
   MapScales scales;
   bool monocular = false;  // Sim(3) alignment; otherwise SE(3) with scale fixed to 1
 
-  // From a snapshot's calibration and scales; RGB-D keyframes carry a virtual right image
-  // with SLAM's default virtual baseline.
-  [[nodiscard]] static MergeCamera FromCalibration(const Calibration& calibration, const MapScales& scales);
+  // From a snapshot's calibration and scales; RGB-D keyframes carry a virtual right image at
+  // rgbd_virtual_baseline_m (the value the maps were built with; SnapshotMetadata records it).
+  [[nodiscard]] static MergeCamera FromCalibration(const Calibration& calibration, const MapScales& scales,
+                                                   double rgbd_virtual_baseline_m);
 };
 
 struct MapMergeOptions {

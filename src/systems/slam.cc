@@ -892,7 +892,8 @@ Trajectory Slam::FrameTrajectory() const {
   std::lock_guard<std::mutex> lock(map_mutex_);
   Trajectory out;
   out.reserve(frame_poses_.size());
-  for (const FramePose& f : frame_poses_) {
+  for (size_t i = 0; i < frame_poses_.size(); ++i) {
+    const FramePose& f = frame_poses_[i];
     TimedPose p;
     p.t_ns = f.t_ns;
     p.T_world_cam = ResolveFramePose(f).inverse();

@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "core/object_pool.h"
+#include "ecs/chunk_log.h"
 #include "ecs/map.h"
 #include "io/types.h"
 #include "systems/bundle_adjustment.h"
@@ -124,6 +125,19 @@ struct DerivedOption {
 
 enum class TrackingState { kNotInitialized, kOk, kLost };
 
+// Culled keyframes and where frames that referred to them go instead: the parent, and the culled
+// keyframe's pose relative to it.
+struct CulledKeyFrame {
+  KeyFrameHandle parent;
+  Eigen::Isometry3d T_kf_parent;
+};
+using CulledKeyFrames = std::unordered_map<KeyFrameHandle, CulledKeyFrame>;
+
+// Moves *ref along culled keyframes' parents to a keyframe of `map`, composing *T_cam_ref; false
+// when none is left to follow.
+bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFrameHandle* ref,
+                          Eigen::Isometry3d* T_cam_ref);
+
 // One loop closure, for the run summary and tests.
 struct LoopClosure {
   size_t frame_index = 0;        // input frame of the keyframe that closed the loop
@@ -216,43 +230,25 @@ class Slam {
   // FrameTrajectory() starts with them, and later corrections of the map move them too.
   void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {});
   // The session between two frames, for a checkpoint: a copy of the map (Map::AssignForSnapshot:
-  // no bags of words), every tracked frame's pose anchored at a live keyframe of that copy, and
-  // the frame after the last one tracked. Any thread; holds the map lock while copying (Track and
-  // mapping wait meanwhile). Pass the same State each time: the copy then moves little more than
-  // what changed since the last.
+  // no bags of words), a view of every tracked frame's pose as recorded, the culled keyframes
+  // those records may still name, and the frame after the last one tracked. Any thread; holds the
+  // map lock while copying (Track and mapping wait meanwhile). Pass the same State each time: the
+  // copy then moves little more than what changed since the last. The frame view reads the Slam's
+  // own records: use a State only while its Slam lives.
   struct State {
     Map map;
-    std::vector<AnchoredFramePose> frames;
+    ChunkLog<AnchoredFramePose>::View frames;
+    CulledKeyFrames culled;
     size_t next_frame = 0;  // input index after the last frame given to Track
+    // Every frame anchored at a keyframe of `map` (culled references followed to live ones; none
+    // where no live keyframe is left), for a snapshot's session.
+    void AnchoredToMap(std::vector<AnchoredFramePose>* out) const;
   };
   void CaptureState(State* out) const;
   ~Slam();
 
  private:
-  // A pose in 28 bytes (single precision: 1e-7 relative, 0.1 mm at 1 km from the origin). A
-  // tracked frame keeps two, so a session of 100,000 frames holds 7 MiB of poses.
-  struct CompactPose {
-    float q[4] = {0, 0, 0, 1};  // x y z w
-    float t[3] = {0, 0, 0};
-    CompactPose() = default;
-    explicit CompactPose(const Eigen::Isometry3d& T) {
-      const Eigen::Quaternionf rotation = Eigen::Quaterniond(T.linear()).normalized().cast<float>();
-      q[0] = rotation.x(), q[1] = rotation.y(), q[2] = rotation.z(), q[3] = rotation.w();
-      for (int k = 0; k < 3; ++k) t[k] = static_cast<float>(T.translation()[k]);
-    }
-    [[nodiscard]] Eigen::Isometry3d isometry() const {
-      Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-      T.linear() = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized().toRotationMatrix();
-      T.translation() = Eigen::Vector3d(t[0], t[1], t[2]);
-      return T;
-    }
-  };
-  struct FramePose {
-    int64_t t_ns = 0;
-    KeyFrameHandle reference;
-    CompactPose T_cam_ref;
-    CompactPose T_cam_world;  // at tracking time
-  };
+  using FramePose = AnchoredFramePose;
   static_assert(sizeof(FramePose) == 72);
 
   bool Initialize(TrackedFrame& frame);
@@ -291,9 +287,6 @@ class Slam {
   void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
   // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
   [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const FramePose& f) const;
-  // Moves *ref along culled keyframes' parents to a live keyframe, composing *T_cam_ref; false
-  // when none is left.
-  bool FollowToLiveKeyFrame(KeyFrameHandle* ref, Eigen::Isometry3d* T_cam_ref) const;
 
   // Place recognition (loop_closing.cc).
   void ComputeBow(TrackedFrame& frame) const;
@@ -326,9 +319,10 @@ class Slam {
   std::vector<PointHandle> local_points_;
   int last_inliers_ = 0;  // of the last frame's local-map tracking
   size_t next_frame_ = 0;  // input index after the last frame tracked (under map_mutex_)
-  // One per tracked frame, for the trajectory. A deque grows by fixed blocks: a vector's doubling
-  // would leave up to half its capacity unused and briefly hold both copies in a long session.
-  std::deque<FramePose> frame_poses_;
+  // One per tracked frame, for the trajectory (written by Track under map_mutex_). Fixed chunks
+  // that never move: no doubling's unused half in a long session, and a checkpoint reads them
+  // through a view without copying (CaptureState).
+  ChunkLog<FramePose> frame_poses_;
   KeyFrameHandle first_keyframe_;
   std::optional<TrackedFrame> init_frame_;  // monocular: first frame of the two-view initialization
   std::mt19937_64 rng_;
@@ -352,11 +346,7 @@ class Slam {
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;
-  struct CulledKeyFrame {
-    KeyFrameHandle parent;
-    Eigen::Isometry3d T_kf_parent;  // culled keyframe's pose relative to its parent
-  };
-  std::unordered_map<KeyFrameHandle, CulledKeyFrame> culled_;
+  CulledKeyFrames culled_;
   struct ConsistentGroup {
     std::vector<KeyFrameHandle> keyframes;
     int count = 0;

@@ -114,7 +114,9 @@ TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
   const SlamOptions options = Options();
   SlamRunOptions run;
   run.checkpoint_every_s = 0.05;
-  std::vector<Slam::State> states;
+  // What each checkpoint would save: its map and its frames anchored in that map.
+  std::vector<Map> maps;
+  std::vector<std::vector<AnchoredFramePose>> frames;
   std::vector<size_t> next_frames;
   size_t flushed_before = 0, reported = 0;
   run.on_frame = [&](const FrameReport&) { ++reported; };
@@ -124,23 +126,26 @@ TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
     // Every frame the checkpoint covers was reported before it was taken.
     EXPECT_LE(next_frame, flushed_before);
     EXPECT_TRUE(state.map.Validate().empty()) << state.map.Validate();
-    states.push_back(state);
+    maps.push_back(state.map);
+    frames.emplace_back();
+    state.AnchoredToMap(&frames.back());
+    for (const AnchoredFramePose& f : frames.back())
+      EXPECT_TRUE(f.reference.is_null() || state.map.keyframes().contains(f.reference));
     next_frames.push_back(next_frame);
   };
   const SlamRunResult whole = RunSlam(*dataset, options, run);
-  ASSERT_GE(states.size(), 3u);
-  EXPECT_EQ(whole.checkpoints, states.size());
+  ASSERT_GE(maps.size(), 3u);
+  EXPECT_EQ(whole.checkpoints, maps.size());
   EXPECT_EQ(next_frames.back(), dataset->size());  // the last one covers the whole run
-  EXPECT_EQ(states.back().frames.size(), whole.trajectory.size());
+  EXPECT_EQ(frames.back().size(), whole.trajectory.size());
   const auto whole_score = testing::ScoreTrajectory(*dataset->ground_truth(), whole.trajectory);
 
   // Continue from a checkpoint in the middle.
-  const size_t middle = states.size() / 2;
+  const size_t middle = maps.size() / 2;
   ASSERT_LT(next_frames[middle], dataset->size());
   SlamRunOptions rest;
-  Map map = states[middle].map;
-  rest.initial_map = &map;
-  rest.initial_frames = states[middle].frames;
+  rest.initial_map = &maps[middle];
+  rest.initial_frames = frames[middle];
   rest.first_frame = next_frames[middle];
   const SlamRunResult continued = RunSlam(*dataset, options, rest);
   EXPECT_EQ(continued.trajectory.size(), dataset->size());

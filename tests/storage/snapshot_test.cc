@@ -19,6 +19,7 @@
 #include "flatslam/schemas/map_generated.h"
 #include "jobs/slam_runner.h"
 #include "storage/random_map.h"
+#include "systems/map_merge.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -259,6 +260,23 @@ TEST(MapSnapshot, SnapshotCopySerializesLikeItsSource) {
   }
 }
 
+// An RGB-D map records the virtual baseline of its keyframes' right_u (map merge needs it).
+TEST(MapSnapshot, RgbdVirtualBaselineIsRecorded) {
+  testing::RandomMapOptions o;
+  o.keyframes = 5;
+  const Map map = testing::RandomMap(o);
+  SnapshotMetadata metadata = TestMetadata(2);
+  metadata.calibration.sensor = Sensor::kRgbd;
+  metadata.rgbd_virtual_baseline_m = 0.125;
+  const SnapshotMapRef ref{0, &map};
+  const std::vector<uint8_t> bytes = SerializeMapSnapshot({&ref, 1}, metadata);
+  EXPECT_EQ(MapSnapshotView::FromBytes(bytes, "memory").rgbd_virtual_baseline_m(), 0.125);
+  EXPECT_EQ(LoadMapSnapshotFromBytes(bytes, "memory").metadata.rgbd_virtual_baseline_m, 0.125);
+  const MergeCamera camera = MergeCamera::FromCalibration(metadata.calibration, metadata.scales, 0.125);
+  EXPECT_DOUBLE_EQ(camera.geometry.bf, 0.125 * metadata.calibration.camera.fx);
+  EXPECT_THROW((void)MergeCamera::FromCalibration(metadata.calibration, metadata.scales, 0), Error);
+}
+
 // A checkpoint's session (next frame, dataset, command line, trajectory anchored at keyframes)
 // comes back from the file with handles of the loaded map.
 TEST(MapSnapshot, SessionRoundTrips) {
@@ -274,8 +292,10 @@ TEST(MapSnapshot, SessionRoundTrips) {
     AnchoredFramePose f;
     f.t_ns = 1000 + static_cast<int64_t>(i);
     f.reference = i % 7 == 3 ? KeyFrameHandle::null() : handles[i % handles.size()];
-    f.T_cam_ref = Eigen::Translation3d(0.1 * i, 0, 1) * Eigen::AngleAxisd(0.01 * i, Eigen::Vector3d::UnitY());
-    f.T_cam_world = Eigen::Translation3d(0, 0.2 * i, 0) * Eigen::AngleAxisd(0.02 * i, Eigen::Vector3d::UnitZ());
+    f.T_cam_ref = CompactPose(Eigen::Isometry3d(Eigen::Translation3d(0.1 * i, 0, 1) *
+                                                Eigen::AngleAxisd(0.01 * i, Eigen::Vector3d::UnitY())));
+    f.T_cam_world = CompactPose(Eigen::Isometry3d(Eigen::Translation3d(0, 0.2 * i, 0) *
+                                                  Eigen::AngleAxisd(0.02 * i, Eigen::Vector3d::UnitZ())));
     session.frames.push_back(f);
   }
   metadata.session = session;
@@ -301,8 +321,9 @@ TEST(MapSnapshot, SessionRoundTrips) {
       // The same keyframe: dense positions are kept by a load.
       EXPECT_EQ(loaded_map.keyframes().dense_index(f.reference), map.keyframes().dense_index(session.frames[i].reference));
     }
-    EXPECT_TRUE(f.T_cam_ref.isApprox(session.frames[i].T_cam_ref, 1e-6));
-    EXPECT_TRUE(f.T_cam_world.isApprox(session.frames[i].T_cam_world, 1e-6));
+    // Stored as given: bit for bit.
+    EXPECT_EQ(std::memcmp(&f.T_cam_ref, &session.frames[i].T_cam_ref, sizeof(CompactPose)), 0);
+    EXPECT_EQ(std::memcmp(&f.T_cam_world, &session.frames[i].T_cam_world, sizeof(CompactPose)), 0);
   }
   // A plain map snapshot has no session.
   EXPECT_FALSE(MapSnapshotView::FromBytes(SerializeMapSnapshot({&ref, 1}, TestMetadata(5)), "plain").session_summary());

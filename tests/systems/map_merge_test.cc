@@ -91,7 +91,8 @@ std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vec
 }
 
 MergeCamera CameraOf(const AgentRun& run) {
-  return MergeCamera::FromCalibration(run.calibration, MapScales{OrbOptions{}.scale_factor, OrbOptions{}.levels});
+  return MergeCamera::FromCalibration(run.calibration, MapScales{OrbOptions{}.scale_factor, OrbOptions{}.levels},
+                                      SlamOptions{}.rgbd_virtual_baseline_m);
 }
 
 // Agent 0 drives the bottom road (+x), the right side and most of the top road (-x); agent 1
