@@ -79,6 +79,8 @@ int main(int argc, char** argv) {
       return 2;
     } catch (const flatslam::Error& e) {
       std::fprintf(stderr, "flatslam %s: error: %s\n", c.name, e.what());
+      // Where the failing check is, for a bug report.
+      if (*e.where() != '\0') std::fprintf(stderr, "  (check failed at %s)\n", e.where());
       return 1;
     } catch (const std::exception& e) {
       std::fprintf(stderr, "flatslam %s: unexpected error: %s\n", c.name, e.what());

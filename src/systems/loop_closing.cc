@@ -65,6 +65,15 @@ void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
     if (!map_.keyframes().contains(pose.reference)) pose.reference = KeyFrameHandle::null();
     frame_poses_.push_back(pose);
   }
+  // Points the continued session still had on probation (made by its last three keyframes) stay
+  // on probation here, so that recent-point culling drops the bad ones as it would have.
+  uint64_t newest = 0;
+  for (const KeyFrame& kf : map_.keyframes().values()) {
+    newest = std::max(newest, kf.id);
+    last_keyframe_frame_ = std::max(last_keyframe_frame_, kf.frame_index);
+  }
+  for (PointHandle p : map_.points().handles())
+    if (map_.point(p).first_keyframe_id + 3 > newest) recent_points_.push_back(p);
   state_ = TrackingState::kLost;
   allow_new_segments_ = false;
 }
