@@ -168,11 +168,6 @@ class TimeStats {
   double sum_ = 0, max_ = 0;
 };
 
-double Median(std::vector<float> v) {
-  if (v.empty()) return 0;
-  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-  return v[v.size() / 2];
-}
 
 // Flags of `flatslam run` that take a value, and switches.
 const std::set<std::string> kRunFlags = {"sensor",      "out",         "seed",       "max-frames", "features",
@@ -625,12 +620,12 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (checkpoint) {
     const auto& during = result.frame_ms_during_checkpoints;
     const double longest = during.empty() ? 0 : *std::max_element(during.begin(), during.end());
-    const auto& capture = result.checkpoint_capture_ms;
-    std::vector<float> capture_f(capture.begin(), capture.end());
+    TimeStats capture;
+    for (double ms : result.checkpoint_capture_ms) capture.Add(ms);
     std::printf("checkpoints   %zu written to %s (last: next frame %zu), %zu failed; copy median %.1f ms (max %.1f); "
                 "longest frame while checkpointing %.1f ms; all frames: median %.1f ms, longest %.1f ms\n",
                 result.checkpoints, checkpoint->c_str(), last_checkpoint_frame, result.checkpoint_failures,
-                Median(capture_f), capture.empty() ? 0.0 : *std::max_element(capture.begin(), capture.end()), longest,
+                capture.Median(), capture.Max(), longest,
                 track_ms.Median(), track_ms.Max());
   }
   if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);

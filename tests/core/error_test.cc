@@ -24,7 +24,7 @@ TEST(Error, FailedCheckNamesItsMessageLineAndCondition) {
     // The file as the compiler saw it, relative to the source tree (a compiler cache may prefix
     // it with "../"), then the line.
     EXPECT_NE(where.find("tests/core/error_test.cc:"), std::string::npos) << where;
-    EXPECT_EQ(where.find("/work/"), std::string::npos) << where;
+    EXPECT_NE(where.rfind('/', 0), 0u) << where;  // never the checkout's absolute path
     EXPECT_NE(where.find(": value > 0"), std::string::npos) << where;
   }
   EXPECT_EQ(CheckPositive(2), 2);
