@@ -552,15 +552,21 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
     return use_h ? Reconstruct(MotionsFromHomography(H21, K), best_h, px1, px2, camera, options)
                  : Reconstruct(MotionsFromEssential(K.transpose() * F21 * K), best_f, px1, px2, camera, options);
   };
-  // Between the fallback ratio and the selection threshold the scores alone do not separate a
-  // noisy plane (where F is degenerate) from a 3D scene: reconstruct both, keep the better supported.
+  // Where neither score dominates (ratio within homography_fallback_ratio of either end) the
+  // scores alone do not separate a noisy plane (where F is degenerate) from a 3D scene. With F
+  // selected, H is reconstructed too and the better supported wins. With H selected, F is tried
+  // only when H gives no answer: a 3D scene seen by a mostly turning camera fits the infinite
+  // homography, whose decomposition then stays two-fold ambiguous while F's is clear; on a true
+  // plane H answers and the degenerate F is never consulted.
   bool used_h = prefer_h;
   std::optional<Reconstruction> rec = reconstruct(prefer_h);
-  if (!prefer_h && options.homography_fallback && ratio > options.homography_fallback_ratio) {
-    std::optional<Reconstruction> rec_h = reconstruct(true);
-    if (rec_h && (!rec || rec_h->good > rec->good)) {
-      rec = std::move(rec_h);
-      used_h = true;
+  const bool undecided =
+      ratio > options.homography_fallback_ratio && ratio < 1.0 - options.homography_fallback_ratio;
+  if (options.homography_fallback && undecided && (!prefer_h || !rec)) {
+    std::optional<Reconstruction> other = reconstruct(!prefer_h);
+    if (other && (!rec || other->good > rec->good)) {
+      rec = std::move(other);
+      used_h = !prefer_h;
     }
   }
   if (!rec) return std::nullopt;

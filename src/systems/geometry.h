@@ -60,8 +60,8 @@ struct TwoViewOptions {
   double chi2_two_dof = 5.991;                // H inlier gate and score ceiling (2 DoF, 95%)
   double homography_ratio = 0.45;             // select H when SH / (SH + SF) exceeds this
   int local_optimization_passes = 4;          // LO-RANSAC: least-squares re-fits of each new best model
-  bool homography_fallback = true;            // when F is selected but SH / (SH + SF) is above ...
-  double homography_fallback_ratio = 0.35;    // ... this, also try H and keep the better supported
+  bool homography_fallback = true;            // when SH / (SH + SF) is within ...
+  double homography_fallback_ratio = 0.35;    // ... this of 0 and 1, also try the other model
   bool refine_with_bundle_adjustment = true;  // two-view BA of the winning motion and points
   int refine_iterations = 10;                 // per BA pass (robust pass, then inliers only)
   int refine_rounds = 5;                      // BA + re-selection of inliers, until they stop growing

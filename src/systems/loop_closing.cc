@@ -74,6 +74,7 @@ void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
   }
   for (PointHandle p : map_.points().handles())
     if (map_.point(p).first_keyframe_id + 3 > newest) recent_points_.push_back(p);
+  segment_keyframes_ = map_.keyframes().size();
   state_ = TrackingState::kLost;
   allow_new_segments_ = false;
 }

@@ -288,6 +288,7 @@ bool Slam::Initialize(TrackedFrame& frame) {
     return false;
   if (first_keyframe_.is_null()) frame.T_cam_world = Eigen::Isometry3d::Identity();
   std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  segment_keyframes_ = 0;
   const KeyFrameHandle kf = CreateKeyFrame(frame, /*all_depth_points=*/true);
   if (first_keyframe_.is_null()) first_keyframe_ = kf;
   local_keyframes_ = {kf};
@@ -321,6 +322,7 @@ bool Slam::InitializeMonocular(TrackedFrame& frame) {
   std::fill(first.points.begin(), first.points.end(), PointHandle::null());
   std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
   frame.T_cam_world = two_view->T_2_1 * T_first_world;
+  segment_keyframes_ = 0;
   const KeyFrameHandle kf1 = CreateKeyFrame(first);
   const KeyFrameHandle kf2 = CreateKeyFrame(frame);
   const Eigen::Isometry3d T_world_first = T_first_world.inverse();
@@ -476,7 +478,10 @@ bool Slam::TrackLocalMap(TrackedFrame& frame, int* matches) {
 bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   const KeyFrame* reference = map_.keyframes().try_get(reference_keyframe_);
   if (!reference) return true;
-  const int min_observations = map_.keyframes().size() <= 2 ? 2 : 3;
+  // A young segment's points cannot have 3 observers yet: counting only those would leave the
+  // reference empty and no frame would ever look thin (a new monocular segment in a map of
+  // older ones never made a keyframe).
+  const int min_observations = segment_keyframes_ <= 2 ? 2 : 3;
   int reference_points = 0;
   for (PointHandle p : reference->points) {
     const MapPoint* point = map_.points().try_get(p);
@@ -583,6 +588,7 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
   map_.UpdateCovisibility(h);
   reference_keyframe_ = h;
   last_keyframe_frame_ = frame.index;
+  ++segment_keyframes_;
   return h;
 }
 

@@ -315,6 +315,7 @@ class Slam {
   std::optional<Eigen::Isometry3d> velocity_;  // T_cur_last of the previous step
   KeyFrameHandle reference_keyframe_;
   size_t last_keyframe_frame_ = 0;
+  size_t segment_keyframes_ = 0;  // keyframes made since the current map segment started
   std::vector<KeyFrameHandle> local_keyframes_;
   std::vector<PointHandle> local_points_;
   int last_inliers_ = 0;  // of the last frame's local-map tracking

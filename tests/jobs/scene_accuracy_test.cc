@@ -88,6 +88,15 @@ TEST(SceneAccuracy, HandheldRgbd) {
   EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
 }
 
+// Bar: monocular hand-held, 60 s: initializes within one second and loses under 1% of frames
+// (the fast glances into unmapped parts of the office are where a monocular map can lose itself).
+TEST(SceneAccuracy, HandheldMonocular) {
+  const Outcome o = RunWithDefaults("synth:handheld", Sensor::kMonocular);
+  EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
+  EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
+  EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);  // shape, after the arbitrary scale
+}
+
 // Moving objects covering up to 30% of the view: each sensor keeps tracking and stays within the
 // accuracy bars of the static room (1% of path with depth, 2% monocular after Sim(3)).
 TEST(SceneAccuracy, DynamicRoomEverySensor) {
@@ -96,8 +105,7 @@ TEST(SceneAccuracy, DynamicRoomEverySensor) {
     SCOPED_TRACE(SensorName(sensor));
     EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
     if (sensor == Sensor::kMonocular) {
-      // The two-view start takes 1.55 s here, as in the static room (docs/STATUS.md).
-      EXPECT_LT(static_cast<double>(o.first_tracked), 2 * o.rate_hz);
+      EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
       EXPECT_LT(o.sim3.ate_m.rmse, 0.02 * o.path_m);
     } else {
       EXPECT_EQ(o.first_tracked, 0u);
