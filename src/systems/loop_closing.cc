@@ -12,16 +12,15 @@
 #include "core/error.h"
 #include "systems/similarity.h"
 #include "systems/slam.h"
+#include "systems/place_verification.h"
 #include "systems/vocabulary.h"
 
 namespace flatslam {
 
-struct Slam::LoopMatch {
+// A verified loop: the corrected pose of the current keyframe (S_cw), its loop-side point per
+// keypoint (matched) and the points of the candidate and its neighbours (nearby).
+struct Slam::LoopMatch : PlaceMatch {
   KeyFrameHandle candidate;
-  Similarity3 S_cw;                      // corrected pose of the current keyframe
-  std::vector<PointHandle> matched;      // per keypoint of the current keyframe: loop-side point
-  std::vector<PointHandle> loop_points;  // points of the candidate and its neighbours
-  int matches = 0;
 };
 
 namespace {
@@ -268,32 +267,13 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
 }
 
 bool Slam::VerifyLoop(KeyFrameHandle current, KeyFrameHandle candidate, LoopMatch* out) {
-  const KeyFrame& a = map_.keyframe(current);
-  const KeyFrame& b = map_.keyframe(candidate);
-  const auto pairs = MatchKeyFramesByBow(a, b, map_, options_.matcher, 0.75f);
-  if (pairs.size() < 20) return false;
-  const std::vector<PointCorrespondence> correspondences =
-      CorrespondencesOf(a, map_, b, map_, pairs, geometry_.pyramid);
-  SimilarityRansacOptions ransac;
-  ransac.fix_scale = !monocular();
-  const auto result = EstimateSimilarityRansac(geometry_.camera, correspondences, ransac, loop_rng_);
-  if (!result) return false;
-
+  PlaceVerificationOptions verification;
+  verification.ransac.fix_scale = !monocular();
+  std::optional<PlaceMatch> match = VerifyPlace(map_.keyframe(current), map_, candidate, map_, geometry_,
+                                                options_.matcher, verification, loop_rng_);
+  if (!match) return false;
+  static_cast<PlaceMatch&>(*out) = std::move(*match);
   out->candidate = candidate;
-  out->S_cw = result->S_21.inverse() * Similarity3::FromIsometry(b.T_cam_world);
-  out->matched.assign(a.size(), PointHandle::null());
-  for (size_t k = 0; k < pairs.size(); ++k)
-    if (result->inlier[k]) out->matched[pairs[k].first] = b.points[pairs[k].second];
-  // Every point around the loop keyframe, searched in the current keyframe at the corrected pose.
-  std::unordered_set<PointHandle> unique;
-  std::vector<KeyFrameHandle> loop_keyframes = map_.BestCovisible(candidate, 20);
-  loop_keyframes.push_back(candidate);
-  for (KeyFrameHandle h : loop_keyframes)
-    for (PointHandle p : map_.keyframe(h).points)
-      if (map_.points().contains(p) && unique.insert(p).second) out->loop_points.push_back(p);
-  MatchBySimilarity(a, out->S_cw, out->loop_points, map_, geometry_, 10.0f, options_.matcher, &out->matched);
-  out->matches = static_cast<int>(
-      std::count_if(out->matched.begin(), out->matched.end(), [](PointHandle p) { return !p.is_null(); }));
   return out->matches >= options_.min_loop_matches;
 }
 
@@ -326,7 +306,7 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
   // 2. Fuse the loop: the current keyframe takes the loop-side points, its neighbours too.
   map_.BindMatchedPoints(current, m.matched);
   for (KeyFrameHandle k : connected)
-    if (map_.keyframes().contains(k)) FusePoints(map_, k, m.loop_points, geometry_, options_.matcher);
+    if (map_.keyframes().contains(k)) FusePoints(map_, k, m.nearby, geometry_, options_.matcher);
 
   // 3. New covisibility links across the loop.
   std::unordered_set<KeyFrameHandle> connected_set(connected.begin(), connected.end());
@@ -419,61 +399,33 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
   } clear{global_ba_running_};
   if (options_.inject_fault == InjectedFault::kGlobalBundleAdjustment)
     Fail("injected failure in global bundle adjustment");
-  BundleAdjustmentProblem problem;
-  std::vector<KeyFrameHandle> pose_handles;
-  std::vector<PointHandle> point_handles;
+  MapBundleAdjustment ba;
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
-    problem.camera = geometry_.camera;
-    problem.baseline_m = geometry_.bf / geometry_.camera.fx;
-    std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
     const auto kfs = map_.keyframes().handles();
+    if (kfs.empty()) return;
     // The gauge: the map's first keyframe (never culled), else any one.
     const KeyFrameHandle anchor = map_.keyframes().contains(first_keyframe_) ? first_keyframe_ : kfs.front();
-    std::unordered_map<KeyFrameHandle, double> far_depth;
-    for (KeyFrameHandle h : kfs) {
-      pose_index[h] = static_cast<uint32_t>(problem.poses.size());
-      problem.poses.push_back({map_.keyframe(h).T_cam_world, h == anchor});
-      pose_handles.push_back(h);
-      far_depth[h] = FarStereoDepth(map_.keyframe(h).depth);
-    }
-    const auto pts = map_.points().handles();
-    for (PointHandle p : pts) {
-      const MapPoint& point = map_.point(p);
-      if (point.observations.size() < 2) continue;
-      const uint32_t j = static_cast<uint32_t>(problem.points.size());
-      problem.points.push_back(point.position);
-      point_handles.push_back(p);
-      for (const Observation& o : point.observations) {
-        const KeyFrame& kf = map_.keyframe(o.keyframe);
-        BundleAdjustmentObservation obs;
-        obs.pose_index = pose_index.at(o.keyframe);
-        obs.point_index = j;
-        obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], far_depth.at(o.keyframe));
-        obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
-        problem.observations.push_back(obs);
-      }
-    }
+    BuildMapBundleAdjustment(map_, geometry_, stereo_depth_, kfs, anchor, 2, &ba);
   }
-  if (problem.observations.empty()) return;
-  BundleAdjustmentOptions ba = options_.bundle_adjustment;
-  ba.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
-  ba.stop_early = [this] { return abandon_background_.load(); };
-  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba);
+  if (ba.problem.observations.empty()) return;
+  BundleAdjustmentOptions options = options_.bundle_adjustment;
+  options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+  options.stop_early = [this] { return abandon_background_.load(); };
+  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(ba.problem, options);
   if (!result.success || abandon_background_) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
   if (loop_closures_.size() != loops) return;  // a newer loop moved the map: this solution is stale
   // Keyframes in the solution take it; keyframes made since follow their spanning-tree parent.
   std::unordered_map<KeyFrameHandle, Eigen::Isometry3d> before, after;
-  for (size_t k = 0; k < pose_handles.size(); ++k) {
-    KeyFrame* kf = map_.keyframes().try_get(pose_handles[k]);
+  for (size_t k = 0; k < ba.keyframes.size(); ++k) {
+    const KeyFrame* kf = map_.keyframes().try_get(ba.keyframes[k]);
     if (!kf) continue;
-    before[pose_handles[k]] = kf->T_cam_world;
-    kf->T_cam_world = problem.poses[k].T_cam_world;
-    after[pose_handles[k]] = kf->T_cam_world;
+    before[ba.keyframes[k]] = kf->T_cam_world;
+    after[ba.keyframes[k]] = ba.problem.poses[k].T_cam_world;
   }
+  ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/false, &map_);
   bool progress = true;
   while (progress) {
     progress = false;
@@ -488,13 +440,7 @@ void Slam::GlobalBundleAdjustment(size_t loops) {
       progress = true;
     }
   }
-  std::unordered_set<PointHandle> solved;
-  for (size_t j = 0; j < point_handles.size(); ++j) {
-    if (MapPoint* point = map_.points().try_get(point_handles[j])) {
-      point->position = problem.points[j];
-      solved.insert(point_handles[j]);
-    }
-  }
+  const std::unordered_set<PointHandle> solved(ba.points.begin(), ba.points.end());
   for (PointHandle p : map_.points().handles()) {
     if (solved.count(p)) continue;
     MapPoint& point = map_.point(p);

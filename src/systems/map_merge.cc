@@ -1,4 +1,5 @@
 #include "systems/map_merge.h"
+#include "systems/place_verification.h"
 
 #include <algorithm>
 #include <chrono>
@@ -42,34 +43,17 @@ Similarity3 PoseOf(const Similarity3& S_cw) { return Similarity3::FromIsometry(S
 bool VerifyPair(const Map& into, const Map& from, KeyFrameHandle query, KeyFrameHandle candidate,
                 const MergeCamera& camera, const MapMergeOptions& options, std::mt19937_64& rng, MergePair* out) {
   const KeyFrame& q = from.keyframe(query);
-  const KeyFrame& c = into.keyframe(candidate);
-  const auto pairs = MatchKeyFramesByBow(q, from, c, into, options.matcher, 0.75f);
-  if (static_cast<int>(pairs.size()) < options.min_bow_matches) return false;
-  const std::vector<PointCorrespondence> correspondences =
-      CorrespondencesOf(q, from, c, into, pairs, camera.geometry.pyramid);
-  SimilarityRansacOptions ransac;
-  ransac.fix_scale = !camera.monocular;
-  ransac.iterations = options.ransac_iterations;
-  ransac.min_inliers = std::min(options.min_bow_matches, ransac.min_inliers);
-  const auto result = EstimateSimilarityRansac(camera.geometry.camera, correspondences, ransac, rng);
-  if (!result) return false;
-
-  // Pose of the query camera in into's world, then every point around the candidate searched.
-  const Similarity3 S_cw = result->S_21.inverse() * Similarity3::FromIsometry(c.T_cam_world);
-  out->matched.assign(q.size(), PointHandle::null());
-  for (size_t k = 0; k < pairs.size(); ++k)
-    if (result->inlier[k]) out->matched[pairs[k].first] = c.points[pairs[k].second];
-  std::vector<PointHandle> nearby;
-  std::unordered_set<PointHandle> unique;
-  std::vector<KeyFrameHandle> around = into.BestCovisible(candidate, 20);
-  around.push_back(candidate);
-  for (KeyFrameHandle h : around)
-    for (PointHandle p : into.keyframe(h).points)
-      if (into.points().contains(p) && unique.insert(p).second) nearby.push_back(p);
-  MatchBySimilarity(q, S_cw, nearby, into, camera.geometry, 10.0f, options.matcher, &out->matched);
-  out->matches = static_cast<int>(
-      std::count_if(out->matched.begin(), out->matched.end(), [](PointHandle p) { return !p.is_null(); }));
-  if (out->matches < options.min_matches) return false;
+  PlaceVerificationOptions verification;
+  verification.min_bow_matches = options.min_bow_matches;
+  verification.ransac.fix_scale = !camera.monocular;
+  verification.ransac.iterations = options.ransac_iterations;
+  verification.ransac.min_inliers = std::min(options.min_bow_matches, verification.ransac.min_inliers);
+  std::optional<PlaceMatch> match =
+      VerifyPlace(q, from, candidate, into, camera.geometry, options.matcher, verification, rng);
+  if (!match || match->matches < options.min_matches) return false;
+  const Similarity3 S_cw = match->S_cw;
+  out->matched = std::move(match->matched);
+  out->matches = match->matches;
 
   out->from_keyframe = query;
   out->into_keyframe = candidate;
@@ -113,7 +97,7 @@ size_t IndependentPairs(const std::vector<MergePair>& pairs, const std::vector<s
 }  // namespace
 
 MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const MapScales& scales,
-                                         double rgbd_virtual_baseline_m) {
+                                         double rgbd_virtual_baseline_m, double far_stereo_baselines) {
   FLATSLAM_CHECK(calibration.sensor != Sensor::kRgbd || rgbd_virtual_baseline_m > 0,
                  "map merge: RGB-D maps need their virtual stereo baseline (got ", rgbd_virtual_baseline_m, ")");
   MergeCamera out;
@@ -125,6 +109,8 @@ MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const M
   out.geometry.pyramid = ScalePyramid::Make(scales.levels, scales.scale_factor);
   out.scales = scales;
   out.monocular = calibration.sensor == Sensor::kMonocular;
+  out.stereo_depth = StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m,
+                                             far_stereo_baselines);
   return out;
 }
 
@@ -464,67 +450,28 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   // 6. Welding bundle adjustment: the seam keyframes and their neighbours free, every other
   // keyframe that sees their points fixed.
   {
-    BundleAdjustmentProblem problem;
-    problem.camera = camera.geometry.camera;
-    problem.baseline_m = camera.geometry.bf / camera.geometry.camera.fx;
-    std::vector<KeyFrameHandle> pose_handles;
-    std::vector<PointHandle> point_handles;
-    std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
-    auto add_pose = [&](KeyFrameHandle h, bool fixed_pose) {
-      pose_index[h] = static_cast<uint32_t>(problem.poses.size());
-      problem.poses.push_back({into.keyframe(h).T_cam_world, fixed_pose || h == anchor});
-      pose_handles.push_back(h);
-    };
+    std::vector<KeyFrameHandle> free;
     std::unordered_set<KeyFrameHandle> window;
+    auto add = [&](KeyFrameHandle h) {
+      if (window.insert(h).second) free.push_back(h);
+    };
     if (options.global_bundle_adjustment)
-      for (KeyFrameHandle h : into.keyframes().handles())
-        if (window.insert(h).second) add_pose(h, false);
+      for (KeyFrameHandle h : into.keyframes().handles()) add(h);
     for (const MergePair* pair : seam) {
       for (KeyFrameHandle h : {pair->into_keyframe, remap(from, pair->from_keyframe)}) {
-        if (window.insert(h).second) add_pose(h, false);
-        for (KeyFrameHandle n : into.BestCovisible(h, options.weld_neighbours))
-          if (window.insert(n).second) add_pose(n, false);
+        add(h);
+        for (KeyFrameHandle n : into.BestCovisible(h, options.weld_neighbours)) add(n);
       }
     }
     report.welded_keyframes = window.size();
-    std::unordered_set<PointHandle> taken;
-    for (size_t k = 0, n = problem.poses.size(); k < n; ++k)
-      for (PointHandle p : into.keyframe(pose_handles[k]).points)
-        if (into.points().contains(p) && taken.insert(p).second) {
-          point_handles.push_back(p);
-          problem.points.push_back(into.point(p).position);
-        }
-    const ScalePyramid& pyramid = camera.geometry.pyramid;
-    for (size_t j = 0; j < point_handles.size(); ++j) {
-      for (const Observation& o : into.point(point_handles[j]).observations) {
-        if (!pose_index.count(o.keyframe)) add_pose(o.keyframe, true);
-        const KeyFrame& kf = into.keyframe(o.keyframe);
-        BundleAdjustmentObservation obs;
-        obs.pose_index = pose_index[o.keyframe];
-        obs.point_index = static_cast<uint32_t>(j);
-        obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = camera.geometry.bf > 0 ? kf.right_u[o.keypoint] : -1.0;
-        obs.inv_sigma2 = pyramid.inv_sigma2[kf.octave[o.keypoint]];
-        problem.observations.push_back(obs);
-      }
-    }
-    if (!problem.observations.empty()) {
-      BundleAdjustmentOptions ba = options.bundle_adjustment;
-      if (window.size() > static_cast<size_t>(ba.dense_schur_max_poses))
-        ba.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
-      const BundleAdjustmentResult result = LocalBundleAdjustment(problem, ba);
-      if (result.success) {
-        for (size_t k = 0; k < problem.observations.size(); ++k) {
-          if (!result.outlier[k]) continue;
-          const auto& o = problem.observations[k];
-          into.EraseObservation(point_handles[o.point_index], pose_handles[o.pose_index]);
-          ++report.weld_outliers;
-        }
-        for (size_t k = 0; k < problem.poses.size(); ++k)
-          if (!problem.poses[k].fixed) into.keyframe(pose_handles[k]).T_cam_world = problem.poses[k].T_cam_world;
-        for (size_t j = 0; j < point_handles.size(); ++j)
-          if (MapPoint* point = into.points().try_get(point_handles[j])) point->position = problem.points[j];
-      }
+    MapBundleAdjustment ba;
+    BuildMapBundleAdjustment(into, camera.geometry, camera.stereo_depth, free, anchor, 1, &ba);
+    if (!ba.problem.observations.empty()) {
+      BundleAdjustmentOptions ba_options = options.bundle_adjustment;
+      if (window.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
+        ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+      const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
+      if (result.success) report.weld_outliers += ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &into);
     }
     for (KeyFrameHandle h : window)
       if (into.keyframes().contains(h)) into.UpdateCovisibility(h);

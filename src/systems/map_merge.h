@@ -13,6 +13,7 @@
 #include "ecs/map.h"
 #include "io/types.h"
 #include "systems/bundle_adjustment.h"
+#include "systems/map_bundle_adjustment.h"
 #include "systems/matcher.h"
 #include "systems/similarity.h"
 
@@ -25,11 +26,15 @@ struct MergeCamera {
   CameraGeometry geometry;
   MapScales scales;
   bool monocular = false;  // Sim(3) alignment; otherwise SE(3) with scale fixed to 1
+  StereoDepthRule stereo_depth;  // which stereo observations the weld keeps as stereo
 
   // From a snapshot's calibration and scales; RGB-D keyframes carry a virtual right image at
   // rgbd_virtual_baseline_m (the value the maps were built with; SnapshotMetadata records it).
+  // Stereo deeper than far_stereo_baselines x baseline is optimized as monocular, as in SLAM
+  // (SlamOptions::far_stereo_baselines; snapshots do not record it, so the default unless told).
   [[nodiscard]] static MergeCamera FromCalibration(const Calibration& calibration, const MapScales& scales,
-                                                   double rgbd_virtual_baseline_m);
+                                                   double rgbd_virtual_baseline_m,
+                                                   double far_stereo_baselines = kFarStereoBaselines);
 };
 
 struct MapMergeOptions {

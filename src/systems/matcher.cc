@@ -589,14 +589,6 @@ int MatchByBow(TrackedFrame& frame, const KeyFrame& kf, const Map& map, const Ma
   return matches;
 }
 
-std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const KeyFrame& b, const Map& map,
-                                                               const MatcherOptions& options, float ratio) {
-  return MatchDirectIndex(
-      a.bow_features, a.descriptor, a.angle, b.bow_features, b.descriptor, b.angle,
-      [&](uint32_t i) { return map.points().contains(a.points[i]); },
-      [&](uint32_t j) { return map.points().contains(b.points[j]); }, options, ratio);
-}
-
 std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const Map& map_a, const KeyFrame& b,
                                                                const Map& map_b, const MatcherOptions& options,
                                                                float ratio) {

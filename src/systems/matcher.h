@@ -86,10 +86,8 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForInitialization(const TrackedF
 // checked. Map points of kf go to free keypoints of frame; returns the number of matches.
 int MatchByBow(TrackedFrame& frame, const KeyFrame& kf, const Map& map, const MatcherOptions& options,
                float ratio = 0.75f);
-// Keypoint pairs (i1 in a, i2 in b) where both keypoints carry live map points.
-std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const KeyFrame& b, const Map& map,
-                                                               const MatcherOptions& options, float ratio = 0.75f);
-// Same for keyframes of two different maps (a seen through map_a, b through map_b): map merging.
+// Keypoint pairs (i1 in a, i2 in b) where both keypoints carry live map points (a's in map_a,
+// b's in map_b: one map for loop closing, two for map merging).
 std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a, const Map& map_a, const KeyFrame& b,
                                                                const Map& map_b, const MatcherOptions& options,
                                                                float ratio = 0.75f);

@@ -133,29 +133,12 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
   geometry_.pyramid = extractor_.scales();
   map_scales_.scale_factor = geometry_.pyramid.scale_factor;
   map_scales_.levels = geometry_.pyramid.levels;
+  stereo_depth_ = StereoDepthRule::ForRig(calibration_.sensor == Sensor::kStereo, calibration_.baseline_m,
+                                          options_.far_stereo_baselines);
 }
 
 double Slam::CloseDepth() const {
   return monocular() ? 0.0 : options_.close_depth_baselines * geometry_.bf / geometry_.camera.fx;
-}
-
-double Slam::FarStereoDepth(std::span<const float> depth) const {
-  const double fixed = options_.far_stereo_baselines * calibration_.baseline_m;
-  if (fixed <= 0 || calibration_.sensor != Sensor::kStereo) return std::numeric_limits<double>::infinity();
-  // Far stereo observations count as monocular only while the nearer half of what the frame
-  // measures keeps its stereo depth: where most texture is far (a motorway), a fixed cut would
-  // leave the scale to a few road points, and it drifted by percents.
-  thread_local std::vector<float> measured;
-  measured.clear();
-  for (float d : depth)
-    if (d > 0) measured.push_back(d);
-  if (measured.empty()) return fixed;
-  std::nth_element(measured.begin(), measured.begin() + measured.size() / 2, measured.end());
-  return std::max<double>(fixed, measured[measured.size() / 2]);
-}
-
-double Slam::OptimizedRightU(float right_u, float depth, double far_depth) const {
-  return depth > far_depth ? -1 : right_u;
 }
 
 void Slam::Extract(const Frame& frame, TrackedFrame* out) const {
@@ -349,7 +332,7 @@ bool Slam::InitializeMonocular(TrackedFrame& frame) {
 int Slam::OptimizeFramePose(TrackedFrame& frame) {
   std::vector<PoseObservation> observations;
   std::vector<uint32_t> index;
-  const double far_depth = FarStereoDepth(frame.keypoints.depth);
+  const double far_depth = stereo_depth_.FarDepth(frame.keypoints.depth);
   for (uint32_t i = 0; i < frame.size(); ++i) {
     const PointHandle p = frame.points[i];
     if (p.is_null()) continue;
@@ -361,7 +344,7 @@ int Slam::OptimizeFramePose(TrackedFrame& frame) {
     PoseObservation o;
     o.X_world = point->position;
     o.uv = frame.keypoints.uv[i].cast<double>();
-    o.right_u = OptimizedRightU(frame.keypoints.right_u[i], frame.keypoints.depth[i], far_depth);
+    o.right_u = StereoDepthRule::RightU(frame.keypoints.right_u[i], frame.keypoints.depth[i], far_depth);
     o.inv_sigma2 = geometry_.pyramid.inv_sigma2[frame.keypoints.octave[i]];
     observations.push_back(o);
     index.push_back(i);
@@ -785,83 +768,36 @@ void Slam::Fuse(KeyFrameHandle current) {
 
 void Slam::LocalBundleAdjustment(KeyFrameHandle current) {
   uint64_t epoch = 0;
-  BundleAdjustmentProblem& problem = local_ba_problem_;  // buffers reused from the last keyframe
-  problem.poses.clear();
-  problem.points.clear();
-  problem.observations.clear();
-  std::vector<KeyFrameHandle> pose_handles;
-  std::vector<PointHandle> point_handles;
+  MapBundleAdjustment& ba = local_ba_;  // buffers reused from the last keyframe
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     if (!map_.keyframes().contains(current)) return;
     epoch = map_epoch_;
-    problem.camera = geometry_.camera;
-    problem.baseline_m = geometry_.bf / geometry_.camera.fx;
-    std::unordered_map<KeyFrameHandle, uint32_t> pose_index;
-    auto add_pose = [&](KeyFrameHandle h, bool fixed) {
-      pose_index[h] = static_cast<uint32_t>(problem.poses.size());
-      problem.poses.push_back({map_.keyframe(h).T_cam_world, fixed || h == first_keyframe_});
-      pose_handles.push_back(h);
-    };
-    add_pose(current, false);
+    // The window: the new keyframe and its strongest covisible ones; every other keyframe that
+    // sees their points enters fixed.
+    thread_local std::vector<KeyFrameHandle> window;
+    window.assign(1, current);
     for (const auto& [n, w] : map_.keyframe(current).covisible) {
-      if (problem.poses.size() > options_.max_local_ba_keyframes) break;  // covisible: strongest first
-      if (map_.keyframes().contains(n)) add_pose(n, false);
+      if (window.size() > options_.max_local_ba_keyframes) break;  // covisible: strongest first
+      if (map_.keyframes().contains(n)) window.push_back(n);
     }
-    std::unordered_map<PointHandle, uint32_t> point_index;
-    const size_t local_count = problem.poses.size();
-    for (size_t k = 0; k < local_count; ++k) {
-      for (PointHandle p : map_.keyframe(pose_handles[k]).points) {
-        if (p.is_null() || point_index.count(p) || !map_.points().contains(p)) continue;
-        point_index[p] = static_cast<uint32_t>(problem.points.size());
-        problem.points.push_back(map_.point(p).position);
-        point_handles.push_back(p);
-      }
-    }
-    std::unordered_map<KeyFrameHandle, double> far_depth;
-    for (size_t j = 0; j < point_handles.size(); ++j) {
-      for (const Observation& o : map_.point(point_handles[j]).observations) {
-        if (!pose_index.count(o.keyframe)) add_pose(o.keyframe, true);  // outside the window: fixed
-        const KeyFrame& kf = map_.keyframe(o.keyframe);
-        auto far = far_depth.find(o.keyframe);
-        if (far == far_depth.end()) far = far_depth.emplace(o.keyframe, FarStereoDepth(kf.depth)).first;
-        BundleAdjustmentObservation obs;
-        obs.pose_index = pose_index[o.keyframe];
-        obs.point_index = static_cast<uint32_t>(j);
-        obs.uv = kf.uv[o.keypoint].cast<double>();
-        obs.right_u = OptimizedRightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], far->second);
-        obs.inv_sigma2 = geometry_.pyramid.inv_sigma2[kf.octave[o.keypoint]];
-        problem.observations.push_back(obs);
-      }
-    }
+    BuildMapBundleAdjustment(map_, geometry_, stereo_depth_, window, first_keyframe_, 1, &ba);
   }
-  if (problem.observations.empty()) return;
-  // Solved on a copy, without the lock: tracking goes on meanwhile.
-  // A keyframe waiting behind this one ends the adjustment early (tracking goes on meanwhile):
-  // the next keyframe's adjustment covers the same neighbourhood.
+  if (ba.problem.observations.empty()) return;
+  // Solved on a copy, without the lock: tracking goes on meanwhile. A keyframe waiting behind
+  // this one ends the adjustment early: the next keyframe's adjustment covers the same
+  // neighbourhood.
   BundleAdjustmentOptions ba_options = options_.bundle_adjustment;
   ba_options.stop_early = [this] { return pending_keyframes_ > 1 || keyframe_wanted_; };
-  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(problem, ba_options, &local_ba_workspace_);
+  const BundleAdjustmentResult result = flatslam::LocalBundleAdjustment(ba.problem, ba_options, &local_ba_workspace_);
   if (result.stopped_early) ++mapping_times_.local_ba_stopped_early;
   if (!result.success) return;
 
   std::lock_guard<std::mutex> lock(map_mutex_);
   if (epoch != map_epoch_) return;  // the map moved meanwhile: this solution is in its old frame
-  for (size_t k = 0; k < problem.observations.size(); ++k) {
-    if (!result.outlier[k]) continue;
-    const auto& o = problem.observations[k];
-    map_.EraseObservation(point_handles[o.point_index], pose_handles[o.pose_index]);
-  }
-  for (size_t k = 0; k < problem.poses.size(); ++k) {
-    if (problem.poses[k].fixed) continue;
-    if (KeyFrame* kf = map_.keyframes().try_get(pose_handles[k])) kf->T_cam_world = problem.poses[k].T_cam_world;
-  }
-  for (size_t j = 0; j < problem.points.size(); ++j) {
-    if (MapPoint* point = map_.points().try_get(point_handles[j])) {
-      point->position = problem.points[j];
-      map_.UpdatePointStats(point_handles[j], map_scales_);
-    }
-  }
+  ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &map_);
+  for (PointHandle p : ba.points)
+    if (map_.points().contains(p)) map_.UpdatePointStats(p, map_scales_);
 }
 
 void Slam::CullKeyFrames(KeyFrameHandle current) {

@@ -27,6 +27,7 @@
 #include "systems/bundle_adjustment.h"
 #include "systems/frame.h"
 #include "systems/keyframe_database.h"
+#include "systems/map_bundle_adjustment.h"
 #include "systems/matcher.h"
 #include "systems/orb_extractor.h"
 #include "systems/pose_optimizer.h"
@@ -64,7 +65,7 @@ struct SlamOptions {
   // (KITTI 06: 0.4% too long with them). They still give rotation, and depth once triangulated
   // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC. A frame whose
   // median measured depth lies beyond it keeps stereo up to that median (the scale needs them).
-  double far_stereo_baselines = 35;
+  double far_stereo_baselines = kFarStereoBaselines;
   int min_init_points = 150;            // keypoints with depth needed to start a map (stereo/RGB-D)
   int min_init_matches = 100;           // monocular: matches between the two initial frames
   float mono_search_radius = 15;        // monocular: projection search radius, pixels x level scale
@@ -279,11 +280,6 @@ class Slam {
   void LocalBundleAdjustment(KeyFrameHandle current);
   void CullKeyFrames(KeyFrameHandle current);
   [[nodiscard]] double CloseDepth() const;
-  // Depth beyond which a stereo frame's observations count as monocular in optimization:
-  // far_stereo_baselines, at least the frame's median measured depth (infinite without stereo).
-  [[nodiscard]] double FarStereoDepth(std::span<const float> depth) const;
-  // The right-image coordinate an optimization uses for a keypoint: none beyond far_depth.
-  [[nodiscard]] double OptimizedRightU(float right_u, float depth, double far_depth) const;
   void EraseKeyFrame(KeyFrameHandle kf);  // map and keyframe database; remembers the parent
   // A tracked frame's pose through its reference keyframe, or through the parents of culled ones.
   [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const FramePose& f) const;
@@ -304,6 +300,7 @@ class Slam {
   OrbExtractor extractor_;
   mutable ObjectPool<ImagePyramid> pyramids_;  // Extract's work pyramids, reused across frames
   CameraGeometry geometry_;
+  StereoDepthRule stereo_depth_;  // which stereo observations optimization keeps as stereo
   MapScales map_scales_;
 
   mutable std::mutex map_mutex_;  // guards map_ and the mapping bookkeeping below
@@ -333,7 +330,7 @@ class Slam {
   MappingTimes mapping_times_;  // written by local mapping only
   // Local mapping's buffers, kept between keyframes so their capacity is reused (mapping only).
   std::vector<KeyFrame> mapping_snapshot_;
-  BundleAdjustmentProblem local_ba_problem_;
+  MapBundleAdjustment local_ba_;
   BundleAdjustmentWorkspace local_ba_workspace_;
   std::atomic<int> pending_keyframes_{0};
   mutable std::atomic<bool> keyframe_wanted_{false};
