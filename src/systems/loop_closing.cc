@@ -12,6 +12,7 @@
 #include "core/error.h"
 #include "systems/similarity.h"
 #include "systems/slam.h"
+#include "systems/essential_graph.h"
 #include "systems/place_verification.h"
 #include "systems/vocabulary.h"
 
@@ -320,62 +321,37 @@ void Slam::CorrectLoop(KeyFrameHandle current, const LoopMatch& m) {
       if (!before.count(n) && !connected_set.count(n)) loop_links.emplace_back(k, n);
   }
 
-  // 4. Essential graph: spanning tree, loop edges, strong covisibility, the new loop links.
-  std::vector<KeyFrameHandle> nodes(map_.keyframes().handles().begin(), map_.keyframes().handles().end());
-  std::unordered_map<KeyFrameHandle, uint32_t> index;
-  std::vector<Similarity3> S(nodes.size()), S_before(nodes.size());
-  std::vector<bool> fixed(nodes.size(), false);
-  for (uint32_t i = 0; i < nodes.size(); ++i) {
-    index[nodes[i]] = i;
-    S[i] = Similarity3::FromIsometry(map_.keyframe(nodes[i]).T_cam_world);
-    if (const auto it = corrected.find(nodes[i]); it != corrected.end()) S[i] = it->second;
-    S_before[i] = S[i];
-    fixed[i] = nodes[i] == m.candidate;
+  // 4. Essential graph: spanning tree, loop edges, strong covisibility, the new loop links. The
+  // connected keyframes already sit at their corrected poses; their edges are measured from the
+  // poses before the correction.
+  EssentialGraph graph = EssentialGraph::OfMap(map_);
+  std::vector<Similarity3> measured = graph.S;
+  for (uint32_t i = 0; i < graph.nodes.size(); ++i) {
+    if (const auto it = uncorrected.find(graph.nodes[i]); it != uncorrected.end()) measured[i] = it->second;
+    graph.fixed[i] = graph.nodes[i] == m.candidate;
   }
-  auto measured = [&](uint32_t i) {  // the pose before the correction, for relative measurements
-    const auto it = uncorrected.find(nodes[i]);
-    return it != uncorrected.end() ? it->second : S[i];
-  };
-  PoseGraphEdgeSet edges;
   for (const auto& [k, n] : loop_links) {
-    const uint32_t i = index.at(k), j = index.at(n);
+    const uint32_t i = graph.index.at(k), j = graph.index.at(n);
     const auto& cov = map_.keyframe(k).covisible;
     const auto w = std::find_if(cov.begin(), cov.end(), [&](const auto& l) { return l.first == n; });
     if (k != current && n != m.candidate && (w == cov.end() || w->second < 100)) continue;
-    edges.Add(i, j, S[i] * S[j].inverse());
+    graph.edges.Add(i, j, graph.S[i] * graph.S[j].inverse());
   }
-  for (uint32_t i = 0; i < nodes.size(); ++i) {
-    const KeyFrame& kf = map_.keyframe(nodes[i]);
-    auto relative = [&](KeyFrameHandle other) {
-      const uint32_t j = index.at(other);
-      edges.Add(i, j, measured(i) * measured(j).inverse());
-    };
-    if (map_.keyframes().contains(kf.parent)) relative(kf.parent);
-    for (KeyFrameHandle l : kf.loop_edges) relative(l);
-    for (const auto& [n, w] : kf.covisible)
-      if (w >= 100 && map_.keyframes().contains(n)) relative(n);
-  }
+  graph.AddMapEdges(map_, measured, 100, [](uint32_t, uint32_t) { return true; });
   {
-    const uint32_t i = index.at(current), j = index.at(m.candidate);
-    edges.Add(i, j, S[i] * S[j].inverse());
+    const uint32_t i = graph.index.at(current), j = graph.index.at(m.candidate);
+    graph.edges.Add(i, j, graph.S[i] * graph.S[j].inverse());
   }
-  PoseGraphOptions graph;
-  graph.fix_scale = !monocular();
-  OptimizePoseGraph(S, fixed, edges.edges(), graph);
+  PoseGraphOptions graph_options;
+  graph_options.fix_scale = !monocular();
+  OptimizePoseGraph(graph.S, graph.fixed, graph.edges.edges(), graph_options);
 
   // 5. Write back: keyframes take the optimized poses; points follow the keyframe that moved them.
-  for (uint32_t i = 0; i < nodes.size(); ++i) map_.keyframe(nodes[i]).T_cam_world = S[i].ToIsometry();
-  const auto point_handles = map_.points().handles();
-  for (PointHandle p : std::vector<PointHandle>(point_handles.begin(), point_handles.end())) {
-    MapPoint& point = map_.point(p);
+  graph.Apply(&map_, [&](PointHandle p, const MapPoint& point) {
     const auto by = corrected_by.find(p);
-    const KeyFrameHandle ref = by != corrected_by.end() ? by->second : point.reference;
-    const auto it = index.find(ref);
-    if (it == index.end()) continue;
-    point.position = S[it->second].inverse() * (S_before[it->second] * point.position);
-  }
-  for (PointHandle p : std::vector<PointHandle>(point_handles.begin(), point_handles.end()))
-    map_.UpdatePointStats(p, map_scales_);
+    return by != corrected_by.end() ? by->second : point.reference;
+  });
+  for (PointHandle p : map_.points().handles()) map_.UpdatePointStats(p, map_scales_);
   map_.AddLoopEdge(current, m.candidate);
   map_corrected_ = true;
   ++map_epoch_;

@@ -1,4 +1,5 @@
 #include "systems/map_merge.h"
+#include "systems/essential_graph.h"
 #include "systems/place_verification.h"
 
 #include <algorithm>
@@ -403,49 +404,25 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
 
   // 5. Essential graph: spanning tree, loop edges and strong covisibility within each map measured
   // as they are, and the seam pairs measured by their own transforms; into's oldest keyframe fixed.
-  std::vector<KeyFrameHandle> nodes(into.keyframes().handles().begin(), into.keyframes().handles().end());
-  std::unordered_map<KeyFrameHandle, uint32_t> index;
-  std::vector<Similarity3> S(nodes.size()), S_before(nodes.size());
-  std::vector<bool> fixed(nodes.size(), false);
-  for (uint32_t i = 0; i < nodes.size(); ++i) {
-    index[nodes[i]] = i;
-    S[i] = S_before[i] = Similarity3::FromIsometry(into.keyframe(nodes[i]).T_cam_world);
-    fixed[i] = nodes[i] == anchor;
-  }
-  PoseGraphEdgeSet edges;
+  EssentialGraph graph = EssentialGraph::OfMap(into);
+  for (uint32_t i = 0; i < graph.nodes.size(); ++i) graph.fixed[i] = graph.nodes[i] == anchor;
   for (const MergePair* pair : seam) {
-    const uint32_t i = index.at(pair->into_keyframe), j = index.at(remap(from, pair->from_keyframe));
+    const uint32_t i = graph.index.at(pair->into_keyframe), j = graph.index.at(remap(from, pair->from_keyframe));
     const Similarity3 S_q = PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) *
                                    pair->S_into_from.inverse());
-    edges.Add(i, j, S[i] * S_q.inverse());
+    graph.edges.Add(i, j, graph.S[i] * S_q.inverse());
   }
-  for (uint32_t i = 0; i < nodes.size(); ++i) {
-    const KeyFrame& kf = into.keyframe(nodes[i]);
-    auto relative = [&](KeyFrameHandle other) {
-      if (appended(nodes[i]) != appended(other)) return;  // across the seam: only the pairs above
-      const uint32_t j = index.at(other);
-      edges.Add(i, j, S[i] * S[j].inverse());
-    };
-    if (into.keyframes().contains(kf.parent)) relative(kf.parent);
-    for (KeyFrameHandle l : kf.loop_edges) relative(l);
-    for (const auto& [n, w] : kf.covisible)
-      if (w >= 100 && into.keyframes().contains(n)) relative(n);
-  }
-  PoseGraphOptions graph;
-  graph.fix_scale = !camera.monocular;
-  graph.iterations = options.pose_graph_iterations;
-  if (options.pose_graph_iterations > 0) OptimizePoseGraph(S, fixed, edges.edges(), graph);
-  for (uint32_t i = 0; i < nodes.size(); ++i) into.keyframe(nodes[i]).T_cam_world = S[i].ToIsometry();
-  for (size_t k = 0; k < into.points().size(); ++k) {
-    MapPoint& point = into.points().values()[k];
-    KeyFrameHandle ref = point.reference;
-    if (!index.count(ref)) {
-      if (point.observations.empty()) continue;
-      ref = point.observations.front().keyframe;
-    }
-    const uint32_t i = index.at(ref);
-    point.position = S[i].inverse() * (S_before[i] * point.position);
-  }
+  // Across the seam, only the pairs above.
+  graph.AddMapEdges(into, graph.S, 100,
+                    [&](uint32_t i, uint32_t j) { return appended(graph.nodes[i]) == appended(graph.nodes[j]); });
+  PoseGraphOptions graph_options;
+  graph_options.fix_scale = !camera.monocular;
+  graph_options.iterations = options.pose_graph_iterations;
+  if (options.pose_graph_iterations > 0) OptimizePoseGraph(graph.S, graph.fixed, graph.edges.edges(), graph_options);
+  graph.Apply(&into, [&](PointHandle, const MapPoint& point) {
+    if (into.keyframes().contains(point.reference) || point.observations.empty()) return point.reference;
+    return point.observations.front().keyframe;
+  });
 
   // 6. Welding bundle adjustment: the seam keyframes and their neighbours free, every other
   // keyframe that sees their points fixed.
