@@ -8,6 +8,7 @@
 #include <ceres/ceres.h>
 
 #include "core/error.h"
+#include "core/requirements.h"
 #include "systems/bundle_adjustment_lm.h"
 #include "systems/pose_optimizer.h"
 
@@ -175,10 +176,18 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
 
 }  // namespace
 
-bool BundleAdjustmentOptions::Check() const {
-  return first_pass_iterations >= 1 && second_pass_iterations >= 0 && chi2_mono > 0 && chi2_stereo > 0 &&
-         huber_mono > 0 && huber_stereo > 0 && dense_schur_max_poses >= 0 && schur_lm_max_poses >= 0 &&
-         num_threads >= 1;
+std::string BundleAdjustmentOptions::Problem() const {
+  Requirements r;
+  FLATSLAM_REQUIRE(r, first_pass_iterations >= 1);
+  FLATSLAM_REQUIRE(r, second_pass_iterations >= 0);
+  FLATSLAM_REQUIRE(r, chi2_mono > 0);
+  FLATSLAM_REQUIRE(r, chi2_stereo > 0);
+  FLATSLAM_REQUIRE(r, huber_mono > 0);
+  FLATSLAM_REQUIRE(r, huber_stereo > 0);
+  FLATSLAM_REQUIRE(r, dense_schur_max_poses >= 0);
+  FLATSLAM_REQUIRE(r, schur_lm_max_poses >= 0);
+  FLATSLAM_REQUIRE(r, num_threads >= 1);
+  return r.first();
 }
 
 BundleAdjustmentWorkspace::BundleAdjustmentWorkspace() : schur_(detail::MakeSchurWorkspace()) {}

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
@@ -63,7 +64,9 @@ struct BundleAdjustmentOptions {
   // outlier classification still runs). Local mapping uses it to yield to a waiting keyframe.
   std::function<bool()> stop_early;
 
-  [[nodiscard]] bool Check() const;
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 struct BundleAdjustmentResult {

@@ -10,10 +10,10 @@
 #include <opencv2/calib3d.hpp>
 
 #include "core/error.h"
-#include "systems/similarity.h"
-#include "systems/slam.h"
 #include "systems/essential_graph.h"
 #include "systems/place_verification.h"
+#include "systems/similarity.h"
+#include "systems/slam.h"
 #include "systems/vocabulary.h"
 
 namespace flatslam {

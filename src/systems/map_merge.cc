@@ -1,6 +1,4 @@
 #include "systems/map_merge.h"
-#include "systems/essential_graph.h"
-#include "systems/place_verification.h"
 
 #include <algorithm>
 #include <chrono>
@@ -14,7 +12,10 @@
 #include <tbb/parallel_for.h>
 
 #include "core/error.h"
+#include "core/requirements.h"
+#include "systems/essential_graph.h"
 #include "systems/keyframe_database.h"
+#include "systems/place_verification.h"
 #include "systems/slam.h"
 #include "systems/vocabulary.h"
 
@@ -102,12 +103,8 @@ MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const M
   FLATSLAM_CHECK(calibration.sensor != Sensor::kRgbd || rgbd_virtual_baseline_m > 0,
                  "map merge: RGB-D maps need their virtual stereo baseline (got ", rgbd_virtual_baseline_m, ")");
   MergeCamera out;
-  out.geometry.camera = calibration.camera;
-  const double baseline = calibration.sensor == Sensor::kStereo ? calibration.baseline_m
-                          : calibration.sensor == Sensor::kRgbd ? rgbd_virtual_baseline_m
-                                                                : 0.0;
-  out.geometry.bf = baseline * calibration.camera.fx;
-  out.geometry.pyramid = ScalePyramid::Make(scales.levels, scales.scale_factor);
+  out.geometry = CameraGeometry::FromCalibration(calibration, rgbd_virtual_baseline_m,
+                                                 ScalePyramid::Make(scales.levels, scales.scale_factor));
   out.scales = scales;
   out.monocular = calibration.sensor == Sensor::kMonocular;
   out.stereo_depth = StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m,
@@ -115,11 +112,21 @@ MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const M
   return out;
 }
 
-bool MapMergeOptions::Check() const {
-  return matcher.Check() && candidates_per_keyframe > 0 && min_bow_matches >= 3 && min_matches >= 3 &&
-         min_consistent_pairs >= 1 && max_rotation_disagreement_deg > 0 && max_position_disagreement > 0 &&
-         drift_fraction >= 0 && max_scale_disagreement > 0 && ransac_iterations > 0 && pose_graph_iterations >= 0 &&
-         bundle_adjustment.Check();
+std::string MapMergeOptions::Problem() const {
+  Requirements r;
+  r.Nested("matcher", matcher.Problem());
+  r.Nested("bundle_adjustment", bundle_adjustment.Problem());
+  FLATSLAM_REQUIRE(r, candidates_per_keyframe > 0);
+  FLATSLAM_REQUIRE(r, min_bow_matches >= 3);
+  FLATSLAM_REQUIRE(r, min_matches >= 3);
+  FLATSLAM_REQUIRE(r, min_consistent_pairs >= 1);
+  FLATSLAM_REQUIRE(r, max_rotation_disagreement_deg > 0);
+  FLATSLAM_REQUIRE(r, max_position_disagreement > 0);
+  FLATSLAM_REQUIRE(r, drift_fraction >= 0);
+  FLATSLAM_REQUIRE(r, max_scale_disagreement > 0);
+  FLATSLAM_REQUIRE(r, ransac_iterations > 0);
+  FLATSLAM_REQUIRE(r, pose_graph_iterations >= 0);
+  return r.first();
 }
 
 void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary) {
@@ -132,7 +139,8 @@ void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary) {
 
 MapOverlap FindMapOverlap(const Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
                           const MapMergeOptions& options) {
-  FLATSLAM_CHECK(options.Check(), "invalid map merge options");
+  const std::string problem = options.Problem();
+  FLATSLAM_CHECK(problem.empty(), "invalid map merge options: ", problem, " does not hold");
   MapOverlap overlap;
   KeyFrameDatabase database(vocabulary.word_count());
   for (size_t i = 0; i < into.keyframes().size(); ++i) {

@@ -8,6 +8,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "ecs/map.h"
@@ -58,7 +59,9 @@ struct MapMergeOptions {
   BundleAdjustmentOptions bundle_adjustment;
   uint64_t seed = 1;                  // RANSAC sampling (each query keyframe gets its own stream)
 
-  [[nodiscard]] bool Check() const;
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 // Bag of words of every keyframe, from its descriptors (snapshots do not store them).

@@ -5,6 +5,7 @@
 
 #include <cstdint>
 #include <span>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -25,7 +26,9 @@ struct MatcherOptions {
   bool check_orientation = true;  // keep matches whose rotation agrees with the dominant ones
   float fusion_radius = 3.0f;     // pixels at level 0, times the level scale
 
-  [[nodiscard]] bool Check() const { return max_distance > 0 && nn_ratio > 0 && nn_ratio <= 1; }
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 // What a projection needs: camera, stereo baseline times fx (0 = monocular), pyramid.
@@ -33,6 +36,20 @@ struct CameraGeometry {
   PinholeCamera camera;
   double bf = 0;  // baseline * fx; right_u = u - bf / z
   ScalePyramid pyramid;
+
+  // The rig a calibration describes: a stereo pair's baseline, RGB-D depth as a virtual right
+  // image rgbd_virtual_baseline_m to the right, none for a monocular camera.
+  [[nodiscard]] static CameraGeometry FromCalibration(const Calibration& calibration, double rgbd_virtual_baseline_m,
+                                                      const ScalePyramid& pyramid) {
+    CameraGeometry g;
+    g.camera = calibration.camera;
+    const double baseline = calibration.sensor == Sensor::kStereo ? calibration.baseline_m
+                            : calibration.sensor == Sensor::kRgbd ? rgbd_virtual_baseline_m
+                                                                  : 0.0;
+    g.bf = baseline * calibration.camera.fx;
+    g.pyramid = pyramid;
+    return g;
+  }
 
   [[nodiscard]] bool InImage(double u, double v) const {
     return u >= 0 && v >= 0 && u < camera.width && v < camera.height;

@@ -16,6 +16,7 @@
 #endif
 
 #include "core/error.h"
+#include "core/requirements.h"
 
 // Vector-extension helpers are always inlined; their by-value ABI never crosses a call.
 #pragma GCC diagnostic ignored "-Wpsabi"
@@ -352,7 +353,6 @@ __attribute__((target("avx2"))) void SuppressAvx2(const uint8_t* scores, int str
   SuppressBody(scores, stride, x0, y0, x1, y1, threshold, x_offset, y_offset, out);
 }
 #endif
-
 
 void ComputeFastScores(bool avx2, const cv::Mat& img, int x0, int y0, int x1, int y1, int floor, uint8_t* out,
                        size_t out_step) {
@@ -826,11 +826,18 @@ const BriefPattern& LearnedBriefPattern() {
   return pattern;
 }
 
-bool OrbOptions::Check() const {
-  return features >= 1 && levels >= 1 && levels <= 32 && (scale_factor > 1.f || levels == 1) && fast_threshold >= 1 &&
-         fast_threshold <= 127 && min_fast_threshold >= 1 && min_fast_threshold <= fast_threshold && cell_size >= 8 &&
-         edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000 && blur_sigma >= 0 && blur_kernel >= 1 &&
-         blur_kernel % 2 == 1 && blur_kernel <= 31;
+std::string OrbOptions::Problem() const {
+  Requirements r;
+  FLATSLAM_REQUIRE(r, features >= 1);
+  FLATSLAM_REQUIRE(r, levels >= 1 && levels <= 32);
+  FLATSLAM_REQUIRE(r, scale_factor > 1.f || levels == 1);
+  FLATSLAM_REQUIRE(r, fast_threshold >= 1 && fast_threshold <= 127);
+  FLATSLAM_REQUIRE(r, min_fast_threshold >= 1 && min_fast_threshold <= fast_threshold);
+  FLATSLAM_REQUIRE(r, cell_size >= 8);
+  FLATSLAM_REQUIRE(r, edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000);
+  FLATSLAM_REQUIRE(r, blur_sigma >= 0);
+  FLATSLAM_REQUIRE(r, blur_kernel >= 1 && blur_kernel % 2 == 1 && blur_kernel <= 31);
+  return r.first();
 }
 
 void FastScores(const cv::Mat& gray, cv::Mat* scores) {

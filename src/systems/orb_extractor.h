@@ -7,6 +7,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
@@ -59,7 +60,9 @@ struct OrbOptions {
   uint64_t pattern_seed = 0;  // 0 = LearnedBriefPattern(); else 256 GaussianBriefPairs(seed)
   bool use_avx2 = true;       // where the CPU has it; false forces the baseline kernels (same output)
 
-  [[nodiscard]] bool Check() const;
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 // The image pyramid one extraction worked on; level 0 shares the input image's pixels.

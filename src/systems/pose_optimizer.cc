@@ -7,6 +7,7 @@
 #include <ceres/ceres.h>
 
 #include "core/error.h"
+#include "core/requirements.h"
 
 namespace flatslam {
 namespace detail {
@@ -170,9 +171,16 @@ double Chi2(const PinholeCamera& camera, double bf, const Eigen::Isometry3d& T, 
 
 }  // namespace
 
-bool PoseOptimizerOptions::Check() const {
-  return rounds >= 1 && iterations_per_round >= 1 && chi2_mono > 0 && chi2_stereo > 0 && huber_mono > 0 &&
-         huber_stereo > 0 && min_observations >= 0;
+std::string PoseOptimizerOptions::Problem() const {
+  Requirements r;
+  FLATSLAM_REQUIRE(r, rounds >= 1);
+  FLATSLAM_REQUIRE(r, iterations_per_round >= 1);
+  FLATSLAM_REQUIRE(r, chi2_mono > 0);
+  FLATSLAM_REQUIRE(r, chi2_stereo > 0);
+  FLATSLAM_REQUIRE(r, huber_mono > 0);
+  FLATSLAM_REQUIRE(r, huber_stereo > 0);
+  FLATSLAM_REQUIRE(r, min_observations >= 0);
+  return r.first();
 }
 
 PoseOptimizationResult OptimizePose(const PinholeCamera& camera, double baseline_m,

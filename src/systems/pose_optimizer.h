@@ -5,6 +5,7 @@
 
 #include <cmath>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
@@ -36,7 +37,9 @@ struct PoseOptimizerOptions {
   bool robust_last_round = false;  // ORB-SLAM2 drops the robust kernel in the last round
   int min_observations = 3;        // fewer active observations = failure
 
-  [[nodiscard]] bool Check() const;
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 struct PoseOptimizationResult {

@@ -11,6 +11,7 @@
 #include <tbb/parallel_invoke.h>
 
 #include "core/error.h"
+#include "core/requirements.h"
 #include "systems/geometry.h"
 #include "systems/vocabulary.h"
 
@@ -45,14 +46,32 @@ const char* TrackingStateName(TrackingState state) {
   return "unknown";
 }
 
-bool SlamOptions::Check() const {
+std::string SlamOptions::Problem() const {
   OrbOptions orb_checked = orb;
   if (orb_checked.features == 0) orb_checked.features = 1;  // 0 = derived from the camera
-  return orb_checked.Check() && stereo.Check() && matcher.Check() && pose.Check() && bundle_adjustment.Check() &&
-         rgbd_virtual_baseline_m > 0 && close_depth_baselines > 0 && far_stereo_baselines >= 0 && min_init_points > 0 && min_motion_inliers > 0 &&
-         min_local_map_inliers > 0 && motion_search_radius > 0 && max_frames_between_keyframes >= 0 && min_frames_between_keyframes >= -1 &&
-         local_keyframes > 0 && min_parallax_deg >= 0 && min_parallax_deg < 90 && redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1 && revisit_radius >= 0 &&
-         relocalization_frames >= 0 && loop_consistency >= 1 && min_loop_matches >= 3;
+  Requirements r;
+  r.Nested("orb", orb_checked.Problem());
+  r.Nested("stereo", stereo.Problem());
+  r.Nested("matcher", matcher.Problem());
+  r.Nested("pose", pose.Problem());
+  r.Nested("bundle_adjustment", bundle_adjustment.Problem());
+  FLATSLAM_REQUIRE(r, rgbd_virtual_baseline_m > 0);
+  FLATSLAM_REQUIRE(r, close_depth_baselines > 0);
+  FLATSLAM_REQUIRE(r, far_stereo_baselines >= 0);
+  FLATSLAM_REQUIRE(r, min_init_points > 0);
+  FLATSLAM_REQUIRE(r, min_motion_inliers > 0);
+  FLATSLAM_REQUIRE(r, min_local_map_inliers > 0);
+  FLATSLAM_REQUIRE(r, motion_search_radius > 0);
+  FLATSLAM_REQUIRE(r, max_frames_between_keyframes >= 0);
+  FLATSLAM_REQUIRE(r, min_frames_between_keyframes >= -1);
+  FLATSLAM_REQUIRE(r, local_keyframes > 0);
+  FLATSLAM_REQUIRE(r, min_parallax_deg >= 0 && min_parallax_deg < 90);
+  FLATSLAM_REQUIRE(r, redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1);
+  FLATSLAM_REQUIRE(r, revisit_radius >= 0);
+  FLATSLAM_REQUIRE(r, relocalization_frames >= 0);
+  FLATSLAM_REQUIRE(r, loop_consistency >= 1);
+  FLATSLAM_REQUIRE(r, min_loop_matches >= 3);
+  return r.first();
 }
 
 int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz) {
@@ -120,17 +139,13 @@ Slam::Slam(const Calibration& calibration, const SlamOptions& options)
       rng_(options.seed),
       database_(options.vocabulary ? options.vocabulary->word_count() : 0),
       loop_rng_(options.seed + 1) {
-  FLATSLAM_CHECK(options_.Check(), "invalid SLAM options");
+  const std::string problem = options_.Problem();
+  FLATSLAM_CHECK(problem.empty(), "invalid SLAM options: ", problem, " does not hold");
   FLATSLAM_CHECK(calibration_.camera.valid(), "invalid camera calibration");
   FLATSLAM_CHECK(calibration_.sensor != Sensor::kStereo || calibration_.baseline_m > 0,
                  "stereo calibration without a baseline");
-  geometry_.camera = calibration_.camera;
-  const double baseline = calibration_.sensor == Sensor::kStereo ? calibration_.baseline_m
-                          : calibration_.sensor == Sensor::kRgbd ? options_.rgbd_virtual_baseline_m
-                                                                 : 0.0;
-  geometry_.bf = baseline * calibration_.camera.fx;
+  geometry_ = CameraGeometry::FromCalibration(calibration_, options_.rgbd_virtual_baseline_m, extractor_.scales());
   if (options_.localization_only) allow_new_segments_ = false;
-  geometry_.pyramid = extractor_.scales();
   map_scales_.scale_factor = geometry_.pyramid.scale_factor;
   map_scales_.levels = geometry_.pyramid.levels;
   stereo_depth_ = StereoDepthRule::ForRig(calibration_.sensor == Sensor::kStereo, calibration_.baseline_m,

@@ -105,7 +105,9 @@ struct SlamOptions {
   int min_loop_matches = 40;               // map points matched across the loop after the Sim(3)/SE(3) search
   InjectedFault inject_fault = InjectedFault::kNone;  // tests only (see InjectedFault)
 
-  [[nodiscard]] bool Check() const;
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 // An option whose value ResolvedOptions chose from the calibration, and the rule it followed.

@@ -174,7 +174,8 @@ void ApplySlamSetting(SlamOptions* options, std::string_view setting) {
   const size_t eq = setting.find('=');
   FLATSLAM_CHECK(eq != std::string_view::npos, "--set: expected KEY=VALUE, got '", setting, "'");
   SetSlamOption(options, setting.substr(0, eq), setting.substr(eq + 1), "--set");
-  FLATSLAM_CHECK(options->Check(), "--set ", setting, ": the options are no longer valid (out of range)");
+  const std::string problem = options->Problem();
+  FLATSLAM_CHECK(problem.empty(), "--set ", setting, ": out of range (", problem, " does not hold)");
 }
 
 void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options) {
@@ -194,7 +195,8 @@ void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options) {
     SetSlamOption(options, text.substr(0, eq), text.substr(eq + 1), where);
   }
   FLATSLAM_CHECK(!in.bad(), "cannot read config file ", path);
-  FLATSLAM_CHECK(options->Check(), path.string(), ": the options are not valid together (a value is out of range)");
+  const std::string problem = options->Problem();
+  FLATSLAM_CHECK(problem.empty(), path.string(), ": a value is out of range (", problem, " does not hold)");
 }
 
 std::vector<std::string> DescribeSlamOptions(const SlamOptions& options, std::span<const DerivedOption> derived) {

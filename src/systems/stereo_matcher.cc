@@ -13,6 +13,7 @@
 #endif
 
 #include "core/error.h"
+#include "core/requirements.h"
 
 namespace flatslam {
 namespace {
@@ -97,7 +98,6 @@ __attribute__((target("avx2"))) void ZeroMeanSadsAvx2(const cv::Mat& limg, int x
 
 #endif
 
-
 void ZeroMeanSads(bool avx2, const cv::Mat& limg, int xl, int yl, const cv::Mat& rimg, int xr_begin, int count, int w,
                   int* sads) {
 #if defined(__x86_64__) || defined(__i386__)
@@ -110,10 +110,16 @@ void ZeroMeanSads(bool avx2, const cv::Mat& limg, int xl, int yl, const cv::Mat&
 
 }  // namespace
 
-bool StereoOptions::Check() const {
-  return min_depth_m >= 0 && descriptor_threshold >= 1 && descriptor_threshold <= 257 && row_radius >= 0 &&
-         octave_radius >= 0 && sad_half_window >= 1 && sad_half_window <= 15 && sad_search_radius >= 1 &&
-         sad_search_radius <= 64 && outlier_factor > 0;
+std::string StereoOptions::Problem() const {
+  Requirements r;
+  FLATSLAM_REQUIRE(r, min_depth_m >= 0);
+  FLATSLAM_REQUIRE(r, descriptor_threshold >= 1 && descriptor_threshold <= 257);
+  FLATSLAM_REQUIRE(r, row_radius >= 0);
+  FLATSLAM_REQUIRE(r, octave_radius >= 0);
+  FLATSLAM_REQUIRE(r, sad_half_window >= 1 && sad_half_window <= 15);
+  FLATSLAM_REQUIRE(r, sad_search_radius >= 1 && sad_search_radius <= 64);
+  FLATSLAM_REQUIRE(r, outlier_factor > 0);
+  return r.first();
 }
 
 StereoStats MatchStereo(const Keypoints& right, const ImagePyramid& left_pyramid, const ImagePyramid& right_pyramid,

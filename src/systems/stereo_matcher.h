@@ -5,6 +5,8 @@
 // (MatchStereo runs a tbb::parallel_for over the left keypoints inside).
 #pragma once
 
+#include <string>
+
 #include <opencv2/core/mat.hpp>
 
 #include "systems/features.h"
@@ -22,7 +24,9 @@ struct StereoOptions {
   float outlier_factor = 2.1f;    // drop matches whose SAD exceeds factor * median SAD (1.5 * 1.4)
   bool use_avx2 = true;           // where the CPU has it; false forces the baseline kernels (same output)
 
-  [[nodiscard]] bool Check() const;
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 
 // What a MatchStereo call did, for logs and tests.

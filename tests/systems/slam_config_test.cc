@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include "core/error.h"
+#include "systems/map_merge.h"
 
 namespace flatslam {
 namespace {
@@ -58,9 +59,44 @@ TEST(SlamConfig, ErrorsNameTheKeyAndWhatWasExpected) {
   EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "loop_closing", "maybe"); }).find("true or false"), std::string::npos);
   EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "pose.chi2_mono", "nan"); }).find("a real number"), std::string::npos);
   EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features"); }).find("expected KEY=VALUE"), std::string::npos);
-  // A value that parses but breaks an option's range is refused as a whole.
-  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features=-5"); }).find("no longer valid"), std::string::npos);
+  // A value that parses but breaks an option's range is refused, naming the requirement it breaks.
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features=-5"); }).find("out of range (orb: features >= 1 does not hold)"),
+            std::string::npos);
   EXPECT_EQ(o.orb.features, -5);  // the caller's options are not used after a throw
+}
+
+// Every options struct names the first field it finds out of range; nested ones by their prefix.
+TEST(SlamConfig, OptionProblemsNameTheField) {
+  SlamOptions o;
+  EXPECT_EQ(o.Problem(), "");
+  o.orb.features = 0;  // derived from the camera: valid
+  EXPECT_EQ(o.Problem(), "");
+  o.stereo.sad_half_window = 40;
+  EXPECT_EQ(o.Problem(), "stereo: sad_half_window >= 1 && sad_half_window <= 15");
+  o.stereo = StereoOptions{};
+  o.bundle_adjustment.num_threads = 0;
+  EXPECT_EQ(o.Problem(), "bundle_adjustment: num_threads >= 1");
+  o.bundle_adjustment = BundleAdjustmentOptions{};
+  o.min_loop_matches = 2;
+  EXPECT_EQ(o.Problem(), "min_loop_matches >= 3");
+  EXPECT_FALSE(o.Check());
+  o.matcher.nn_ratio = 1.5f;  // the first broken requirement is reported
+  EXPECT_EQ(o.Problem(), "matcher: nn_ratio > 0 && nn_ratio <= 1");
+  const Calibration calibration = [] {
+    Calibration c;
+    c.camera.width = 640;
+    c.camera.height = 480;
+    c.camera.fx = c.camera.fy = 500;
+    c.camera.cx = 320;
+    c.camera.cy = 240;
+    return c;
+  }();
+  EXPECT_NE(ErrorOf([&] { Slam slam(calibration, o); })
+                .find("invalid SLAM options: matcher: nn_ratio > 0 && nn_ratio <= 1 does not hold"),
+            std::string::npos);
+  MapMergeOptions merge;
+  merge.min_consistent_pairs = 0;
+  EXPECT_EQ(merge.Problem(), "min_consistent_pairs >= 1");
 }
 
 TEST(SlamConfig, FileErrorsNameTheFileAndLine) {
@@ -75,7 +111,10 @@ TEST(SlamConfig, FileErrorsNameTheFileAndLine) {
   EXPECT_NE(ErrorOf([&] { LoadSlamConfig("/nonexistent/flatslam.conf", &o); }).find("cannot read config file"),
             std::string::npos);
   const auto range = WriteFile("range.conf", "redundant_keyframe_ratio = 1.5\n");
-  EXPECT_NE(ErrorOf([&] { LoadSlamConfig(range, &o); }).find("not valid together"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig(range, &o); })
+                .find(range.string() + ": a value is out of range (redundant_keyframe_ratio > 0 && "
+                                       "redundant_keyframe_ratio <= 1 does not hold)"),
+            std::string::npos);
   std::filesystem::remove(path);
   std::filesystem::remove(unknown);
   std::filesystem::remove(range);
