@@ -3,6 +3,9 @@
 // bars; docs/STATUS.md gives the measured figures.
 #include "jobs/slam_runner.h"
 
+#include <string>
+#include <thread>
+
 #include <gtest/gtest.h>
 
 #include "core/error.h"
@@ -66,6 +69,27 @@ TEST(SlamRun, DeterministicModeRepeatsExactly) {
   for (size_t i = 0; i < a.run.trajectory.size(); ++i)
     ASSERT_TRUE(a.run.trajectory[i].T_world_cam.isApprox(b.run.trajectory[i].T_world_cam, 0.0)) << "frame " << i;
   EXPECT_EQ(a.run.point_count, b.run.point_count);
+}
+
+// Several sessions live in one process (nothing static): two runs on different scenes at the same
+// time each give exactly the trajectory they give alone.
+TEST(SlamRun, ConcurrentSessionsMatchTheirSingleRuns) {
+  const std::string specs[2] = {"synth:corridor:duration=4,width=480,height=360",
+                                "synth:room:duration=4,width=480,height=360,sensor=rgbd"};
+  Outcome alone[2], together[2];
+  for (int k = 0; k < 2; ++k) alone[k] = RunAndScore(specs[k], true);
+  std::thread other([&] { together[1] = RunAndScore(specs[1], true); });
+  together[0] = RunAndScore(specs[0], true);
+  other.join();
+  for (int k = 0; k < 2; ++k) {
+    SCOPED_TRACE(specs[k]);
+    ASSERT_EQ(together[k].run.trajectory.size(), alone[k].run.trajectory.size());
+    ASSERT_GT(alone[k].run.trajectory.size(), 50u);
+    for (size_t i = 0; i < alone[k].run.trajectory.size(); ++i)
+      ASSERT_TRUE(together[k].run.trajectory[i].T_world_cam.isApprox(alone[k].run.trajectory[i].T_world_cam, 0.0))
+          << "frame " << i;
+    EXPECT_EQ(together[k].run.point_count, alone[k].run.point_count);
+  }
 }
 
 TEST(SlamRun, KittiStereoSnippet) {
