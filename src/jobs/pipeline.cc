@@ -6,6 +6,7 @@
 #include <tuple>
 
 #include <tbb/flow_graph.h>
+#include <tbb/task_group.h>
 #include <tbb/info.h>
 
 namespace flatslam {
@@ -78,6 +79,17 @@ struct RunState {
     graph->cancel();
   }
 };
+
+// Runs a stage body, the source or a job in a task-group context of its own. After a failure
+// the graph is cancelled; without this, a body already running would see its nested parallel
+// algorithms (extraction's parallel_invoke, the renderer's parallel_for) return with part of
+// their work skipped and go on with it half done (a strict run crashed that way in extraction).
+template <class F>
+void RunIsolated(F&& body) {
+  tbb::task_group_context context(tbb::task_group_context::isolated);
+  tbb::task_group group(context);
+  group.run_and_wait(std::forward<F>(body));
+}
 
 // Rethrows the recorded failure as PipelineError with the original nested inside.
 [[noreturn]] void ThrowFailure(const RunState& state) {
@@ -198,7 +210,7 @@ PipelineStats Core::Run() {
         const size_t seq = state.next_seq;
         std::unique_ptr<Payload> payload;
         try {
-          payload = source_(seq);
+          RunIsolated([&] { payload = source_(seq); });
         } catch (...) {
           state.Fail("source", seq, false, std::current_exception());
         }
@@ -223,7 +235,7 @@ PipelineStats Core::Run() {
           graph, concurrency, [&state, &stage](const ItemMsg& message) {
             if (!state.failed.load()) {
               try {
-                stage.fn(*message->payload);
+                RunIsolated([&] { stage.fn(*message->payload); });
               } catch (...) {
                 state.Fail(stage.name, message->seq, false, std::current_exception());
               }
@@ -238,7 +250,7 @@ PipelineStats Core::Run() {
       for (const Stage& stage : serial_) {
         if (state.failed.load()) break;
         try {
-          stage.fn(*message->payload);
+          RunIsolated([&] { stage.fn(*message->payload); });
         } catch (...) {
           state.Fail(stage.name, message->seq, false, std::current_exception());
         }
@@ -270,7 +282,7 @@ PipelineStats Core::Run() {
             const size_t index = (*counter)++;
             if (!state.failed.load()) {
               try {
-                queue->handler_(*message->job);
+                RunIsolated([&] { queue->handler_(*message->job); });
               } catch (...) {
                 state.Fail(queue->name_, index, true, std::current_exception());
               }

@@ -2,12 +2,13 @@
 
 #include <algorithm>
 #include <chrono>
+#include <condition_variable>
 #include <mutex>
-#include <thread>
 
 #include <tbb/task_arena.h>
 
 #include "core/error.h"
+#include "jobs/background_worker.h"
 #include "jobs/pipeline.h"
 
 namespace flatslam {
@@ -32,6 +33,10 @@ struct CheckpointJob {};
 SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
   Slam slam(dataset.calibration(), options);
   if (run.on_warning) slam.SetWarningSink(run.on_warning);
+  // Global bundle adjustment runs beside the frames on its own thread (declared after slam:
+  // destroyed, so waited for, first). Deterministic runs keep it inline, in mapping.
+  BackgroundWorker background;
+  if (!run.deterministic) slam.SetBackground([&background](std::function<void()> task) { background.Start(std::move(task)); });
   auto warn = [&](const std::string& message) {
     if (run.on_warning) run.on_warning(message);
     else std::fprintf(stderr, "warning: %s\n", message.c_str());
@@ -48,8 +53,21 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       run.max_in_flight > 0 ? run.max_in_flight
                             : std::max<size_t>(16, 4 * static_cast<size_t>(tbb::this_task_arena::max_concurrency()));
   FramePipeline<Item> pipeline(pipeline_options);
-  auto mapping =
-      pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) { slam.MapKeyFrame(kf); });
+  // The track stage waits on this for mapping to catch up (see max_mapping_lag); every mapped
+  // keyframe, or a failed one, wakes it.
+  std::mutex mapped_mutex;
+  std::condition_variable mapped;
+  auto mapping = pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) {
+    struct Notify {
+      std::mutex& mutex;
+      std::condition_variable& cv;
+      ~Notify() {
+        { const std::lock_guard<std::mutex> lock(mutex); }
+        cv.notify_all();
+      }
+    } notify{mapped_mutex, mapped};
+    slam.MapKeyFrame(kf);
+  });
   // Checkpoint writes: one at a time, never queued behind each other (the track stage only copies
   // the session when the last copy has been written).
   std::atomic<bool> checkpoint_busy{false};
@@ -144,9 +162,12 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       return;
     }
     // Mapping may run behind by max_mapping_lag keyframes, none while tracking wants one.
-    while (!inline_mapping && (slam.pending_keyframes() > run.max_mapping_lag ||
-                               (slam.keyframe_wanted() && slam.pending_keyframes() > 0)))
-      std::this_thread::sleep_for(std::chrono::microseconds(200));
+    if (!inline_mapping) {
+      std::unique_lock<std::mutex> lock(mapped_mutex);
+      mapped.wait(lock, [&] {
+        return slam.pending_keyframes() <= run.max_mapping_lag && !(slam.keyframe_wanted() && slam.pending_keyframes() > 0);
+      });
+    }
     std::unique_lock<std::mutex> reporting(between_frames);
     std::optional<KeyFrameHandle> keyframe;
     if (std::find(run.lose_at.begin(), run.lose_at.end(), item.index) != run.lose_at.end()) slam.ForceLost();
@@ -178,7 +199,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     result.error = e.what();
   }
   if (result.interrupted || !result.error.empty()) slam.AbandonBackground();
-  else slam.WaitForBackground();
+  background.Wait();
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (result.error.empty() && result.frames > 0 && result.frames_skipped == result.frames)
     Fail("none of the ", result.frames, " frames of ", dataset.name(), " could be read; the first: ", first_unreadable);

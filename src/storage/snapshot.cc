@@ -591,17 +591,13 @@ void SaveMapSnapshot(const std::filesystem::path& path, std::span<const Snapshot
     fail("close failed", errno);
   }
   file.fd = -1;
-  // Replacing a map frees the old file's blocks and cached pages when its last reference goes,
-  // about 70 ms for 180 MB. Holding it open across the rename moves that work to a background
-  // thread instead of the caller.
-  const int previous = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  // Replacing a map frees the old file's blocks and cached pages in the rename (about 70 ms for
+  // 180 MB): in a session that is the checkpoint job's time, not tracking's.
   if (::rename(temp.c_str(), path.c_str()) != 0) {
     const int error = errno;
     ::unlink(temp.c_str());
-    if (previous >= 0) ::close(previous);
     Fail("cannot save map snapshot ", path, ": rename failed: ", std::strerror(error));
   }
-  if (previous >= 0) std::thread([previous] { ::close(previous); }).detach();
   // Makes the rename itself durable; failure here leaves a complete file, so it is not an error.
   FdCloser directory{::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC)};
   if (directory.fd >= 0) (void)::fsync(directory.fd);

@@ -42,7 +42,6 @@ void Slam::ForceLost() {
   force_lost_ = true;
 }
 
-Slam::~Slam() { WaitForBackground(); }
 
 void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
   FLATSLAM_CHECK(options_.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
@@ -96,15 +95,6 @@ void Slam::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {
     else a.reference = KeyFrameHandle::null();
     (*out)[i] = a;
   }
-}
-
-void Slam::WaitForBackground() {
-  if (global_ba_.joinable()) global_ba_.join();
-}
-
-void Slam::AbandonBackground() {
-  abandon_background_ = true;
-  WaitForBackground();
 }
 
 void Slam::Warn(const std::string& message) const {
@@ -251,17 +241,18 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
     consistent_groups_.clear();
     keyframes_since_loop_ = 0;
     if (options_.global_bundle_adjustment && !abandon_background_) {
-      WaitForBackground();
       global_ba_running_ = true;
       // A failure here costs the refinement, not the session: it becomes a warning.
-      global_ba_ = std::thread([this, loops = loop_closures_.size()] {
+      auto task = [this, loops = loop_closures_.size()] {
         try {
           GlobalBundleAdjustment(loops);
         } catch (const std::exception& e) {
           global_ba_running_ = false;
           Warn(std::string("global bundle adjustment failed, the map keeps its loop correction: ") + e.what());
         }
-      });
+      };
+      if (background_) background_(std::move(task));
+      else task();
     }
     return;
   }

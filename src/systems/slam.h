@@ -16,7 +16,6 @@
 #include <random>
 #include <span>
 #include <string>
-#include <thread>
 #include <unordered_map>
 #include <vector>
 
@@ -214,12 +213,15 @@ class Slam {
   [[nodiscard]] size_t database_size() const { return database_.size(); }
   // Local mapping's time per stage (call when no stage is running).
   [[nodiscard]] const MappingTimes& mapping_times() const { return mapping_times_; }
-  // Blocks until background work (global bundle adjustment) has finished.
-  void WaitForBackground();
+  // Where background work (global bundle adjustment after a loop) runs: `start` is handed each
+  // task and must run it off the calling (mapping) thread, waiting first for the task it was
+  // handed before; its owner (src/jobs) waits for the last one before the session ends. Unset:
+  // tasks run inline, on the mapping thread. Set before the first frame.
+  void SetBackground(std::function<void(std::function<void()>)> start) { background_ = std::move(start); }
   // Ends background work at once (an interrupted session): a running global bundle adjustment
-  // stops at its next iteration and its result is dropped; none starts afterwards. Blocks until
-  // it has stopped.
-  void AbandonBackground();
+  // stops at its next iteration and its result is dropped; none starts afterwards. The caller
+  // then waits for the running task where it runs.
+  void AbandonBackground() { abandon_background_ = true; }
   // Receives one line when background work fails and the session goes on without it (global
   // bundle adjustment, loop closing). Called on the failing thread; set before the first frame.
   // Unset: the line goes to stderr.
@@ -248,7 +250,6 @@ class Slam {
     void AnchoredToMap(std::vector<AnchoredFramePose>* out) const;
   };
   void CaptureState(State* out) const;
-  ~Slam();
 
  private:
   using FramePose = AnchoredFramePose;
@@ -355,7 +356,7 @@ class Slam {
   size_t keyframes_since_loop_ = 0;
   std::vector<LoopClosure> loop_closures_;
   std::mt19937_64 loop_rng_;
-  std::thread global_ba_;
+  std::function<void(std::function<void()>)> background_;
   std::atomic<bool> global_ba_running_{false};
   std::atomic<bool> abandon_background_{false};
   std::function<void(const std::string&)> warning_sink_;

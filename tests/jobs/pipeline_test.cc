@@ -15,6 +15,7 @@
 
 #include <gtest/gtest.h>
 #include <tbb/info.h>
+#include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
 #include "core/error.h"
@@ -242,6 +243,32 @@ TEST(FramePipeline, ParallelStageExceptionStopsRun) {
   armed.store(false);
   pipeline.set_source(CountingSource(600, &counter));
   EXPECT_EQ(WithWatchdog([&] { return pipeline.run(); }).items_processed, 600u);
+}
+
+// A failure cancels the run, but a stage already running finishes its nested parallel work:
+// cancelling it half way left extraction with half-built keypoints (a crash on a strict run).
+TEST(FramePipeline, FailureDoesNotCutShortNestedParallelWork) {
+  if (!HasTwoThreads()) GTEST_SKIP() << "needs two threads";
+  std::atomic<bool> failed{false};
+  std::atomic<int> done{0};
+  FramePipeline<Item> pipeline;
+  pipeline.set_source(CountingSource(2))
+      .add_parallel_stage("extract",
+                          [&](Item& item) {
+                            if (item.seq == 1) {
+                              failed.store(true);
+                              throw std::runtime_error("item 1 failed");
+                            }
+                            // Item 0: start the nested work only once the run has been cancelled.
+                            const auto until = std::chrono::steady_clock::now() + 2s;
+                            while (!failed.load() && std::chrono::steady_clock::now() < until)
+                              std::this_thread::yield();
+                            std::this_thread::sleep_for(50ms);
+                            tbb::parallel_for(0, 1000, [&](int) { done.fetch_add(1); });
+                          })
+      .add_serial_stage("track", [](Item&) {});
+  ExpectFailure(pipeline, "extract", 1, "item 1 failed");
+  EXPECT_EQ(done.load(), 1000);
 }
 
 TEST(FramePipeline, SerialStageExceptionStopsRun) {
