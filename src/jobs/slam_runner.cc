@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <condition_variable>
+#include <functional>
 #include <mutex>
 
 #include <tbb/task_arena.h>
@@ -25,8 +26,19 @@ double MsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }
 
-// A request for a checkpoint (the job takes the copy itself).
-struct CheckpointJob {};
+// A request for a checkpoint: the copy of the session is taken by the job itself unless it was
+// already taken (captured) between two keyframes by the mapping queue.
+struct CheckpointJob {
+  bool captured = false;
+};
+
+// Local mapping's queue: keyframes to map, and checkpoint copies, which run there so that they
+// fall between two keyframes' mapping, never half way through one (a resumed session never maps
+// the rest of a keyframe its checkpoint caught half mapped).
+struct MappingJob {
+  KeyFrameHandle keyframe;
+  bool capture = false;
+};
 
 }  // namespace
 
@@ -57,7 +69,12 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // keyframe, or a failed one, wakes it.
   std::mutex mapped_mutex;
   std::condition_variable mapped;
-  auto mapping = pipeline.add_background_stage<KeyFrameHandle>("mapping", [&](KeyFrameHandle& kf) {
+  std::function<void()> capture_between_keyframes;  // set below, with the checkpoint queue
+  auto mapping = pipeline.add_background_stage<MappingJob>("mapping", [&](MappingJob& job) {
+    if (job.capture) {
+      capture_between_keyframes();
+      return;
+    }
     struct Notify {
       std::mutex& mutex;
       std::condition_variable& cv;
@@ -66,7 +83,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
         cv.notify_all();
       }
     } notify{mapped_mutex, mapped};
-    slam.MapKeyFrame(kf);
+    slam.MapKeyFrame(job.keyframe);
   });
   // Checkpoint writes: one at a time, never queued behind each other (the track stage only copies
   // the session when the last copy has been written).
@@ -78,17 +95,19 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // Held by the track stage from Track to on_frame, and by a checkpoint's copy: a checkpoint never
   // covers a frame whose report has not been handed out.
   std::mutex between_frames;
-  auto take_checkpoint = [&](bool last) {
-    auto start = std::chrono::steady_clock::now();
+  auto capture = [&] {
+    const auto start = std::chrono::steady_clock::now();
     {
       std::lock_guard<std::mutex> lock(between_frames);
       if (run.before_checkpoint) run.before_checkpoint();
       slam.CaptureState(&checkpoint_state);
     }
+    result.checkpoint_capture_ms.push_back(MsSince(start));
+  };
+  auto write_checkpoint = [&](bool last) {
     // The last one also covers unreadable frames at the end, which tracking never saw.
     if (last) checkpoint_state.next_frame = std::max(checkpoint_state.next_frame, result.next_frame);
-    result.checkpoint_capture_ms.push_back(MsSince(start));
-    start = std::chrono::steady_clock::now();
+    const auto start = std::chrono::steady_clock::now();
     try {
       run.on_checkpoint(checkpoint_state, checkpoint_state.next_frame);
       ++result.checkpoints;
@@ -99,10 +118,15 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     }
     result.checkpoint_write_ms.push_back(MsSince(start));
   };
-  auto checkpoints = pipeline.add_background_stage<CheckpointJob>("checkpoint", [&](CheckpointJob&) {
-    take_checkpoint(false);
+  auto checkpoints = pipeline.add_background_stage<CheckpointJob>("checkpoint", [&](CheckpointJob& job) {
+    if (!job.captured) capture();
+    write_checkpoint(false);
     checkpoint_busy = false;
   });
+  capture_between_keyframes = [&] {
+    capture();
+    checkpoints.post(CheckpointJob{true});  // serializing and saving go on beside mapping
+  };
   const bool checkpointing = run.checkpoint_every_s > 0 && run.on_checkpoint;
   auto last_checkpoint = std::chrono::steady_clock::now();
 
@@ -175,7 +199,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     report.extract_ms = item.extract_ms;
     if (keyframe) {
       if (inline_mapping) slam.MapKeyFrame(*keyframe);
-      else mapping.post(*keyframe);
+      else mapping.post(MappingJob{*keyframe});
     }
     // Frames tracked while a checkpoint was copied or written: their tracking time includes any
     // wait for the map lock that the copy held.
@@ -184,7 +208,9 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     } else if (checkpointing && std::chrono::duration<double>(std::chrono::steady_clock::now() - last_checkpoint)
                                         .count() >= run.checkpoint_every_s) {
       checkpoint_busy = true;
-      checkpoints.post(CheckpointJob{});
+      // With mapping inline, every frame boundary is also a boundary between keyframes.
+      if (inline_mapping) checkpoints.post(CheckpointJob{});
+      else mapping.post(MappingJob{KeyFrameHandle::null(), true});
       last_checkpoint = std::chrono::steady_clock::now();
     }
     if (run.on_frame) run.on_frame(report);
@@ -210,7 +236,10 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   result.loop_closures = slam.loop_closures();
   result.mapping = slam.mapping_times();
   // The last checkpoint: the whole session as it ends.
-  if (checkpointing && result.frames > result.frames_skipped) take_checkpoint(true);
+  if (checkpointing && result.frames > result.frames_skipped) {
+    capture();
+    write_checkpoint(true);
+  }
   if (run.on_finished) run.on_finished(slam);
   return result;
 }
