@@ -38,8 +38,7 @@ void OnAllocate(void* p) {
 
 void OnFree(void* p) {
   if (p == nullptr || !g_tracking.load(std::memory_order_relaxed)) return;
-  g_current_bytes.fetch_sub(static_cast<int64_t>(malloc_usable_size(p)),
-                            std::memory_order_relaxed);
+  g_current_bytes.fetch_sub(static_cast<int64_t>(malloc_usable_size(p)), std::memory_order_relaxed);
 }
 
 void* Allocate(size_t size) {
@@ -90,8 +89,12 @@ void* operator new[](size_t size) {
   if (void* p = Allocate(size)) return p;
   throw std::bad_alloc();
 }
-void* operator new(size_t size, const std::nothrow_t&) noexcept { return Allocate(size); }
-void* operator new[](size_t size, const std::nothrow_t&) noexcept { return Allocate(size); }
+void* operator new(size_t size, const std::nothrow_t&) noexcept {
+  return Allocate(size);
+}
+void* operator new[](size_t size, const std::nothrow_t&) noexcept {
+  return Allocate(size);
+}
 void* operator new(size_t size, std::align_val_t align) {
   if (void* p = AllocateAligned(size, align)) return p;
   throw std::bad_alloc();
@@ -106,18 +109,42 @@ void* operator new(size_t size, std::align_val_t align, const std::nothrow_t&) n
 void* operator new[](size_t size, std::align_val_t align, const std::nothrow_t&) noexcept {
   return AllocateAligned(size, align);
 }
-void operator delete(void* p) noexcept { Free(p); }
-void operator delete[](void* p) noexcept { Free(p); }
-void operator delete(void* p, size_t) noexcept { Free(p); }
-void operator delete[](void* p, size_t) noexcept { Free(p); }
-void operator delete(void* p, const std::nothrow_t&) noexcept { Free(p); }
-void operator delete[](void* p, const std::nothrow_t&) noexcept { Free(p); }
-void operator delete(void* p, std::align_val_t) noexcept { Free(p); }
-void operator delete[](void* p, std::align_val_t) noexcept { Free(p); }
-void operator delete(void* p, size_t, std::align_val_t) noexcept { Free(p); }
-void operator delete[](void* p, size_t, std::align_val_t) noexcept { Free(p); }
-void operator delete(void* p, std::align_val_t, const std::nothrow_t&) noexcept { Free(p); }
-void operator delete[](void* p, std::align_val_t, const std::nothrow_t&) noexcept { Free(p); }
+void operator delete(void* p) noexcept {
+  Free(p);
+}
+void operator delete[](void* p) noexcept {
+  Free(p);
+}
+void operator delete(void* p, size_t) noexcept {
+  Free(p);
+}
+void operator delete[](void* p, size_t) noexcept {
+  Free(p);
+}
+void operator delete(void* p, const std::nothrow_t&) noexcept {
+  Free(p);
+}
+void operator delete[](void* p, const std::nothrow_t&) noexcept {
+  Free(p);
+}
+void operator delete(void* p, std::align_val_t) noexcept {
+  Free(p);
+}
+void operator delete[](void* p, std::align_val_t) noexcept {
+  Free(p);
+}
+void operator delete(void* p, size_t, std::align_val_t) noexcept {
+  Free(p);
+}
+void operator delete[](void* p, size_t, std::align_val_t) noexcept {
+  Free(p);
+}
+void operator delete(void* p, std::align_val_t, const std::nothrow_t&) noexcept {
+  Free(p);
+}
+void operator delete[](void* p, std::align_val_t, const std::nothrow_t&) noexcept {
+  Free(p);
+}
 
 namespace flatslam {
 namespace {
@@ -150,9 +177,7 @@ class Rng {
     return z ^ (z >> 31);
   }
   // Uniform in [0, n) by multiply-shift.
-  size_t below(size_t n) {
-    return static_cast<size_t>((static_cast<unsigned __int128>(next()) * n) >> 64);
-  }
+  size_t below(size_t n) { return static_cast<size_t>((static_cast<unsigned __int128>(next()) * n) >> 64); }
 
  private:
   uint64_t state_;
@@ -311,8 +336,7 @@ void BM_Iterate(benchmark::State& state) {
     total_ns += Nanoseconds(t0, t1);
     state.SetIterationTime(Nanoseconds(t0, t1) * 1e-9);
   }
-  state.counters["ns_per_element"] =
-      total_ns / (static_cast<double>(n) * static_cast<double>(state.iterations()));
+  state.counters["ns_per_element"] = total_ns / (static_cast<double>(n) * static_cast<double>(state.iterations()));
 }
 
 // Heap bytes held by the store: peak over fill + churn, and what stays live after churn.
@@ -348,7 +372,11 @@ constexpr int64_t kIterateEntities = 100'000;
 
 BENCHMARK(BM_Churn<ArenaStore>)->Arg(kChurnEntities)->Iterations(3)->UseManualTime()->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Churn<HashMapStore>)->Arg(kChurnEntities)->Iterations(3)->UseManualTime()->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_Churn<LinkedNodeStore>)->Arg(kChurnEntities)->Iterations(3)->UseManualTime()->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_Churn<LinkedNodeStore>)
+    ->Arg(kChurnEntities)
+    ->Iterations(3)
+    ->UseManualTime()
+    ->Unit(benchmark::kMillisecond);
 
 BENCHMARK(BM_Iterate<ArenaStore>)->Arg(kIterateEntities)->UseManualTime()->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_Iterate<HashMapStore>)->Arg(kIterateEntities)->UseManualTime()->Unit(benchmark::kMicrosecond);
@@ -368,7 +396,7 @@ int main(int argc, char** argv) {
   benchmark::Shutdown();
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
-  std::printf("process peak RSS: %.1f MiB (ru_maxrss %ld KiB)\n",
-              static_cast<double>(usage.ru_maxrss) / 1024.0, usage.ru_maxrss);
+  std::printf("process peak RSS: %.1f MiB (ru_maxrss %ld KiB)\n", static_cast<double>(usage.ru_maxrss) / 1024.0,
+              usage.ru_maxrss);
   return 0;
 }

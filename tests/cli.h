@@ -34,9 +34,13 @@ inline CliResult RunCommand(const std::string& command_line) {
 }
 
 // Runs `flatslam ARGUMENTS` through the shell (so arguments may hold quotes and redirections).
-inline CliResult RunApp(const std::string& arguments) { return RunCommand(AppPath() + " " + arguments); }
+inline CliResult RunApp(const std::string& arguments) {
+  return RunCommand(AppPath() + " " + arguments);
+}
 
-inline bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+inline bool Contains(const std::string& text, const std::string& part) {
+  return text.find(part) != std::string::npos;
+}
 
 // Whole file as bytes (empty when it cannot be read).
 inline std::string ReadBytes(const std::filesystem::path& path) {

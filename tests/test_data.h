@@ -17,18 +17,20 @@ inline std::filesystem::path DatasetsDir() {
   return FLATSLAM_DATASETS_DIR;
 }
 
-inline std::string AppPath() { return FLATSLAM_APP_PATH; }
+inline std::string AppPath() {
+  return FLATSLAM_APP_PATH;
+}
 
 // A fresh empty directory under the system temp dir. It is removed when the test process exits
 // normally, whether the test passed or failed (a crash leaves it for inspection).
 inline std::filesystem::path FreshTempDir(const std::string& name) {
   static std::vector<std::filesystem::path> made;
   static const bool registered = std::atexit([] {
-    for (const auto& d : made) {
-      std::error_code ignored;
-      std::filesystem::remove_all(d, ignored);
-    }
-  }) == 0;
+                                   for (const auto& d : made) {
+                                     std::error_code ignored;
+                                     std::filesystem::remove_all(d, ignored);
+                                   }
+                                 }) == 0;
   (void)registered;
   auto dir = std::filesystem::temp_directory_path() / ("flatslam_test_" + name + "_" + std::to_string(::getpid()));
   std::filesystem::remove_all(dir);

@@ -19,8 +19,7 @@ struct UsageError {
 class Args {
  public:
   // flags: names (without "--") that take a value; switches: names that take none.
-  Args(const std::vector<std::string>& argv, const std::set<std::string>& flags,
-       const std::set<std::string>& switches);
+  Args(const std::vector<std::string>& argv, const std::set<std::string>& flags, const std::set<std::string>& switches);
 
   [[nodiscard]] const std::vector<std::string>& positional() const { return positional_; }
   [[nodiscard]] bool has(const std::string& name) const { return values_.count(name) > 0; }

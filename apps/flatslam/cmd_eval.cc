@@ -61,8 +61,8 @@ Input Load(const std::string& path, TrajectoryFormat format, const std::optional
     FLATSLAM_CHECK(input.format == TrajectoryFormat::kKitti, "--", role, "-times: ", path, " is a ",
                    TrajectoryFormatName(input.format), " file with its own timestamps; only KITTI files take times");
     const std::vector<int64_t> times_ns = ReadKittiTimes(*times_path);
-    FLATSLAM_CHECK(times_ns.size() == input.trajectory.size(), path, " has ", input.trajectory.size(),
-                   " poses but ", *times_path, " has ", times_ns.size(), " times");
+    FLATSLAM_CHECK(times_ns.size() == input.trajectory.size(), path, " has ", input.trajectory.size(), " poses but ",
+                   *times_path, " has ", times_ns.size(), " times");
     for (size_t i = 0; i < times_ns.size(); ++i) input.trajectory[i].t_ns = times_ns[i];
   }
   return input;

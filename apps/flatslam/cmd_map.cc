@@ -176,7 +176,8 @@ bool SameCalibration(const Calibration& a, const Calibration& b) {
 // The virtual stereo baseline of an RGB-D map's keyframes; files that do not record it were
 // written with SLAM's default.
 double VirtualBaseline(const SnapshotMetadata& metadata) {
-  return metadata.rgbd_virtual_baseline_m > 0 ? metadata.rgbd_virtual_baseline_m : SlamOptions{}.rgbd_virtual_baseline_m;
+  return metadata.rgbd_virtual_baseline_m > 0 ? metadata.rgbd_virtual_baseline_m
+                                              : SlamOptions{}.rgbd_virtual_baseline_m;
 }
 
 std::string Agents(const Map& map) {
@@ -275,23 +276,26 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   for (const MergeAttempt& a : merged.attempts) {
     const MergeReport& r = a.report;
     const MapOverlap& o = r.overlap;
-    std::printf("try           %s into %s: %zu keyframes queried, %zu candidates, %zu pairs verified, %zu agree "
-                "(%zu independent), %.0f ms\n",
-                list(a.from).c_str(), list(a.into).c_str(), o.queries, o.candidates, o.verified.size(),
-                o.consistent.size(), o.independent_pairs, r.place_ms);
+    std::printf(
+        "try           %s into %s: %zu keyframes queried, %zu candidates, %zu pairs verified, %zu agree "
+        "(%zu independent), %.0f ms\n",
+        list(a.from).c_str(), list(a.into).c_str(), o.queries, o.candidates, o.verified.size(), o.consistent.size(),
+        o.independent_pairs, r.place_ms);
     if (!r.merged) {
       std::printf("              no overlap: fewer than %d independent agreeing pairs\n", options.min_consistent_pairs);
       continue;
     }
     const Similarity3& S = o.S_into_from;
     const Eigen::AngleAxisd rotation(S.R);
-    std::printf("              transform t [%.3f %.3f %.3f], rotation %.2f deg, scale %.4f (%zu point pairs, "
-                "rms %.3f)\n",
-                S.t.x(), S.t.y(), S.t.z(), rotation.angle() * 180.0 / M_PI, S.s, o.correspondences, o.residual_rms);
-    std::printf("              merged: %zu keyframes and %zu points added, %zu points fused, %zu loop edges, "
-                "%zu keyframes welded (%zu outlier observations), %.0f ms\n",
-                r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes, r.weld_outliers,
-                r.merge_ms);
+    std::printf(
+        "              transform t [%.3f %.3f %.3f], rotation %.2f deg, scale %.4f (%zu point pairs, "
+        "rms %.3f)\n",
+        S.t.x(), S.t.y(), S.t.z(), rotation.angle() * 180.0 / M_PI, S.s, o.correspondences, o.residual_rms);
+    std::printf(
+        "              merged: %zu keyframes and %zu points added, %zu points fused, %zu loop edges, "
+        "%zu keyframes welded (%zu outlier observations), %.0f ms\n",
+        r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes, r.weld_outliers,
+        r.merge_ms);
   }
   std::vector<SnapshotMapRef> refs;
   for (size_t g = 0; g < merged.maps.size(); ++g) {
@@ -305,7 +309,8 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   }
   const auto save_start = std::chrono::steady_clock::now();
   SaveMapSnapshot(out_path, refs, metadata);
-  const double save_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - save_start).count();
+  const double save_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - save_start).count();
   std::printf("wrote         %s: %zu map%s (%.2f MiB)\n", out->c_str(), refs.size(), refs.size() == 1 ? "" : "s",
               std::filesystem::file_size(out_path) / 1048576.0);
   std::printf("time          load %.0f ms, merge %.0f ms, save %.0f ms\n", load_ms, merge_ms, save_ms);
@@ -318,8 +323,9 @@ int RunMap(const std::vector<std::string>& argv) {
   std::vector<std::string> expanded = argv;  // -o is short for --out
   for (std::string& a : expanded)
     if (a == "-o") a = "--out";
-  const Args args(expanded, {"ply", "ply-format", "trajectory", "vocabulary-checksum", "out", "vocabulary", "min-matches",
-                             "min-pairs", "seed"},
+  const Args args(expanded,
+                  {"ply", "ply-format", "trajectory", "vocabulary-checksum", "out", "vocabulary", "min-matches",
+                   "min-pairs", "seed"},
                   {"local-weld"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);

@@ -132,7 +132,8 @@ std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, cons
         out.emplace_back(n, n);
       }
     } catch (const std::exception&) {
-      throw UsageError{"--" + flag + ": cannot read '" + item + "' (expected " + (ranges ? "A:B with A < B" : "a frame number") + ")"};
+      throw UsageError{"--" + flag + ": cannot read '" + item + "' (expected " +
+                       (ranges ? "A:B with A < B" : "a frame number") + ")"};
     }
     pos = comma + 1;
   }
@@ -168,12 +169,12 @@ class TimeStats {
   double sum_ = 0, max_ = 0;
 };
 
-
 // Flags of `flatslam run` that take a value, and switches.
-const std::set<std::string> kRunFlags = {"sensor",      "out",         "seed",       "max-frames", "features",
-                                         "mapping-lag", "vocabulary",  "skip",       "lose-at",    "save-map",
-                                         "agent",       "load-map",    "first-frame", "config",    "set",
-                                         "settings",    "checkpoint",  "checkpoint-every", "resume"};
+const std::set<std::string> kRunFlags = {
+    "sensor",      "out",    "seed",    "max-frames", "features",   "mapping-lag",
+    "vocabulary",  "skip",   "lose-at", "save-map",   "agent",      "load-map",
+    "first-frame", "config", "set",     "settings",   "checkpoint", "checkpoint-every",
+    "resume"};
 const std::set<std::string> kRunSwitches = {"deterministic", "quiet",        "no-loop-closing", "no-global-ba",
                                             "localize-only", "list-options", "strict"};
 
@@ -245,7 +246,8 @@ class StopSignals {
   StopSignals& operator=(const StopSignals&) = delete;
 
  private:
-  struct sigaction old_int_ {}, old_term_ {};
+  struct sigaction old_int_ {
+  }, old_term_{};
 };
 
 // Test hook: FLATSLAM_INJECT_FAULT=global-ba|loop-closing|checkpoint makes that background work
@@ -324,7 +326,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   double vocabulary_ms = 0;
   const std::string vocabulary_arg = args.get_or("vocabulary", "");
   if (vocabulary_arg != "none") {
-    const std::filesystem::path path = vocabulary_arg.empty() ? DefaultVocabularyPath() : std::filesystem::path(vocabulary_arg);
+    const std::filesystem::path path =
+        vocabulary_arg.empty() ? DefaultVocabularyPath() : std::filesystem::path(vocabulary_arg);
     const auto load_start = std::chrono::steady_clock::now();
     vocabulary = Vocabulary::Load(path);
     vocabulary_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - load_start).count();
@@ -415,8 +418,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
     run.first_frame = std::min<size_t>(resume_session->next_frame, frames);
     run.initial_frames = resume_session->frames;
     char note[160];
-    std::snprintf(note, sizeof(note), ", %zu frames tracked before, resuming at frame %zu", resume_session->frames.size(),
-                  run.first_frame);
+    std::snprintf(note, sizeof(note), ", %zu frames tracked before, resuming at frame %zu",
+                  resume_session->frames.size(), run.first_frame);
     loaded_note += note;
   }
   if (loaded_map) run.initial_map = &*loaded_map;
@@ -428,7 +431,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
   // Identity of the vocabulary the map's keyframes were indexed with (0: none).
   metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;
-  if (dataset->calibration().sensor == Sensor::kRgbd) metadata.rgbd_virtual_baseline_m = options.rgbd_virtual_baseline_m;
+  if (dataset->calibration().sensor == Sensor::kRgbd)
+    metadata.rgbd_virtual_baseline_m = options.rgbd_virtual_baseline_m;
   // The map is saved when every stage has drained; a failed save is reported after the summary.
   std::optional<std::filesystem::path> save_map;
   std::string save_error;
@@ -579,15 +583,16 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::printf("interrupted   by %s after frame %zu of %zu: frames after it were not read\n",
                 g_signal == SIGINT ? "SIGINT" : "SIGTERM", result.next_frame == 0 ? 0 : result.next_frame - 1, frames);
   if (options.vocabulary) {
-    std::printf("places        vocabulary %zu words (loaded in %.1f ms), %zu relocalizations, %zu new map segments, "
-                "%zu loop closures\n",
-                vocabulary.word_count(), vocabulary_ms, relocalized, reinitialized, result.loop_closures.size());
+    std::printf(
+        "places        vocabulary %zu words (loaded in %.1f ms), %zu relocalizations, %zu new map segments, "
+        "%zu loop closures\n",
+        vocabulary.word_count(), vocabulary_ms, relocalized, reinitialized, result.loop_closures.size());
     const auto gt = dataset->ground_truth();
     // Position of the ground truth nearest in time (within 50 ms), to tell true loops from false.
     auto true_position = [&](int64_t t_ns) -> std::optional<Eigen::Vector3d> {
       if (!gt || gt->empty()) return std::nullopt;
-      const auto it = std::lower_bound(gt->begin(), gt->end(), t_ns,
-                                       [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
+      const auto it =
+          std::lower_bound(gt->begin(), gt->end(), t_ns, [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
       const TimedPose* best = nullptr;
       if (it != gt->end()) best = &*it;
       if (it != gt->begin() && (!best || t_ns - std::prev(it)->t_ns < best->t_ns - t_ns)) best = &*std::prev(it);
@@ -611,22 +616,24 @@ int RunRun(const std::vector<std::string>& original_argv) {
               extract_ms.Median(), mean_extract, track_ms.Median(), mean_track);
   if (const MappingTimes& m = result.mapping; m.keyframes > 0) {
     const double n = static_cast<double>(m.keyframes);
-    std::printf("mapping       %zu keyframes mapped, ms per keyframe: prepare %.1f, triangulate %.1f, fuse %.1f, "
-                "local BA %.1f (%zu ended early), cull %.1f, places %.1f\n",
-                m.keyframes, m.prepare_ms / n, m.triangulate_ms / n, m.fuse_ms / n, m.local_ba_ms / n,
-                m.local_ba_stopped_early, m.cull_ms / n, m.place_ms / n);
+    std::printf(
+        "mapping       %zu keyframes mapped, ms per keyframe: prepare %.1f, triangulate %.1f, fuse %.1f, "
+        "local BA %.1f (%zu ended early), cull %.1f, places %.1f\n",
+        m.keyframes, m.prepare_ms / n, m.triangulate_ms / n, m.fuse_ms / n, m.local_ba_ms / n, m.local_ba_stopped_early,
+        m.cull_ms / n, m.place_ms / n);
   }
-  std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", result.frames / wall_s, wall_s);
+  std::printf("throughput    %.1f frames/s end to end (%.2f s wall, reading included)\n", result.frames / wall_s,
+              wall_s);
   if (checkpoint) {
     const auto& during = result.frame_ms_during_checkpoints;
     const double longest = during.empty() ? 0 : *std::max_element(during.begin(), during.end());
     TimeStats capture;
     for (double ms : result.checkpoint_capture_ms) capture.Add(ms);
-    std::printf("checkpoints   %zu written to %s (last: next frame %zu), %zu failed; copy median %.1f ms (max %.1f); "
-                "longest frame while checkpointing %.1f ms; all frames: median %.1f ms, longest %.1f ms\n",
-                result.checkpoints, checkpoint->c_str(), last_checkpoint_frame, result.checkpoint_failures,
-                capture.Median(), capture.Max(), longest,
-                track_ms.Median(), track_ms.Max());
+    std::printf(
+        "checkpoints   %zu written to %s (last: next frame %zu), %zu failed; copy median %.1f ms (max %.1f); "
+        "longest frame while checkpointing %.1f ms; all frames: median %.1f ms, longest %.1f ms\n",
+        result.checkpoints, checkpoint->c_str(), last_checkpoint_frame, result.checkpoint_failures, capture.Median(),
+        capture.Max(), longest, track_ms.Median(), track_ms.Max());
   }
   if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
@@ -641,9 +648,10 @@ int RunRun(const std::vector<std::string>& original_argv) {
     for (size_t i = 1; i < gt->size(); ++i)
       if ((*gt)[i - 1].t_ns >= trajectory.front().t_ns && (*gt)[i].t_ns <= trajectory.back().t_ns)
         length += ((*gt)[i].T_world_cam.translation() - (*gt)[i - 1].T_world_cam.translation()).norm();
-    std::printf("ATE           %.4f m RMSE after SE(3) (%zu poses, %.2f%% of the %.1f m path); Sim(3) %.4f m, scale %.4f\n",
-                se3.ate_m.rmse, se3.pairs.size(), 100.0 * se3.ate_m.rmse / std::max(length, 1e-9), length,
-                sim3.ate_m.rmse, sim3.alignment.scale);
+    std::printf(
+        "ATE           %.4f m RMSE after SE(3) (%zu poses, %.2f%% of the %.1f m path); Sim(3) %.4f m, scale %.4f\n",
+        se3.ate_m.rmse, se3.pairs.size(), 100.0 * se3.ate_m.rmse / std::max(length, 1e-9), length, sim3.ate_m.rmse,
+        sim3.alignment.scale);
     std::printf("RPE           %.4f m / %.3f deg per frame (RMSE)\n", se3.rpe_frames.translation_m.rmse,
                 se3.rpe_frames.rotation_deg.rmse);
   }
@@ -655,7 +663,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::printf("result        no frame was tracked: the map never initialized (see stats.csv)\n");
     return exit_code != 0 ? exit_code : 1;
   }
-  if (out_dir) std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv}\n", out_dir->c_str());
+  if (out_dir)
+    std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv}\n", out_dir->c_str());
   if (save_map) {
     if (!save_error.empty()) {
       std::printf("map snapshot  not saved: %s\n", save_error.c_str());

@@ -82,8 +82,8 @@ int Describe(const SyntheticScene& scene, size_t every) {
     for (double v : valid_depth) sum += v;
     std::printf("depth      %.1f%% of pixels have a measurement\n", 100.0 * sum / valid_depth.size());
   }
-  std::printf("rendered   %zu frames in %.2f s on all cores (%.1f frames/s, with corner detection)\n",
-              frames.size(), seconds, frames.size() / seconds);
+  std::printf("rendered   %zu frames in %.2f s on all cores (%.1f frames/s, with corner detection)\n", frames.size(),
+              seconds, frames.size() / seconds);
   return 0;
 }
 
@@ -123,8 +123,8 @@ int RunSynth(const std::vector<std::string>& argv) {
     std::fprintf(stderr, "\rwriting %zu / %zu frames", done, total);
   });
   std::fprintf(stderr, "\n");
-  std::printf("wrote %zu frames of %s to %s\nread it with: flatslam info %s\n", result.frames,
-              dataset->name().c_str(), result.dataset_path.c_str(), result.dataset_path.c_str());
+  std::printf("wrote %zu frames of %s to %s\nread it with: flatslam info %s\n", result.frames, dataset->name().c_str(),
+              result.dataset_path.c_str(), result.dataset_path.c_str());
   return 0;
 }
 

@@ -17,18 +17,18 @@ namespace {
 using flatslam::app::Command;
 
 const Command kCommands[] = {
-    {"synth", "render a synthetic scene, print what it holds or write it as a dataset",
-     flatslam::app::kSynthUsage, flatslam::app::RunSynth},
-    {"info", "open a dataset (KITTI, EuRoC, TUM RGB-D or synth:NAME) and describe it",
-     flatslam::app::kInfoUsage, flatslam::app::RunInfo},
-    {"run", "SLAM over a dataset: trajectory, keyframes, per-frame stats, accuracy",
-     flatslam::app::kRunUsage, flatslam::app::RunRun},
-    {"eval", "ATE, RPE and KITTI metrics of an estimated trajectory against ground truth",
-     flatslam::app::kEvalUsage, flatslam::app::RunEval},
-    {"vocab", "train a bag-of-words vocabulary from images, or describe a vocabulary file",
-     flatslam::app::kVocabUsage, flatslam::app::RunVocab},
-    {"map", "describe, verify or export a map snapshot (info, verify, export)",
-     flatslam::app::kMapUsage, flatslam::app::RunMap},
+    {"synth", "render a synthetic scene, print what it holds or write it as a dataset", flatslam::app::kSynthUsage,
+     flatslam::app::RunSynth},
+    {"info", "open a dataset (KITTI, EuRoC, TUM RGB-D or synth:NAME) and describe it", flatslam::app::kInfoUsage,
+     flatslam::app::RunInfo},
+    {"run", "SLAM over a dataset: trajectory, keyframes, per-frame stats, accuracy", flatslam::app::kRunUsage,
+     flatslam::app::RunRun},
+    {"eval", "ATE, RPE and KITTI metrics of an estimated trajectory against ground truth", flatslam::app::kEvalUsage,
+     flatslam::app::RunEval},
+    {"vocab", "train a bag-of-words vocabulary from images, or describe a vocabulary file", flatslam::app::kVocabUsage,
+     flatslam::app::RunVocab},
+    {"map", "describe, verify or export a map snapshot (info, verify, export)", flatslam::app::kMapUsage,
+     flatslam::app::RunMap},
 };
 
 void PrintHelp(std::FILE* out) {

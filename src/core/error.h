@@ -51,8 +51,7 @@ template <class... Args>
 
 // Checks a condition at an API or I/O boundary; on failure throws flatslam::Error with the
 // streamed arguments as its message and "file:line: condition" as where().
-#define FLATSLAM_CHECK(cond, ...)                                                                           \
-  do {                                                                                                      \
-    if (!(cond))                                                                                            \
-      ::flatslam::detail::FailCheck(__FILE__ ":" FLATSLAM_DETAIL_LINE(__LINE__) ": " #cond, __VA_ARGS__); \
+#define FLATSLAM_CHECK(cond, ...)                                                                                    \
+  do {                                                                                                               \
+    if (!(cond)) ::flatslam::detail::FailCheck(__FILE__ ":" FLATSLAM_DETAIL_LINE(__LINE__) ": " #cond, __VA_ARGS__); \
   } while (false)

@@ -69,8 +69,7 @@ class SlotTable {
   }
 
   [[nodiscard]] bool live(uint32_t index, uint32_t generation) const {
-    return index < slots_.size() && slots_[index].generation == generation &&
-           slots_[index].payload != kNoDense;
+    return index < slots_.size() && slots_[index].generation == generation && slots_[index].payload != kNoDense;
   }
 
   [[nodiscard]] Slot& operator[](uint32_t index) { return slots_[index]; }
@@ -164,9 +163,7 @@ class Arena {
 
   [[nodiscard]] bool contains(Handle<T> h) const { return slots_.live(h.index(), h.generation()); }
 
-  [[nodiscard]] T* try_get(Handle<T> h) {
-    return contains(h) ? &values_[slots_[h.index()].payload] : nullptr;
-  }
+  [[nodiscard]] T* try_get(Handle<T> h) { return contains(h) ? &values_[slots_[h.index()].payload] : nullptr; }
   [[nodiscard]] const T* try_get(Handle<T> h) const {
     return contains(h) ? &values_[slots_[h.index()].payload] : nullptr;
   }
@@ -238,9 +235,7 @@ class StableArena {
   StableArena& operator=(const StableArena&) = delete;
   // Moving transfers the pages, so values keep their addresses; the source is left empty.
   StableArena(StableArena&& other) noexcept
-      : pages_(std::move(other.pages_)),
-        slots_(std::move(other.slots_)),
-        size_(std::exchange(other.size_, 0)) {
+      : pages_(std::move(other.pages_)), slots_(std::move(other.slots_)), size_(std::exchange(other.size_, 0)) {
     other.reset_moved_from();
   }
   // Destroys the values this arena held before taking over other's.
@@ -282,9 +277,7 @@ class StableArena {
 
   [[nodiscard]] bool contains(Handle<T> h) const { return slots_.live(h.index(), h.generation()); }
   [[nodiscard]] T* try_get(Handle<T> h) { return contains(h) ? address(h.index()) : nullptr; }
-  [[nodiscard]] const T* try_get(Handle<T> h) const {
-    return contains(h) ? address(h.index()) : nullptr;
-  }
+  [[nodiscard]] const T* try_get(Handle<T> h) const { return contains(h) ? address(h.index()) : nullptr; }
   [[nodiscard]] T& get(Handle<T> h) {
     if (T* v = try_get(h)) return *v;
     detail::ThrowStale("StableArena", h);

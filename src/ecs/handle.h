@@ -27,9 +27,7 @@ class Handle {
   [[nodiscard]] constexpr uint32_t index() const { return index_; }
   [[nodiscard]] constexpr uint32_t generation() const { return generation_; }
   // Packs index (low) and generation (high) into one 64-bit value, e.g. for files and hashing.
-  [[nodiscard]] constexpr uint64_t packed() const {
-    return (uint64_t{generation_} << 32) | uint64_t{index_};
-  }
+  [[nodiscard]] constexpr uint64_t packed() const { return (uint64_t{generation_} << 32) | uint64_t{index_}; }
   [[nodiscard]] static constexpr Handle from_packed(uint64_t v) {
     return Handle(static_cast<uint32_t>(v & 0xffffffffu), static_cast<uint32_t>(v >> 32));
   }

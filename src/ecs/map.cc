@@ -48,8 +48,7 @@ void Map::AddObservation(PointHandle p, KeyFrameHandle kf, uint32_t keypoint) {
   KeyFrame& frame = keyframes_.get(kf);
   FLATSLAM_CHECK(keypoint < frame.size(), "keypoint ", keypoint, " out of range for ", kf);
   FLATSLAM_CHECK(frame.points[keypoint].is_null(), "keypoint ", keypoint, " of ", kf, " already bound");
-  for (const Observation& o : point.observations)
-    FLATSLAM_CHECK(o.keyframe != kf, p, " already observed by ", kf);
+  for (const Observation& o : point.observations) FLATSLAM_CHECK(o.keyframe != kf, p, " already observed by ", kf);
   frame.points[keypoint] = p;
   point.observations.push_back({kf, keypoint});
 }

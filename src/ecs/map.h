@@ -31,24 +31,24 @@ struct Observation {
 };
 
 struct KeyFrame {
-  uint64_t id = 0;           // creation order within its map; for tie-breaking, never a clock
-  size_t frame_index = 0;    // index of the input frame it was made from
+  uint64_t id = 0;         // creation order within its map; for tie-breaking, never a clock
+  size_t frame_index = 0;  // index of the input frame it was made from
   int64_t t_ns = 0;
   Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();
 
   // Per-keypoint struct-of-arrays, all of size() entries.
-  std::vector<Eigen::Vector2f> uv;       // undistorted pixel, level-0 coordinates
-  std::vector<float> right_u;            // stereo/RGB-D: x in the (virtual) right image, -1 none
-  std::vector<float> depth;              // metres, -1 none
-  std::vector<float> angle;              // keypoint orientation, radians
-  std::vector<uint8_t> octave;           // pyramid level
+  std::vector<Eigen::Vector2f> uv;  // undistorted pixel, level-0 coordinates
+  std::vector<float> right_u;       // stereo/RGB-D: x in the (virtual) right image, -1 none
+  std::vector<float> depth;         // metres, -1 none
+  std::vector<float> angle;         // keypoint orientation, radians
+  std::vector<uint8_t> octave;      // pyramid level
   std::vector<Descriptor> descriptor;
-  std::vector<PointHandle> points;       // map point seen at the keypoint, null if none
+  std::vector<PointHandle> points;  // map point seen at the keypoint, null if none
 
   std::vector<std::pair<KeyFrameHandle, int>> covisible;  // shared points, strongest first
   KeyFrameHandle parent;                                  // spanning tree (null for a root)
   std::vector<KeyFrameHandle> children;
-  std::vector<KeyFrameHandle> loop_edges;                 // keyframes joined to this one by loop closure
+  std::vector<KeyFrameHandle> loop_edges;  // keyframes joined to this one by loop closure
 
   // Place recognition: derived from the descriptors and the vocabulary (not stored in snapshots).
   BowVector bow;
@@ -68,10 +68,10 @@ struct MapPoint {
   Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();   // mean viewing direction (unit)
   float min_distance = 0, max_distance = 0;            // scale-invariance range, metres
   std::vector<Observation> observations;
-  KeyFrameHandle reference;                            // keyframe that created it
+  KeyFrameHandle reference;  // keyframe that created it
   uint64_t first_keyframe_id = 0;
-  uint32_t visible = 1;                                // frames where it should have been seen
-  uint32_t found = 1;                                  // frames where it was matched
+  uint32_t visible = 1;  // frames where it should have been seen
+  uint32_t found = 1;    // frames where it was matched
 
   [[nodiscard]] float found_ratio() const { return static_cast<float>(found) / static_cast<float>(visible); }
 };

@@ -57,7 +57,6 @@ enum class DatasetLayout { kSynthetic, kKitti, kEuroc, kTum, kImageFolder };
 // Opens a dataset from a path or spec, detecting its layout as above; with settings, the images
 // are read raw and ApplyOrbSettings gives them the settings' calibration. Throws flatslam::Error
 // naming what is missing.
-[[nodiscard]] std::unique_ptr<Dataset> OpenDataset(const std::string& spec,
-                                                   const DatasetOptions& options = {});
+[[nodiscard]] std::unique_ptr<Dataset> OpenDataset(const std::string& spec, const DatasetOptions& options = {});
 
 }  // namespace flatslam

@@ -83,9 +83,9 @@ void WriteSensorYaml(const fs::path& path, const Calibration& calib, const Eigen
   for (int r = 0; r < 4; ++r)
     for (int c = 0; c < 4; ++c) out << T_BS(r, c) << (r == 3 && c == 3 ? "]\n" : ", ");
   const PinholeCamera& cam = calib.camera;
-  out << "\n# Camera specific definitions.\nrate_hz: " << calib.frame_rate_hz << "\nresolution: ["
-      << cam.width << ", " << cam.height << "]\ncamera_model: pinhole\nintrinsics: [" << cam.fx << ", "
-      << cam.fy << ", " << cam.cx << ", " << cam.cy << "] #fu, fv, cu, cv\n"
+  out << "\n# Camera specific definitions.\nrate_hz: " << calib.frame_rate_hz << "\nresolution: [" << cam.width << ", "
+      << cam.height << "]\ncamera_model: pinhole\nintrinsics: [" << cam.fx << ", " << cam.fy << ", " << cam.cx << ", "
+      << cam.cy << "] #fu, fv, cu, cv\n"
       << "distortion_model: radial-tangential\ndistortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n";
   CloseText(out, path);
 }
@@ -101,20 +101,22 @@ void WriteKittiLayout(const Dataset& dataset, const fs::path& root,
   if (stereo) fs::create_directories(seq / "image_1");
   fs::create_directories(root / "poses");
 
-  const std::vector<int64_t> stamps = ForEachFrame(dataset, [&](const Frame& f) {
-    char name[32];
-    std::snprintf(name, sizeof(name), "%06zu.png", f.index);
-    WriteImage(seq / "image_0" / name, f.left);
-    if (stereo) WriteImage(seq / "image_1" / name, f.right);
-  }, progress);
+  const std::vector<int64_t> stamps = ForEachFrame(
+      dataset,
+      [&](const Frame& f) {
+        char name[32];
+        std::snprintf(name, sizeof(name), "%06zu.png", f.index);
+        WriteImage(seq / "image_0" / name, f.left);
+        if (stereo) WriteImage(seq / "image_1" / name, f.right);
+      },
+      progress);
 
   // P0 = K [I | 0]; P1 = K [I | -b e_x] for the right camera, as in KITTI's calib.txt.
   const PinholeCamera& c = calib.camera;
   std::ofstream out = OpenText(seq / "calib.txt");
   for (int k = 0; k < 4; ++k) {
     const double tx = (k % 2 == 1 && stereo) ? -c.fx * calib.baseline_m : 0.0;
-    out << "P" << k << ": " << c.fx << " 0 " << c.cx << " " << tx << " 0 " << c.fy << " " << c.cy
-        << " 0 0 0 1 0\n";
+    out << "P" << k << ": " << c.fx << " 0 " << c.cx << " " << tx << " 0 " << c.fy << " " << c.cy << " 0 0 0 1 0\n";
   }
   CloseText(out, seq / "calib.txt");
 
@@ -129,8 +131,7 @@ void WriteKittiLayout(const Dataset& dataset, const fs::path& root,
   }
 }
 
-void WriteTumLayout(const Dataset& dataset, const fs::path& root,
-                    const std::function<void(size_t, size_t)>& progress) {
+void WriteTumLayout(const Dataset& dataset, const fs::path& root, const std::function<void(size_t, size_t)>& progress) {
   const Calibration& calib = dataset.calibration();
   FLATSLAM_CHECK(calib.sensor != Sensor::kStereo,
                  "the TUM RGB-D layout holds RGB-D (or mono) images; write stereo data with --format kitti or euroc");
@@ -139,11 +140,14 @@ void WriteTumLayout(const Dataset& dataset, const fs::path& root,
   fs::create_directories(root / "rgb");
   if (rgbd) fs::create_directories(root / "depth");
 
-  const std::vector<int64_t> stamps_ns = ForEachFrame(dataset, [&](const Frame& f) {
-    const std::string stamp = FormatNsAsSeconds(f.t_ns);
-    WriteImage(root / "rgb" / (stamp + ".png"), f.left);
-    if (rgbd) WriteImage(root / "depth" / (stamp + ".png"), EncodeDepth(f.depth, kDepthFactor));
-  }, progress);
+  const std::vector<int64_t> stamps_ns = ForEachFrame(
+      dataset,
+      [&](const Frame& f) {
+        const std::string stamp = FormatNsAsSeconds(f.t_ns);
+        WriteImage(root / "rgb" / (stamp + ".png"), f.left);
+        if (rgbd) WriteImage(root / "depth" / (stamp + ".png"), EncodeDepth(f.depth, kDepthFactor));
+      },
+      progress);
 
   std::vector<std::string> stamps;
   for (const int64_t t : stamps_ns) stamps.push_back(FormatNsAsSeconds(t));
@@ -171,11 +175,14 @@ void WriteEurocLayout(const Dataset& dataset, const fs::path& root,
   const int cameras = stereo ? 2 : 1;
   for (int c = 0; c < cameras; ++c) fs::create_directories(mav0 / ("cam" + std::to_string(c)) / "data");
 
-  const std::vector<int64_t> stamps = ForEachFrame(dataset, [&](const Frame& f) {
-    const std::string name = std::to_string(f.t_ns) + ".png";
-    WriteImage(mav0 / "cam0" / "data" / name, f.left);
-    if (stereo) WriteImage(mav0 / "cam1" / "data" / name, f.right);
-  }, progress);
+  const std::vector<int64_t> stamps = ForEachFrame(
+      dataset,
+      [&](const Frame& f) {
+        const std::string name = std::to_string(f.t_ns) + ".png";
+        WriteImage(mav0 / "cam0" / "data" / name, f.left);
+        if (stereo) WriteImage(mav0 / "cam1" / "data" / name, f.right);
+      },
+      progress);
 
   const Eigen::Matrix4d T_B_C0 = BodyFromCam0();
   Eigen::Matrix4d T_C0_C1 = Eigen::Matrix4d::Identity();
@@ -198,8 +205,8 @@ void WriteEurocLayout(const Dataset& dataset, const fs::path& root,
       const Eigen::Isometry3d T_world_body = p.T_world_cam * T_C0_B;
       const Eigen::Quaterniond q(T_world_body.linear());
       const Eigen::Vector3d t = T_world_body.translation();
-      csv << p.t_ns << "," << t.x() << "," << t.y() << "," << t.z() << "," << q.w() << "," << q.x() << ","
-          << q.y() << "," << q.z() << "\n";
+      csv << p.t_ns << "," << t.x() << "," << t.y() << "," << t.z() << "," << q.w() << "," << q.x() << "," << q.y()
+          << "," << q.z() << "\n";
     }
     CloseText(csv, dir / "data.csv");
   }

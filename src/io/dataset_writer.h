@@ -29,8 +29,7 @@ struct DatasetWriteResult {
 // at the end, so a failure leaves no half-written dataset behind. KITTI and EuRoC take mono
 // or stereo data, TUM takes RGB-D (or mono); other combinations are an error.
 // progress(done, total) is called from the calling thread.
-DatasetWriteResult WriteDataset(const Dataset& dataset, const std::filesystem::path& dir,
-                                DatasetFormat format,
+DatasetWriteResult WriteDataset(const Dataset& dataset, const std::filesystem::path& dir, DatasetFormat format,
                                 const std::function<void(size_t, size_t)>& progress = {});
 
 }  // namespace flatslam

@@ -5,7 +5,6 @@
 #include <map>
 #include <system_error>
 
-
 #include "core/error.h"
 #include "io/image_io.h"
 #include "io/rectify.h"
@@ -84,12 +83,12 @@ const YamlField& Require(const std::map<std::string, YamlField>& fields, const s
 }
 
 // "[a, b, c]" with exactly `count` numbers.
-std::vector<double> NumberList(const std::map<std::string, YamlField>& fields, const std::string& key,
-                               size_t count, const std::filesystem::path& path) {
+std::vector<double> NumberList(const std::map<std::string, YamlField>& fields, const std::string& key, size_t count,
+                               const std::filesystem::path& path) {
   const YamlField& field = Require(fields, key, path);
   std::string text = Trim(field.text);
-  FLATSLAM_CHECK(text.size() >= 2 && text.front() == '[' && text.back() == ']', io::Where(path, field.line),
-                 "field '", key, "' must be a list [..]");
+  FLATSLAM_CHECK(text.size() >= 2 && text.front() == '[' && text.back() == ']', io::Where(path, field.line), "field '",
+                 key, "' must be a list [..]");
   std::vector<double> values;
   for (const std::string& item : io::SplitFields(text.substr(1, text.size() - 2), ",")) {
     values.push_back(io::ParseNumber(Trim(item), path, field.line, key));
@@ -146,8 +145,8 @@ Trajectory ReadAslGroundTruth(const std::filesystem::path& csv) {
 EurocCameraModel ReadEurocSensorYaml(const std::filesystem::path& path) {
   const auto fields = ReadYamlSubset(path);
   if (const auto it = fields.find("camera_model"); it != fields.end()) {
-    FLATSLAM_CHECK(it->second.text == "pinhole", io::Where(path, it->second.line), "camera_model '",
-                   it->second.text, "' is not supported (pinhole only)");
+    FLATSLAM_CHECK(it->second.text == "pinhole", io::Where(path, it->second.line), "camera_model '", it->second.text,
+                   "' is not supported (pinhole only)");
   }
   const YamlField& model = Require(fields, "distortion_model", path);
   FLATSLAM_CHECK(model.text == "radial-tangential" || model.text == "radtan", io::Where(path, model.line),
@@ -170,9 +169,9 @@ EurocCameraModel ReadEurocSensorYaml(const std::filesystem::path& path) {
   FLATSLAM_CHECK(m.row(3).isApprox(Eigen::RowVector4d(0, 0, 0, 1)), path.string(),
                  ": T_BS.data last row must be [0, 0, 0, 1]");
   const Eigen::Matrix3d rotation = m.topLeftCorner<3, 3>();
-  FLATSLAM_CHECK((rotation * rotation.transpose()).isApprox(Eigen::Matrix3d::Identity(), 1e-4) &&
-                     rotation.determinant() > 0,
-                 path.string(), ": T_BS rotation is not a rotation");
+  FLATSLAM_CHECK(
+      (rotation * rotation.transpose()).isApprox(Eigen::Matrix3d::Identity(), 1e-4) && rotation.determinant() > 0,
+      path.string(), ": T_BS rotation is not a rotation");
   camera.T_body_sensor.linear() = Eigen::Quaterniond(rotation).normalized().toRotationMatrix();
   camera.T_body_sensor.translation() = m.topRightCorner<3, 1>();
   return camera;
@@ -278,8 +277,7 @@ EurocDataset::EurocDataset(const std::filesystem::path& sequence_dir, const Euro
 }
 
 std::string EurocDataset::name() const {
-  std::string name = "EuRoC " + io::FolderName(dir_) +
-                     (calibration_.sensor == Sensor::kStereo ? " (stereo" : " (mono");
+  std::string name = "EuRoC " + io::FolderName(dir_) + (calibration_.sensor == Sensor::kStereo ? " (stereo" : " (mono");
   if (unmatched_ > 0) name += ", " + std::to_string(unmatched_) + " unmatched frames dropped";
   return name + ")";
 }

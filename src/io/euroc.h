@@ -46,9 +46,7 @@ struct EurocOptions {
   // that undistorts and rectifies them itself (io/orb_settings.h).
   bool undistort = true;
 
-  [[nodiscard]] bool Check() const {
-    return rectify_alpha >= 0 && rectify_alpha <= 1 && max_stereo_dt_ns >= 0;
-  }
+  [[nodiscard]] bool Check() const { return rectify_alpha >= 0 && rectify_alpha <= 1 && max_stereo_dt_ns >= 0; }
 };
 
 class EurocDataset final : public Dataset {

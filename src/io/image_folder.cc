@@ -73,7 +73,9 @@ bool HasRgbdFolders(const fs::path& dir) {
   return fs::is_directory(dir / "rgb", ec) && fs::is_directory(dir / "depth", ec);
 }
 
-int64_t FrameTimeNs(double n, double frame_rate_hz) { return std::llround(n * 1e9 / frame_rate_hz); }
+int64_t FrameTimeNs(double n, double frame_rate_hz) {
+  return std::llround(n * 1e9 / frame_rate_hz);
+}
 
 // Timestamps from file names that are all numbers; nullopt when some name is not one.
 std::optional<std::vector<int64_t>> TimesFromNames(const std::vector<fs::path>& files, double frame_rate_hz,

@@ -16,7 +16,9 @@
 namespace flatslam {
 namespace {
 
-std::string SizeText(cv::Size size) { return std::to_string(size.width) + "x" + std::to_string(size.height); }
+std::string SizeText(cv::Size size) {
+  return std::to_string(size.width) + "x" + std::to_string(size.height);
+}
 
 // Distinguishes "missing" from "present but undecodable" so the message says which.
 cv::Mat DecodeUnchanged(const std::filesystem::path& path) {
@@ -29,8 +31,8 @@ cv::Mat DecodeUnchanged(const std::filesystem::path& path) {
 
 void CheckSize(const cv::Mat& image, cv::Size expected, const std::filesystem::path& path) {
   if (expected.empty()) return;
-  FLATSLAM_CHECK(image.size() == expected, "image ", path.string(), " is ", SizeText(image.size()),
-                 ", expected ", SizeText(expected), " (from the calibration)");
+  FLATSLAM_CHECK(image.size() == expected, "image ", path.string(), " is ", SizeText(image.size()), ", expected ",
+                 SizeText(expected), " (from the calibration)");
 }
 
 }  // namespace
@@ -66,7 +68,9 @@ cv::Mat ReadDepthImage(const std::filesystem::path& path, double depth_factor, c
   return metres;
 }
 
-cv::Size ReadImageSize(const std::filesystem::path& path) { return DecodeUnchanged(path).size(); }
+cv::Size ReadImageSize(const std::filesystem::path& path) {
+  return DecodeUnchanged(path).size();
+}
 
 namespace io {
 

@@ -26,8 +26,7 @@ enum class ColorOrder { kBgr, kRgb };
 
 // Reads a 16-bit single-channel depth image (TUM PNG) as CV_32FC1 metres: raw / depth_factor,
 // raw 0 stays 0 (no measurement). TUM RGB-D uses depth_factor 5000.
-[[nodiscard]] cv::Mat ReadDepthImage(const std::filesystem::path& path, double depth_factor,
-                                     cv::Size expected = {});
+[[nodiscard]] cv::Mat ReadDepthImage(const std::filesystem::path& path, double depth_factor, cv::Size expected = {});
 
 // Size of an image file (decodes it once); throws like ReadGrayImage.
 [[nodiscard]] cv::Size ReadImageSize(const std::filesystem::path& path);

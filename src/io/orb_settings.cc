@@ -76,10 +76,14 @@ std::string RoundedNumber(double value) {
   return buffer;
 }
 
-std::string SizeText(cv::Size size) { return std::to_string(size.width) + "x" + std::to_string(size.height); }
+std::string SizeText(cv::Size size) {
+  return std::to_string(size.width) + "x" + std::to_string(size.height);
+}
 
 // Two values of one quantity agree to 1e-4 relative (files round differently, Stereo.T_c1_c2 is float).
-bool Agree(double a, double b) { return std::abs(a - b) <= 1e-4 * std::max({std::abs(a), std::abs(b), 1e-5}); }
+bool Agree(double a, double b) {
+  return std::abs(a - b) <= 1e-4 * std::max({std::abs(a), std::abs(b), 1e-5});
+}
 
 bool IsRotation(const Eigen::Matrix3d& r) {
   return (r * r.transpose()).isApprox(Eigen::Matrix3d::Identity(), 1e-4) && r.determinant() > 0;

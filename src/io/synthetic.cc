@@ -68,8 +68,7 @@ cv::Mat GenerateShapes(int width, int height, uint64_t seed) {
     const cv::Scalar colour(grey(rng));
     switch (rng() % 6) {
       case 0:
-        cv::rectangle(img, c, c + cv::Point(size, static_cast<int>(size * (0.3 + unit(rng)))), colour,
-                      cv::FILLED);
+        cv::rectangle(img, c, c + cv::Point(size, static_cast<int>(size * (0.3 + unit(rng)))), colour, cv::FILLED);
         break;
       case 1:
         cv::circle(img, c, std::max(1, size / 2), colour, cv::FILLED);
@@ -79,8 +78,8 @@ cv::Mat GenerateShapes(int width, int height, uint64_t seed) {
                  1 + static_cast<int>(rng() % 3));
         break;
       case 3:
-        cv::ellipse(img, c, cv::Size(std::max(1, size / 2), std::max(1, size / 4)), unit(rng) * 180, 0,
-                    360, colour, cv::FILLED);
+        cv::ellipse(img, c, cv::Size(std::max(1, size / 2), std::max(1, size / 4)), unit(rng) * 180, 0, 360, colour,
+                    cv::FILLED);
         break;
       case 4: {
         const cv::Point pts[3] = {c, c + cv::Point(size, static_cast<int>(unit(rng) * size)),
@@ -97,11 +96,9 @@ cv::Mat GenerateShapes(int width, int height, uint64_t seed) {
 }
 
 // Smooth noise around mean (+-spread) with cells of about cell texels, plus per-texel grain.
-cv::Mat SmoothNoise(int width, int height, double cell, int mean, int spread, int grain,
-                    std::mt19937_64* rng) {
+cv::Mat SmoothNoise(int width, int height, double cell, int mean, int spread, int grain, std::mt19937_64* rng) {
   std::uniform_int_distribution<int> level(mean - spread, mean + spread);
-  const int cols = std::max(2, static_cast<int>(width / cell)),
-            rows = std::max(2, static_cast<int>(height / cell));
+  const int cols = std::max(2, static_cast<int>(width / cell)), rows = std::max(2, static_cast<int>(height / cell));
   cv::Mat coarse(rows, cols, CV_8UC1);
   for (int r = 0; r < rows; ++r)
     for (int c = 0; c < cols; ++c) coarse.at<uint8_t>(r, c) = static_cast<uint8_t>(level(*rng));
@@ -194,8 +191,7 @@ Eigen::Vector3d CatmullRom(const std::vector<Eigen::Vector3d>& pts, size_t i, do
   const Eigen::Vector3d& p2 = pts[(i + 1) % n];
   const Eigen::Vector3d& p3 = pts[(i + 2) % n];
   const double u2 = u * u, u3 = u2 * u;
-  return 0.5 * ((2 * p1) + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u2 +
-                (-p0 + 3 * p1 - 3 * p2 + p3) * u3);
+  return 0.5 * ((2 * p1) + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u2 + (-p0 + 3 * p1 - 3 * p2 + p3) * u3);
 }
 
 }  // namespace
@@ -292,19 +288,22 @@ std::pair<double, double> GlanceOffset(const std::vector<CameraGlance>& glances,
   const double tau = t - g.start_s;
   double f = 0;
   const double back = tau - g.turn_s - g.hold_s;  // time into the turn back
-  if (tau < g.turn_s) f = 0.5 * (1 - std::cos(kPi * tau / g.turn_s));
-  else if (back < 0) f = 1;
-  else if (back < g.turn_s) f = 0.5 * (1 + std::cos(kPi * back / g.turn_s));
+  if (tau < g.turn_s)
+    f = 0.5 * (1 - std::cos(kPi * tau / g.turn_s));
+  else if (back < 0)
+    f = 1;
+  else if (back < g.turn_s)
+    f = 0.5 * (1 + std::cos(kPi * back / g.turn_s));
   return {f * g.yaw_rad, f * g.pitch_rad};
 }
 
 // Four sides and the top of a box of the given size standing on the body origin (x forward).
-std::vector<SceneQuad> BodyBox(double length, double width, double height, double texels_per_m,
-                               float brightness) {
+std::vector<SceneQuad> BodyBox(double length, double width, double height, double texels_per_m, float brightness) {
   const Eigen::Vector3d lo(-0.5 * length, -0.5 * width, 0);
   const Eigen::Vector3d X(length, 0, 0), Y(0, width, 0), Z(0, 0, height);
-  auto quad = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v,
-                  float light) { return MakeQuad(origin, u, v, texels_per_m, brightness * light); };
+  auto quad = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v, float light) {
+    return MakeQuad(origin, u, v, texels_per_m, brightness * light);
+  };
   return {quad(lo, X, Z, 0.9f), quad(lo + Y, X, Z, 1.0f), quad(lo, Y, Z, 0.8f), quad(lo + X, Y, Z, 1.1f),
           quad(lo + Z, X, Y, 1.15f)};
 }
@@ -313,8 +312,7 @@ std::vector<SceneQuad> BodyBox(double length, double width, double height, doubl
 // scaled by scale) over all (T_world_cam, time) views: an upper bound of the area it covers in
 // their union, since each quad projects inside the hull of its near-plane-clipped corners.
 double BoundingCoverage(const SceneMover& mover, double scale,
-                        const std::vector<std::pair<Eigen::Isometry3d, double>>& views,
-                        const PinholeCamera& cam) {
+                        const std::vector<std::pair<Eigen::Isometry3d, double>>& views, const PinholeCamera& cam) {
   double u_min = std::numeric_limits<double>::infinity(), u_max = -u_min, v_min = u_min, v_max = -u_min;
   auto extend = [&](const Eigen::Vector3d& p) {
     const double u = cam.fx * p.x() / p.z() + cam.cx, v = cam.fy * p.y() / p.z() + cam.cy;
@@ -372,8 +370,8 @@ Eigen::Isometry3d SceneMover::PoseAt(double t) const {
     t = keys.front().t_s + std::fmod(t - keys.front().t_s, period_s);
     if (t < keys.front().t_s) t += period_s;
   }
-  const auto next = std::upper_bound(keys.begin(), keys.end(), t,
-                                     [](double time, const MoverKey& key) { return time < key.t_s; });
+  const auto next =
+      std::upper_bound(keys.begin(), keys.end(), t, [](double time, const MoverKey& key) { return time < key.t_s; });
   MoverKey a = keys.front(), b = keys.front();
   if (next == keys.end()) {
     a = b = keys.back();
@@ -391,10 +389,9 @@ Eigen::Isometry3d SceneMover::PoseAt(double t) const {
 }
 
 bool SyntheticOptions::Check() const {
-  return (width == 0 || width >= 32) && (height == 0 || height >= 32) && fx >= 0 && fy >= 0 &&
-         frame_rate_hz >= 0 && duration_s >= 0 && baseline_m >= 0 && pixel_noise_sigma >= 0 &&
-         depth_noise_k >= 0 && max_depth_m > 0 && agent >= 0 && dynamic_fraction >= 0 &&
-         dynamic_fraction <= 0.3;
+  return (width == 0 || width >= 32) && (height == 0 || height >= 32) && fx >= 0 && fy >= 0 && frame_rate_hz >= 0 &&
+         duration_s >= 0 && baseline_m >= 0 && pixel_noise_sigma >= 0 && depth_noise_k >= 0 && max_depth_m > 0 &&
+         agent >= 0 && dynamic_fraction >= 0 && dynamic_fraction <= 0.3;
 }
 
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options) {
@@ -417,17 +414,28 @@ void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOp
         Fail("synthetic spec '", spec, "': ", key, "='", value, "' is not a number");
       }
     }
-    if (key == "width") options->width = static_cast<int>(v);
-    else if (key == "height") options->height = static_cast<int>(v);
-    else if (key == "fx") options->fx = v;
-    else if (key == "fps") options->frame_rate_hz = v;
-    else if (key == "duration") options->duration_s = v;
-    else if (key == "baseline") options->baseline_m = v;
-    else if (key == "noise") options->pixel_noise_sigma = v;
-    else if (key == "depth_noise") options->depth_noise_k = v;
-    else if (key == "agent") options->agent = static_cast<int>(v);
-    else if (key == "seed") options->seed = static_cast<uint64_t>(v);
-    else if (key == "sensor") options->sensor = ParseSensor(value);
+    if (key == "width")
+      options->width = static_cast<int>(v);
+    else if (key == "height")
+      options->height = static_cast<int>(v);
+    else if (key == "fx")
+      options->fx = v;
+    else if (key == "fps")
+      options->frame_rate_hz = v;
+    else if (key == "duration")
+      options->duration_s = v;
+    else if (key == "baseline")
+      options->baseline_m = v;
+    else if (key == "noise")
+      options->pixel_noise_sigma = v;
+    else if (key == "depth_noise")
+      options->depth_noise_k = v;
+    else if (key == "agent")
+      options->agent = static_cast<int>(v);
+    else if (key == "seed")
+      options->seed = static_cast<uint64_t>(v);
+    else if (key == "sensor")
+      options->sensor = ParseSensor(value);
     else if (key == "dynamic") {
       FLATSLAM_CHECK(v >= 0 && v <= 0.3, "synthetic spec '", spec, "': dynamic=", value,
                      " is outside [0, 0.3] (the largest fraction of the image a moving object covers)");
@@ -443,19 +451,16 @@ void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOp
 SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOptions& options)
     : description_(std::move(description)), options_(options) {
   FLATSLAM_CHECK(options_.Check(), "synthetic options out of range (scene '", description_.name, "')");
-  FLATSLAM_CHECK(options_.agent < static_cast<int>(description_.agents.size()), "scene '",
-                 description_.name, "' has ", description_.agents.size(), " agent(s); agent ",
-                 options_.agent, " does not exist");
+  FLATSLAM_CHECK(options_.agent < static_cast<int>(description_.agents.size()), "scene '", description_.name, "' has ",
+                 description_.agents.size(), " agent(s); agent ", options_.agent, " does not exist");
   for (size_t m = 0; m < description_.movers.size(); ++m)
-    FLATSLAM_CHECK(!description_.movers[m].keys.empty(), "scene '", description_.name, "': mover ", m,
-                   " has no keys");
+    FLATSLAM_CHECK(!description_.movers[m].keys.empty(), "scene '", description_.name, "': mover ", m, " has no keys");
   const int scene_width = description_.default_width > 0 ? description_.default_width : 640;
   if (options_.width == 0) options_.width = scene_width;
-  if (options_.height == 0)
-    options_.height = description_.default_height > 0 ? description_.default_height : 480;
+  if (options_.height == 0) options_.height = description_.default_height > 0 ? description_.default_height : 480;
   if (options_.fx == 0) {
-    options_.fx = description_.default_fx > 0 ? description_.default_fx * options_.width / scene_width
-                                              : 0.75 * options_.width;
+    options_.fx =
+        description_.default_fx > 0 ? description_.default_fx * options_.width / scene_width : 0.75 * options_.width;
   }
   if (options_.fy == 0) options_.fy = options_.fx;
   if (options_.frame_rate_hz == 0)
@@ -464,8 +469,9 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
   if (options_.baseline_m == 0) options_.baseline_m = description_.default_baseline_m;
 
   calibration_.sensor = options_.sensor;
-  calibration_.camera = PinholeCamera{options_.fx, options_.fy, (options_.width - 1) * 0.5,
-                                      (options_.height - 1) * 0.5, options_.width, options_.height};
+  calibration_.camera =
+      PinholeCamera{options_.fx,    options_.fy,    (options_.width - 1) * 0.5, (options_.height - 1) * 0.5,
+                    options_.width, options_.height};
   calibration_.baseline_m = options_.sensor == Sensor::kStereo ? options_.baseline_m : 0.0;
   calibration_.frame_rate_hz = options_.frame_rate_hz;
   frame_count_ = static_cast<size_t>(std::llround(options_.duration_s * options_.frame_rate_hz));
@@ -477,10 +483,8 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
   if (exposure.gain_step_every_s > 0) {
     // Auto-exposure steps up or down, drifting back towards unit gain.
     std::mt19937_64 rng(description_.world_seed * 0x2545f4914f6cdd1dull + 7);
-    std::uniform_real_distribution<double> interval(0.5 * exposure.gain_step_every_s,
-                                                    1.5 * exposure.gain_step_every_s);
-    std::uniform_real_distribution<double> size(exposure.gain_step_min, exposure.gain_step_max),
-        unit(0.0, 1.0);
+    std::uniform_real_distribution<double> interval(0.5 * exposure.gain_step_every_s, 1.5 * exposure.gain_step_every_s);
+    std::uniform_real_distribution<double> size(exposure.gain_step_min, exposure.gain_step_max), unit(0.0, 1.0);
     const double end = static_cast<double>(frame_count_) / options_.frame_rate_hz + exposure.exposure_s;
     double gain = 1;
     for (double t = interval(rng); t < end; t += interval(rng)) {
@@ -502,8 +506,7 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
   }
   for (const SceneQuad* q : quads) {
     const Eigen::Vector3d half = 0.5 * (q->size_u * q->axis_u + q->size_v * q->axis_v);
-    bounds_.emplace_back(q->origin.x() + half.x(), q->origin.y() + half.y(), q->origin.z() + half.z(),
-                         half.norm());
+    bounds_.emplace_back(q->origin.x() + half.x(), q->origin.y() + half.y(), q->origin.z() + half.z(), half.norm());
   }
   textures_.resize(quads.size());
   tbb::parallel_for(size_t{0}, quads.size(), [&](size_t i) {
@@ -513,8 +516,7 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
     tex->texels_per_m = static_cast<float>(std::min(q.texels_per_m, kMaxTextureSide / longest));
     const int w = std::max(4, static_cast<int>(std::ceil(q.size_u * tex->texels_per_m)));
     const int h = std::max(4, static_cast<int>(std::ceil(q.size_v * tex->texels_per_m)));
-    tex->images.push_back(
-        GenerateTexture(q.style, w, h, tex->texels_per_m, description_.world_seed * 1000003ull + i));
+    tex->images.push_back(GenerateTexture(q.style, w, h, tex->texels_per_m, description_.world_seed * 1000003ull + i));
     while (tex->images.back().cols > 8 && tex->images.back().rows > 8) {
       cv::Mat down;
       cv::pyrDown(tex->images.back(), down);
@@ -644,7 +646,9 @@ double SyntheticScene::path_length_m() const {
   return description_.agents[options_.agent].speed_mps * (frame_count_ - 1) / options_.frame_rate_hz;
 }
 
-double SyntheticScene::loop_length_m() const { return path_->length; }
+double SyntheticScene::loop_length_m() const {
+  return path_->length;
+}
 
 Eigen::Isometry3d SyntheticScene::PoseAt(double t) const {
   const CameraPath& agent = description_.agents[options_.agent];
@@ -682,8 +686,7 @@ double SyntheticScene::GainAt(double t) const {
   const SceneExposure& exposure = description_.exposure;
   double gain = 1;
   if (exposure.gain_wobble > 0)
-    gain *= 1 + exposure.gain_wobble *
-                    (0.6 * std::sin(2 * kPi * t / 9.7) + 0.4 * std::sin(2 * kPi * t / 3.1 + 1.3));
+    gain *= 1 + exposure.gain_wobble * (0.6 * std::sin(2 * kPi * t / 9.7) + 0.4 * std::sin(2 * kPi * t / 3.1 + 1.3));
   const auto next =
       std::upper_bound(gain_steps_.begin(), gain_steps_.end(), t,
                        [](double time, const std::pair<double, double>& step) { return time < step.first; });
@@ -724,14 +727,14 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
 
   // Rasterizes the world-frame quad origin + s axis_u + t axis_v whose texture is textures_[qi]
   // into the z-buffer, keeping per pixel the nearest quad and its (s, t).
-  auto raster = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& axis_u,
-                    const Eigen::Vector3d& axis_v, double quad_size_u, double quad_size_v, size_t qi) {
+  auto raster = [&](const Eigen::Vector3d& origin, const Eigen::Vector3d& axis_u, const Eigen::Vector3d& axis_v,
+                    double quad_size_u, double quad_size_v, size_t qi) {
     const Eigen::Vector3d o = R_cam_world * origin + t_cam_world;
     const Eigen::Vector3d a = R_cam_world * axis_u;
     const Eigen::Vector3d b = R_cam_world * axis_v;
     // Clip the quad against the near plane, then bound its projection.
-    const std::array<Eigen::Vector3d, 4> corners = {
-        o, o + quad_size_u * a, o + quad_size_u * a + quad_size_v * b, o + quad_size_v * b};
+    const std::array<Eigen::Vector3d, 4> corners = {o, o + quad_size_u * a, o + quad_size_u * a + quad_size_v * b,
+                                                    o + quad_size_v * b};
     double u_min = W, u_max = -1, v_min = H, v_max = -1;
     bool any = false;
     auto extend = [&](const Eigen::Vector3d& p) {
@@ -766,13 +769,16 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
     // q.z > 0, 0 <= q.x <= size_u q.z and 0 <= q.y <= size_v q.z: five half-lines in u.
     const Eigen::Vector3d du = M.col(0).cast<double>() / fx;
     for (int v = v0; v <= v1; ++v) {
-      const Eigen::Vector3d q_row = M.col(0).cast<double>() * (-cx / fx) +
-                                    M.col(1).cast<double>() * ((v - cy) / fy) + M.col(2).cast<double>();
+      const Eigen::Vector3d q_row =
+          M.col(0).cast<double>() * (-cx / fx) + M.col(1).cast<double>() * ((v - cy) / fy) + M.col(2).cast<double>();
       double lo = u0, hi = u1;
       auto keep = [&](double c0, double c1) {  // c0 + c1 u >= 0
-        if (c1 > 0) lo = std::max(lo, -c0 / c1);
-        else if (c1 < 0) hi = std::min(hi, -c0 / c1);
-        else if (c0 < 0) hi = -1;
+        if (c1 > 0)
+          lo = std::max(lo, -c0 / c1);
+        else if (c1 < 0)
+          hi = std::min(hi, -c0 / c1);
+        else if (c0 < 0)
+          hi = -1;
       };
       keep(q_row.z(), du.z());
       keep(q_row.x(), du.x());
@@ -798,8 +804,7 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
   };
   // Quads whose bounding sphere lies behind the near plane or outside a side of the view
   // (widened by 2 px) could not cover any pixel centre: skipped before any further work.
-  const double tan_x = (std::max<double>(cx, W - 1 - cx) + 2) / fx,
-               tan_y = (std::max<double>(cy, H - 1 - cy) + 2) / fy;
+  const double tan_x = (std::max<double>(cx, W - 1 - cx) + 2) / fx, tan_y = (std::max<double>(cy, H - 1 - cy) + 2) / fy;
   const double norm_x = std::sqrt(1 + tan_x * tan_x), norm_y = std::sqrt(1 + tan_y * tan_y);
   auto outside = [&](const Eigen::Vector3d& c, double r) {
     return c.z() + r < kNearPlane || (tan_x * c.z() - std::abs(c.x())) < -r * norm_x ||
@@ -816,11 +821,10 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
     const Eigen::Isometry3d T_world_body = mover.PoseAt(t_s);
     for (size_t j = 0; j < mover.quads.size(); ++j) {
       const size_t qi = mover_texture_[m] + j;
-      if (outside(R_cam_world * (T_world_body * bounds_[qi].head<3>()) + t_cam_world, bounds_[qi].w()))
-        continue;
+      if (outside(R_cam_world * (T_world_body * bounds_[qi].head<3>()) + t_cam_world, bounds_[qi].w())) continue;
       const SceneQuad& quad = mover.quads[j];
-      raster(T_world_body * quad.origin, T_world_body.linear() * quad.axis_u,
-             T_world_body.linear() * quad.axis_v, quad.size_u, quad.size_v, qi);
+      raster(T_world_body * quad.origin, T_world_body.linear() * quad.axis_u, T_world_body.linear() * quad.axis_v,
+             quad.size_u, quad.size_v, qi);
     }
   }
 
@@ -867,8 +871,8 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
   }
 }
 
-void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, double t_s, uint64_t noise_seed,
-                                cv::Mat* gray, cv::Mat* depth_m) const {
+void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, double t_s, uint64_t noise_seed, cv::Mat* gray,
+                                cv::Mat* depth_m) const {
   thread_local std::vector<float> value;
   value.resize(static_cast<size_t>(options_.width) * options_.height);
   RenderLinear(T_world_cam, t_s, value.data(), depth_m);
@@ -876,8 +880,8 @@ void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, double t_s
   FinishImage(value.data(), options_.width, options_.height, 1.0f, sigma, noise_seed, gray);
 }
 
-void SyntheticScene::RenderExposure(const std::vector<double>& times, double offset_x, float gain,
-                                    uint64_t noise_seed, cv::Mat* gray, cv::Mat* depth_m) const {
+void SyntheticScene::RenderExposure(const std::vector<double>& times, double offset_x, float gain, uint64_t noise_seed,
+                                    cv::Mat* gray, cv::Mat* depth_m) const {
   const size_t n = static_cast<size_t>(options_.width) * options_.height;
   auto pose = [&](double t) -> Eigen::Isometry3d {
     const Eigen::Isometry3d T_world_cam = PoseAt(t);
@@ -954,8 +958,7 @@ namespace {
 
 class SyntheticDataset final : public Dataset {
  public:
-  SyntheticDataset(SceneDescription scene, const SyntheticOptions& options)
-      : scene_(std::move(scene), options) {}
+  SyntheticDataset(SceneDescription scene, const SyntheticOptions& options) : scene_(std::move(scene), options) {}
 
   std::string name() const override {
     std::ostringstream out;

@@ -119,18 +119,18 @@ struct SceneDescription {
 [[nodiscard]] SceneDescription MakeScene(const std::string& name);
 
 struct SyntheticOptions {
-  int width = 0;             // pixels; 0 = the scene's default (640 x 480 unless it has its own)
+  int width = 0;  // pixels; 0 = the scene's default (640 x 480 unless it has its own)
   int height = 0;
-  double fx = 0;             // 0 = the scene's, scaled to the width; else 0.75 * width (about 67 degrees)
-  double fy = 0;             // 0 = fx
-  double frame_rate_hz = 0;  // 0 = the scene's default (20 Hz unless it has its own)
-  double duration_s = 0;     // 0 = the scene's default
-  double baseline_m = 0;     // stereo baseline; 0 = the scene's default
+  double fx = 0;                   // 0 = the scene's, scaled to the width; else 0.75 * width (about 67 degrees)
+  double fy = 0;                   // 0 = fx
+  double frame_rate_hz = 0;        // 0 = the scene's default (20 Hz unless it has its own)
+  double duration_s = 0;           // 0 = the scene's default
+  double baseline_m = 0;           // stereo baseline; 0 = the scene's default
   double pixel_noise_sigma = 1.5;  // grey levels, Gaussian
   double depth_noise_k = 0.0015;   // depth sigma = k * z^2 (metres), as a structured-light sensor
   double max_depth_m = 20;         // RGB-D: farther pixels read 0 (no measurement)
   int agent = 0;
-  uint64_t seed = 1;            // noise; the world itself is fixed by the scene
+  uint64_t seed = 1;  // noise; the world itself is fixed by the scene
   Sensor sensor = Sensor::kStereo;
   // Adds moving objects that pass the camera one at a time (overtaking along its path or
   // crossing in front of it), each covering at most this fraction of the image; in [0, 0.3].
@@ -170,8 +170,7 @@ class SyntheticScene {
   void RenderView(const Eigen::Isometry3d& T_world_cam, double t_s, uint64_t noise_seed, cv::Mat* gray,
                   cv::Mat* depth_m) const;
   // The same at t_s = 0.
-  void RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t noise_seed, cv::Mat* gray,
-                  cv::Mat* depth_m) const {
+  void RenderView(const Eigen::Isometry3d& T_world_cam, uint64_t noise_seed, cv::Mat* gray, cv::Mat* depth_m) const {
     RenderView(T_world_cam, 0.0, noise_seed, gray, depth_m);
   }
   // Renders frame i for the configured sensor at the frame's time, with the scene's exposure.
@@ -188,22 +187,21 @@ class SyntheticScene {
   void RenderLinear(const Eigen::Isometry3d& T_world_cam, double t_s, float* value, cv::Mat* depth_m) const;
   // Averages the sub-frames at times of the view offset by offset_x along the camera's x axis,
   // then applies gain and noise; depth_m (optional) is the exact depth at the frame time.
-  void RenderExposure(const std::vector<double>& times, double offset_x, float gain, uint64_t noise_seed,
-                      cv::Mat* gray, cv::Mat* depth_m) const;
+  void RenderExposure(const std::vector<double>& times, double offset_x, float gain, uint64_t noise_seed, cv::Mat* gray,
+                      cv::Mat* depth_m) const;
 
   SceneDescription description_;
   SyntheticOptions options_;
   Calibration calibration_;
   size_t frame_count_ = 0;
-  std::vector<std::unique_ptr<Texture>> textures_;  // one per static quad, then one per mover quad
-  std::vector<Eigen::Vector4d> bounds_;             // per quad as textures_: bounding sphere centre, radius
-  std::vector<size_t> mover_texture_;               // index in textures_ of each mover's first quad
+  std::vector<std::unique_ptr<Texture>> textures_;     // one per static quad, then one per mover quad
+  std::vector<Eigen::Vector4d> bounds_;                // per quad as textures_: bounding sphere centre, radius
+  std::vector<size_t> mover_texture_;                  // index in textures_ of each mover's first quad
   std::vector<std::pair<double, double>> gain_steps_;  // (time, gain factor from then on)
   std::unique_ptr<PathTable> path_;
 };
 
 // The Dataset view of a synthetic scene ("synth:NAME[:key=value,...]" in OpenDataset).
-[[nodiscard]] std::unique_ptr<Dataset> OpenSyntheticDataset(const std::string& spec,
-                                                            const DatasetOptions& options);
+[[nodiscard]] std::unique_ptr<Dataset> OpenSyntheticDataset(const std::string& spec, const DatasetOptions& options);
 
 }  // namespace flatslam

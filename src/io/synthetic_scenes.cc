@@ -14,8 +14,7 @@ using Eigen::Vector3d;
 
 constexpr double kPi = 3.14159265358979323846;
 
-SceneQuad Quad(const Vector3d& origin, const Vector3d& u, const Vector3d& v, double texels_per_m,
-               float brightness) {
+SceneQuad Quad(const Vector3d& origin, const Vector3d& u, const Vector3d& v, double texels_per_m, float brightness) {
   return MakeQuad(origin, u, v, texels_per_m, brightness);
 }
 
@@ -23,12 +22,12 @@ SceneQuad Quad(const Vector3d& origin, const Vector3d& u, const Vector3d& v, dou
 void AddRoom(const Vector3d& lo, const Vector3d& hi, double tpm, std::vector<SceneQuad>* quads) {
   const Vector3d d = hi - lo;
   const Vector3d X(d.x(), 0, 0), Y(0, d.y(), 0), Z(0, 0, d.z());
-  quads->push_back(Quad(lo, X, Y, tpm, 0.85f));                // floor
-  quads->push_back(Quad(lo + Z, X, Y, tpm, 1.0f));             // ceiling
-  quads->push_back(Quad(lo, X, Z, tpm, 0.95f));                // y = lo wall
-  quads->push_back(Quad(lo + Y, X, Z, tpm, 0.9f));             // y = hi wall
-  quads->push_back(Quad(lo, Y, Z, tpm, 1.05f));                // x = lo wall
-  quads->push_back(Quad(lo + X, Y, Z, tpm, 0.8f));             // x = hi wall
+  quads->push_back(Quad(lo, X, Y, tpm, 0.85f));     // floor
+  quads->push_back(Quad(lo + Z, X, Y, tpm, 1.0f));  // ceiling
+  quads->push_back(Quad(lo, X, Z, tpm, 0.95f));     // y = lo wall
+  quads->push_back(Quad(lo + Y, X, Z, tpm, 0.9f));  // y = hi wall
+  quads->push_back(Quad(lo, Y, Z, tpm, 1.05f));     // x = lo wall
+  quads->push_back(Quad(lo + X, Y, Z, tpm, 0.8f));  // x = hi wall
 }
 
 // Four vertical sides and the top of an axis-aligned box seen from outside (furniture, pillar).
@@ -85,8 +84,8 @@ std::vector<Vector3d> RoundedRect(const Vector2d& lo, const Vector2d& hi, double
                                {hi.x() - radius, hi.y() - radius},
                                {lo.x() + radius, hi.y() - radius},
                                {lo.x() + radius, lo.y() + radius}};
-  const Vector2d side_start[4] = {{lo.x() + radius, lo.y()}, {hi.x(), lo.y() + radius},
-                                  {hi.x() - radius, hi.y()}, {lo.x(), hi.y() - radius}};
+  const Vector2d side_start[4] = {
+      {lo.x() + radius, lo.y()}, {hi.x(), lo.y() + radius}, {hi.x() - radius, hi.y()}, {lo.x(), hi.y() - radius}};
   const Vector2d side_dir[4] = {{1, 0}, {0, 1}, {-1, 0}, {0, -1}};
   std::vector<Vector3d> pts;
   for (int k = 0; k < n; ++k) {
@@ -213,12 +212,14 @@ SceneDescription Town() {
   return s;
 }
 
-Vector3d Lift(const Vector2d& p, double z) { return {p.x(), p.y(), z}; }
+Vector3d Lift(const Vector2d& p, double z) {
+  return {p.x(), p.y(), z};
+}
 
 // Sides of a box standing at ground position centre, turned by yaw, from z0 to z0 + height; its
 // top and bottom faces only when asked (the ones a camera can see).
-void AddTurnedBox(const Vector2d& centre, double yaw, double length, double width, double z0, double height,
-                  double tpm, float brightness, bool top, bool bottom, std::vector<SceneQuad>* quads) {
+void AddTurnedBox(const Vector2d& centre, double yaw, double length, double width, double z0, double height, double tpm,
+                  float brightness, bool top, bool bottom, std::vector<SceneQuad>* quads) {
   const Vector2d x(std::cos(yaw), std::sin(yaw)), y(-x.y(), x.x());
   const Vector3d o = Lift(centre - 0.5 * length * x - 0.5 * width * y, z0);
   const Vector3d L = Lift(length * x, 0), W = Lift(width * y, 0), Z(0, 0, height);
@@ -243,8 +244,7 @@ class Centreline {
   [[nodiscard]] Vector2d At(double s) const {
     s = std::fmod(s, length());
     if (s < 0) s += length();
-    const size_t i =
-        std::min<size_t>(std::upper_bound(arc_.begin(), arc_.end(), s) - arc_.begin(), arc_.size() - 1);
+    const size_t i = std::min<size_t>(std::upper_bound(arc_.begin(), arc_.end(), s) - arc_.begin(), arc_.size() - 1);
     const size_t j = i == 0 ? 0 : i - 1;
     const double span = arc_[i] - arc_[j];
     return points_[j] + (span > 0 ? (s - arc_[j]) / span : 0.0) * (points_[i] - points_[j]);
@@ -269,8 +269,8 @@ class Centreline {
 // A quad along the road from s0 to s1 between lateral offsets lo and hi: flat at height z, or
 // (height > 0) a vertical wall at lateral offset lo. Lengthened where the road turns so that
 // neighbouring pieces overlap instead of leaving wedges.
-SceneQuad RoadPiece(const Centreline& road, double s0, double s1, double lo, double hi, double z,
-                    double height, double tpm, float brightness, TextureStyle style) {
+SceneQuad RoadPiece(const Centreline& road, double s0, double s1, double lo, double hi, double z, double height,
+                    double tpm, float brightness, TextureStyle style) {
   const double mid = 0.5 * (s0 + s1);
   const Vector2d t = road.Tangent(mid), n = road.Left(mid);
   const double turn = std::abs(std::remainder(road.Heading(s1) - road.Heading(s0), 2 * kPi));
@@ -285,8 +285,7 @@ SceneQuad RoadPiece(const Centreline& road, double s0, double s1, double lo, dou
 // A tree-like box: a trunk under a crown whose underside the camera sees.
 void AddTree(const Vector2d& at, double height, double crown, double tpm, float brightness, double yaw,
              std::vector<SceneQuad>* quads) {
-  AddTurnedBox(at, yaw, 0.2 + 0.04 * height, 0.2 + 0.04 * height, 0, 0.35 * height, tpm, 0.55f, false, false,
-               quads);
+  AddTurnedBox(at, yaw, 0.2 + 0.04 * height, 0.2 + 0.04 * height, 0, 0.35 * height, tpm, 0.55f, false, false, quads);
   AddTurnedBox(at, yaw, crown, crown * 0.85, 0.3 * height, 0.7 * height, tpm, brightness, true, true, quads);
 }
 
@@ -354,20 +353,18 @@ SceneDescription Highway() {
   }
   for (int k = 0, n = static_cast<int>(std::ceil(length / 40)); k < n; ++k) {
     const double s0 = length * k / n, s1 = length * (k + 1) / n;
-    s.quads.push_back(
-        RoadPiece(road, s0, s1, -45, -8.0, -0.02, 0, 4, 0.7f, TextureStyle::kShapes));  // verges
+    s.quads.push_back(RoadPiece(road, s0, s1, -45, -8.0, -0.02, 0, 4, 0.7f, TextureStyle::kShapes));  // verges
     s.quads.push_back(RoadPiece(road, s0, s1, 22.0, 60, -0.02, 0, 4, 0.7f, TextureStyle::kShapes));
   }
   for (double x = -700; x < 2150; x += 285)  // fields
     for (double y = -700; y < 1450; y += 269)
-      s.quads.push_back(
-          Quad({x, y, -0.06}, {285, 0, 0}, {0, 269, 0}, 1.0, static_cast<float>(uniform(0.5, 0.75))));
+      s.quads.push_back(Quad({x, y, -0.06}, {285, 0, 0}, {0, 269, 0}, 1.0, static_cast<float>(uniform(0.5, 0.75))));
 
   // Markings: 6 m dashes every 18 m between lanes, solid lines at the carriageway edges.
   for (double lateral : {-1.875, 1.875, 12.55, 16.3})
     for (double s0 = 0; s0 + 6 < length; s0 += 18)
-      s.quads.push_back(RoadPiece(road, s0, s0 + 6, lateral - 0.075, lateral + 0.075, 0.012, 0, 24, 1.0f,
-                                  TextureStyle::kPaint));
+      s.quads.push_back(
+          RoadPiece(road, s0, s0 + 6, lateral - 0.075, lateral + 0.075, 0.012, 0, 24, 1.0f, TextureStyle::kPaint));
   for (int k = 0, n = static_cast<int>(std::ceil(length / 10)); k < n; ++k) {
     const double s0 = length * k / n, s1 = length * (k + 1) / n;
     for (double lateral : {-5.625, 5.625, 8.8, 20.05})
@@ -381,8 +378,7 @@ SceneDescription Highway() {
       const double stretch = uniform(100, 250), lateral = side < 0 ? -12.5 : 25.0;
       const float light = static_cast<float>(uniform(0.75, 1.0));
       for (double a = s0; a < s0 + stretch; a += 25)
-        s.quads.push_back(
-            RoadPiece(road, a, a + 25, lateral, lateral, 0, 3.5, 20, light, TextureStyle::kShapes));
+        s.quads.push_back(RoadPiece(road, a, a + 25, lateral, lateral, 0, 3.5, 20, light, TextureStyle::kShapes));
     }
   }
 
@@ -395,10 +391,7 @@ SceneDescription Highway() {
     const double x = unit(rng);
     if (band == 0) return x < 0.75 ? Thing::kTrees : Thing::kBillboard;
     if (band == 1)
-      return x < 0.35   ? Thing::kTrees
-             : x < 0.45 ? Thing::kBillboard
-             : x < 0.55 ? Thing::kWall
-                        : Thing::kBuilding;
+      return x < 0.35 ? Thing::kTrees : x < 0.45 ? Thing::kBillboard : x < 0.55 ? Thing::kWall : Thing::kBuilding;
     return x < 0.45 ? Thing::kTrees : Thing::kBuilding;
   };
   for (int side : {-1, 1}) {
@@ -429,8 +422,8 @@ SceneDescription Highway() {
           const double yaw = heading + side * uniform(1.0, 1.3);
           const Vector2d c = road.Offset(at, lateral), x(std::cos(yaw), std::sin(yaw));
           const double tpm = std::clamp(600 / std::abs(lateral), 4.0, 24.0);
-          s.quads.push_back(Quad(Lift(c - 0.5 * w * x, z), Lift(w * x, 0), {0, 0, h}, tpm,
-                                 static_cast<float>(uniform(0.9, 1.2))));
+          s.quads.push_back(
+              Quad(Lift(c - 0.5 * w * x, z), Lift(w * x, 0), {0, 0, h}, tpm, static_cast<float>(uniform(0.9, 1.2))));
           for (double end : {-0.35, 0.35})
             AddTurnedBox(c + end * w * x, yaw, 0.35, 0.35, 0, z, tpm, 0.7f, false, false, &s.quads);
         } else if (thing == Thing::kWall) {
@@ -441,10 +434,8 @@ SceneDescription Highway() {
                        static_cast<float>(uniform(0.7, 1.0)), false, false, &s.quads);
         } else {
           // A building: blocks of flats, offices, warehouses.
-          const double w = uniform(15, 50), d = uniform(10, 25),
-                       h = b == 1 ? uniform(8, 28) : uniform(10, 35);
-          const double lateral =
-              side * std::max(band.near + 0.5 * std::hypot(w, d), uniform(band.near, band.far));
+          const double w = uniform(15, 50), d = uniform(10, 25), h = b == 1 ? uniform(8, 28) : uniform(10, 35);
+          const double lateral = side * std::max(band.near + 0.5 * std::hypot(w, d), uniform(band.near, band.far));
           const double yaw = heading + uniform(-0.3, 0.3);
           AddTurnedBox(road.Offset(at, lateral), yaw, w, d, 0, h, std::clamp(360 / std::abs(lateral), 2.0, 20.0),
                        static_cast<float>(uniform(0.7, 1.15)), false, false, &s.quads);
@@ -455,11 +446,10 @@ SceneDescription Highway() {
     for (double at = uniform(0, 200); at < length; at += uniform(150, 260)) {
       const Vector2d n = side * road.Left(at), t = road.Tangent(at);
       const double lateral = uniform(150, 230), w = uniform(200, 400), h = uniform(50, 110);
-      const double run =
-          side > 0 ? std::min(uniform(100, 200), 370 - lateral) : uniform(100, 200);  // inside the loop
+      const double run = side > 0 ? std::min(uniform(100, 200), 370 - lateral) : uniform(100, 200);  // inside the loop
       const Vector2d foot = road.Offset(at, side * lateral) - 0.5 * w * t;
-      s.quads.push_back(Quad(Lift(foot, -0.03), Lift(w * t, 0), Lift(run * n, h), 2.0,
-                             static_cast<float>(uniform(0.55, 0.8))));
+      s.quads.push_back(
+          Quad(Lift(foot, -0.03), Lift(w * t, 0), Lift(run * n, h), 2.0, static_cast<float>(uniform(0.55, 0.8))));
     }
   }
 
@@ -475,8 +465,7 @@ SceneDescription Highway() {
       {18.175, -21, 2400, 2},
   };
   for (const Traffic& v : traffic)
-    s.movers.push_back(
-        Vehicle(road, v.lateral, v.speed, v.start_s, v.kind, static_cast<float>(uniform(0.6, 1.2))));
+    s.movers.push_back(Vehicle(road, v.lateral, v.speed, v.start_s, v.kind, static_cast<float>(uniform(0.6, 1.2))));
   return s;
 }
 

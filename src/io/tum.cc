@@ -25,8 +25,8 @@ std::vector<StampedFile> ReadFileList(const std::filesystem::path& path, const s
   std::vector<StampedFile> list;
   for (const io::TextLine& line : io::ReadTextLines(path)) {
     const auto fields = io::SplitFields(line.text);
-    FLATSLAM_CHECK(fields.size() >= 2, io::Where(path, line.number), "expected 'timestamp filename', got '",
-                   line.text, "'");
+    FLATSLAM_CHECK(fields.size() >= 2, io::Where(path, line.number), "expected 'timestamp filename', got '", line.text,
+                   "'");
     list.push_back({io::ParseSecondsNs(fields[0], path, line.number), dir / fields[1]});
   }
   FLATSLAM_CHECK(!list.empty(), path.string(), " lists no frames");
@@ -115,8 +115,8 @@ TumDataset::TumDataset(const std::filesystem::path& sequence_dir, const TumOptio
   const std::string available = has_depth ? "mono, rgbd" : "mono (no depth.txt)";
 
   const Sensor sensor = options.sensor.value_or(has_depth ? Sensor::kRgbd : Sensor::kMonocular);
-  FLATSLAM_CHECK(sensor != Sensor::kStereo, "TUM RGB-D sequence ", dir_.string(), " has no stereo; available: ",
-                 available);
+  FLATSLAM_CHECK(sensor != Sensor::kStereo, "TUM RGB-D sequence ", dir_.string(),
+                 " has no stereo; available: ", available);
   FLATSLAM_CHECK(sensor != Sensor::kRgbd || has_depth, "RGB-D requested but ", depth_txt.string(),
                  " is missing; available: ", available);
 
@@ -130,8 +130,8 @@ TumDataset::TumDataset(const std::filesystem::path& sequence_dir, const TumOptio
       frames_.push_back({rgb[i].t_ns, rgb[i].file, depth[j].t_ns, depth[j].file});
     }
     unmatched_rgb_ = rgb.size() - frames_.size();
-    FLATSLAM_CHECK(!frames_.empty(), "no RGB frame of ", rgb_txt.string(), " has a depth image in ",
-                   depth_txt.string(), " within ", options.max_association_dt_ns * 1e-6, " ms");
+    FLATSLAM_CHECK(!frames_.empty(), "no RGB frame of ", rgb_txt.string(), " has a depth image in ", depth_txt.string(),
+                   " within ", options.max_association_dt_ns * 1e-6, " ms");
   } else {
     for (const auto& e : rgb) frames_.push_back({e.t_ns, e.file, 0, {}});
   }

@@ -111,8 +111,7 @@ struct PoseSamplingOptions {
 // Pairs two sorted stamp lists like TUM's associate.py: all pairs with |a - b| < max_dt,
 // greedily by increasing |a - b|, each element used at most once. Result sorted by a.
 [[nodiscard]] std::vector<std::pair<size_t, size_t>> AssociateStamps(const std::vector<int64_t>& a,
-                                                                     const std::vector<int64_t>& b,
-                                                                     int64_t max_dt_ns);
+                                                                     const std::vector<int64_t>& b, int64_t max_dt_ns);
 
 }  // namespace io
 }  // namespace flatslam

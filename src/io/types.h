@@ -37,9 +37,9 @@ struct PinholeCamera {
 // What a reader delivers: images are already undistorted and, for stereo, rectified.
 struct Calibration {
   Sensor sensor = Sensor::kMonocular;
-  PinholeCamera camera;          // left / RGB camera (depth is registered to it)
-  double baseline_m = 0;         // stereo: distance between the rectified optical centres
-  double frame_rate_hz = 0;      // nominal rate, 0 when unknown
+  PinholeCamera camera;      // left / RGB camera (depth is registered to it)
+  double baseline_m = 0;     // stereo: distance between the rectified optical centres
+  double frame_rate_hz = 0;  // nominal rate, 0 when unknown
   // Pose of the (rectified) left camera in the body frame whose ground truth is given.
   Eigen::Isometry3d T_body_cam = Eigen::Isometry3d::Identity();
 };

@@ -94,8 +94,8 @@ void RunIsolated(F&& body) {
 // Rethrows the recorded failure as PipelineError with the original nested inside.
 [[noreturn]] void ThrowFailure(const RunState& state) {
   const auto message = [&](const std::string& cause) {
-    return detail::Concat("pipeline stage '", state.error_stage, "' failed on ",
-                          state.error_in_job ? "job " : "item ", state.error_index, ": ", cause);
+    return detail::Concat("pipeline stage '", state.error_stage, "' failed on ", state.error_in_job ? "job " : "item ",
+                          state.error_index, ": ", cause);
   };
   try {
     std::rethrow_exception(state.error);
@@ -131,9 +131,13 @@ size_t QueueCore::ForceReserve() {
   return depth;
 }
 
-void QueueCore::Unreserve() { depth_.fetch_sub(1); }
+void QueueCore::Unreserve() {
+  depth_.fetch_sub(1);
+}
 
-void QueueCore::NoteDepth(size_t depth) { RaiseMax(max_depth_, depth); }
+void QueueCore::NoteDepth(size_t depth) {
+  RaiseMax(max_depth_, depth);
+}
 
 void QueueCore::Submit(std::unique_ptr<Payload> job) {
   QueueBinding* binding = binding_.load(std::memory_order_acquire);

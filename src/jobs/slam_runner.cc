@@ -48,10 +48,13 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // Global bundle adjustment runs beside the frames on its own thread (declared after slam:
   // destroyed, so waited for, first). Deterministic runs keep it inline, in mapping.
   BackgroundWorker background;
-  if (!run.deterministic) slam.SetBackground([&background](std::function<void()> task) { background.Start(std::move(task)); });
+  if (!run.deterministic)
+    slam.SetBackground([&background](std::function<void()> task) { background.Start(std::move(task)); });
   auto warn = [&](const std::string& message) {
-    if (run.on_warning) run.on_warning(message);
-    else std::fprintf(stderr, "warning: %s\n", message.c_str());
+    if (run.on_warning)
+      run.on_warning(message);
+    else
+      std::fprintf(stderr, "warning: %s\n", message.c_str());
   };
   const size_t frames = run.max_frames == 0 ? dataset.size() : std::min(run.max_frames, dataset.size());
   SlamRunResult result;
@@ -189,7 +192,8 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     if (!inline_mapping) {
       std::unique_lock<std::mutex> lock(mapped_mutex);
       mapped.wait(lock, [&] {
-        return slam.pending_keyframes() <= run.max_mapping_lag && !(slam.keyframe_wanted() && slam.pending_keyframes() > 0);
+        return slam.pending_keyframes() <= run.max_mapping_lag &&
+               !(slam.keyframe_wanted() && slam.pending_keyframes() > 0);
       });
     }
     std::unique_lock<std::mutex> reporting(between_frames);
@@ -198,19 +202,24 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     FrameReport report = slam.Track(std::move(item.frame), &keyframe);
     report.extract_ms = item.extract_ms;
     if (keyframe) {
-      if (inline_mapping) slam.MapKeyFrame(*keyframe);
-      else mapping.post(MappingJob{*keyframe});
+      if (inline_mapping)
+        slam.MapKeyFrame(*keyframe);
+      else
+        mapping.post(MappingJob{*keyframe});
     }
     // Frames tracked while a checkpoint was copied or written: their tracking time includes any
     // wait for the map lock that the copy held.
     if (checkpoint_busy.load()) {
       result.frame_ms_during_checkpoints.push_back(report.track_ms);
-    } else if (checkpointing && std::chrono::duration<double>(std::chrono::steady_clock::now() - last_checkpoint)
-                                        .count() >= run.checkpoint_every_s) {
+    } else if (checkpointing &&
+               std::chrono::duration<double>(std::chrono::steady_clock::now() - last_checkpoint).count() >=
+                   run.checkpoint_every_s) {
       checkpoint_busy = true;
       // With mapping inline, every frame boundary is also a boundary between keyframes.
-      if (inline_mapping) checkpoints.post(CheckpointJob{});
-      else mapping.post(MappingJob{KeyFrameHandle::null(), true});
+      if (inline_mapping)
+        checkpoints.post(CheckpointJob{});
+      else
+        mapping.post(MappingJob{KeyFrameHandle::null(), true});
       last_checkpoint = std::chrono::steady_clock::now();
     }
     if (run.on_frame) run.on_frame(report);

@@ -17,14 +17,14 @@
 namespace flatslam {
 
 struct SlamRunOptions {
-  size_t max_frames = 0;        // 0 = every frame of the dataset; else frames [first_frame, max_frames)
-  size_t first_frame = 0;       // frames before it are not read (a session continuing a saved map)
-  Map* initial_map = nullptr;   // moved into the SLAM system before the first frame (Slam::AdoptMap)
+  size_t max_frames = 0;       // 0 = every frame of the dataset; else frames [first_frame, max_frames)
+  size_t first_frame = 0;      // frames before it are not read (a session continuing a saved map)
+  Map* initial_map = nullptr;  // moved into the SLAM system before the first frame (Slam::AdoptMap)
   // With initial_map: the trajectory of the session it continues (a resumed checkpoint); the
   // result's trajectory starts with these frames.
   std::vector<AnchoredFramePose> initial_frames;
-  bool deterministic = false;   // map each keyframe inline in the track stage: same input, same output
-  size_t max_in_flight = 0;     // frames read/extracted ahead of tracking; 0 = max(16, 4 x cores)
+  bool deterministic = false;  // map each keyframe inline in the track stage: same input, same output
+  size_t max_in_flight = 0;    // frames read/extracted ahead of tracking; 0 = max(16, 4 x cores)
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which
   // reads faster than real time, never tracks against a map that mapping has fallen behind on.
   int max_mapping_lag = 0;

@@ -40,8 +40,10 @@ void LineLog::Flush() {
   while (done < buffer_.size() && !failed_) {
     const ssize_t n = ::write(fd_, buffer_.data() + done, buffer_.size() - done);
     if (n < 0 && errno == EINTR) continue;
-    if (n <= 0) failed_ = true;
-    else done += static_cast<size_t>(n);
+    if (n <= 0)
+      failed_ = true;
+    else
+      done += static_cast<size_t>(n);
   }
   buffer_.clear();
 }

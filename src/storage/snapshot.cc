@@ -80,8 +80,12 @@ CompactPose FromSchema(const schema::CompactPose& pose) {
   return out;
 }
 
-schema::Vec3d ToVec(const Eigen::Vector3d& v) { return schema::Vec3d(v.x(), v.y(), v.z()); }
-Eigen::Vector3d FromVec(const schema::Vec3d& v) { return {v.x(), v.y(), v.z()}; }
+schema::Vec3d ToVec(const Eigen::Vector3d& v) {
+  return schema::Vec3d(v.x(), v.y(), v.z());
+}
+Eigen::Vector3d FromVec(const schema::Vec3d& v) {
+  return {v.x(), v.y(), v.z()};
+}
 
 schema::Descriptor256 ToDescriptor(const Descriptor& d) {
   return schema::Descriptor256(fb::span<const uint64_t, 4>(d.data(), 4));
@@ -216,7 +220,7 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
   records.reserve(point_values.size());
   for (const MapPoint& p : point_values) {
     records.emplace_back(ToVec(p.position), ToVec(p.normal), ToDescriptor(p.descriptor), p.first_keyframe_id,
-                                     p.min_distance, p.max_distance, kf_index(p.reference), p.visible, p.found);
+                         p.min_distance, p.max_distance, kf_index(p.reference), p.visible, p.found);
   }
   const auto point_vector = builder.CreateVectorOfStructs(records);
   if (progress) progress(builder.GetSize());
@@ -234,7 +238,9 @@ size_t HashOffset(const schema::MapSnapshot* root, const uint8_t* base) {
   return hash ? static_cast<size_t>(reinterpret_cast<const uint8_t*>(hash) - base) : 0;
 }
 
-std::string ErrnoText() { return std::strerror(errno); }
+std::string ErrnoText() {
+  return std::strerror(errno);
+}
 
 // Closes a file descriptor on scope exit.
 struct FdCloser {
@@ -340,8 +346,8 @@ struct SizedBuilder {
                    " MiB exceeds the 2 GiB limit of one snapshot buffer");
     constexpr size_t kPage = 4096;
     const size_t reserved = ((estimate << attempt) + 2 * kPage - 1) / kPage * kPage;
-    FLATSLAM_CHECK(reserved < kMaxBufferSize, "map snapshot: the maps outgrew their size estimate (",
-                   estimate >> 20, " MiB) past the 2 GiB limit of one snapshot buffer");
+    FLATSLAM_CHECK(reserved < kMaxBufferSize, "map snapshot: the maps outgrew their size estimate (", estimate >> 20,
+                   " MiB) past the 2 GiB limit of one snapshot buffer");
     return reserved;
   }
   BuilderAllocator allocator;
@@ -364,8 +370,8 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
   const auto scales = schema::CreateScalePyramid(builder, metadata.scales.scale_factor, metadata.scales.levels);
   fb::Offset<schema::Session> session;
   if (const auto& s = metadata.session) {
-    FLATSLAM_CHECK(s->map < maps.size(), "map snapshot: the session's map ", s->map, " is not among the ",
-                   maps.size(), " maps saved");
+    FLATSLAM_CHECK(s->map < maps.size(), "map snapshot: the session's map ", s->map, " is not among the ", maps.size(),
+                   " maps saved");
     const auto& keyframes = maps[s->map].map->keyframes();
     std::vector<schema::FramePoseRecord> frames;
     frames.reserve(s->frames.size());
@@ -380,9 +386,9 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
     session = schema::CreateSession(builder, s->next_frame, s->map, dataset, arguments, frame_vector);
   }
   const schema::ContentHash placeholder(0);
-  const auto root = schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder,
-                                              metadata.vocabulary_checksum, calibration, scales, segment_vector,
-                                              session, metadata.rgbd_virtual_baseline_m);
+  const auto root =
+      schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder, metadata.vocabulary_checksum,
+                                calibration, scales, segment_vector, session, metadata.rgbd_virtual_baseline_m);
   schema::FinishMapSnapshotBuffer(builder, root);
 }
 
@@ -737,7 +743,8 @@ void MapSnapshotView::Verify(const SnapshotReadOptions& options) {
     for (size_t i = 0; i < np; ++i) failed |= static_cast<uint32_t>(points[i].reference() + 1u > nk32);
     for (size_t i = 0; failed && i < np; ++i) {
       const uint32_t ref = points[i].reference();
-      if (ref != kNoIndex && ref >= nk) bad("point ", i, ": reference keyframe index ", ref, " out of range (", nk, " keyframes)");
+      if (ref != kNoIndex && ref >= nk)
+        bad("point ", i, ": reference keyframe index ", ref, " out of range (", nk, " keyframes)");
     }
 
     // Keyframes: column sizes, indices.
@@ -775,7 +782,8 @@ void MapSnapshotView::Verify(const SnapshotReadOptions& options) {
     for (size_t o = 0; o < no; ++o) {
       const uint32_t kf = observations[o].keyframe();
       const uint32_t safe = kf < nk32 ? kf : 0;
-      failed |= static_cast<uint32_t>(kf >= nk32) | static_cast<uint32_t>(observations[o].keypoint() >= keypoints[safe]);
+      failed |=
+          static_cast<uint32_t>(kf >= nk32) | static_cast<uint32_t>(observations[o].keypoint() >= keypoints[safe]);
     }
     for (size_t o = 0; failed && o < no; ++o) {
       const uint32_t kf = observations[o].keyframe();
@@ -811,10 +819,18 @@ size_t MapSnapshotView::session_frame_count() const {
   return root_->session() ? Size(root_->session()->frames()) : 0;
 }
 
-uint32_t MapSnapshotView::format_version() const { return root_->format_version(); }
-double MapSnapshotView::rgbd_virtual_baseline_m() const { return root_->rgbd_virtual_baseline_m(); }
-uint64_t MapSnapshotView::vocabulary_checksum() const { return root_->vocabulary_checksum(); }
-uint64_t MapSnapshotView::content_hash() const { return root_->content_hash()->value(); }
+uint32_t MapSnapshotView::format_version() const {
+  return root_->format_version();
+}
+double MapSnapshotView::rgbd_virtual_baseline_m() const {
+  return root_->rgbd_virtual_baseline_m();
+}
+uint64_t MapSnapshotView::vocabulary_checksum() const {
+  return root_->vocabulary_checksum();
+}
+uint64_t MapSnapshotView::content_hash() const {
+  return root_->content_hash()->value();
+}
 
 Calibration MapSnapshotView::calibration() const {
   const schema::Calibration& c = *root_->calibration();
@@ -836,21 +852,31 @@ MapScales MapSnapshotView::scales() const {
   return MapScales{root_->scales()->scale_factor(), root_->scales()->levels()};
 }
 
-size_t MapSnapshotView::map_count() const { return Size(root_->maps()); }
+size_t MapSnapshotView::map_count() const {
+  return Size(root_->maps());
+}
 
 const schema::MapSegment& MapSnapshotView::segment(size_t m) const {
   FLATSLAM_CHECK(m < map_count(), "map snapshot ", name_, ": no map ", m);
   return *root_->maps()->Get(static_cast<fb::uoffset_t>(m));
 }
 
-uint32_t MapSnapshotView::map_id(size_t m) const { return segment(m).id(); }
+uint32_t MapSnapshotView::map_id(size_t m) const {
+  return segment(m).id();
+}
 std::span<const uint32_t> MapSnapshotView::agents(size_t m) const {
   const auto* a = segment(m).agents();
   return a ? std::span<const uint32_t>(a->data(), a->size()) : std::span<const uint32_t>();
 }
-size_t MapSnapshotView::keyframe_count(size_t m) const { return Size(segment(m).keyframes()); }
-size_t MapSnapshotView::point_count(size_t m) const { return Size(segment(m).points()); }
-size_t MapSnapshotView::observation_count(size_t m) const { return Size(segment(m).observations()); }
+size_t MapSnapshotView::keyframe_count(size_t m) const {
+  return Size(segment(m).keyframes());
+}
+size_t MapSnapshotView::point_count(size_t m) const {
+  return Size(segment(m).points());
+}
+size_t MapSnapshotView::observation_count(size_t m) const {
+  return Size(segment(m).observations());
+}
 
 size_t MapSnapshotView::keypoint_count(size_t m) const {
   size_t total = 0;
@@ -974,7 +1000,8 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
       for (uint32_t c : Span(r.children())) kf.children.push_back(kf_handles[c]);
       for (uint32_t l : Span(r.loop_edges())) kf.loop_edges.push_back(kf_handles[l]);
       kf.covisible.reserve(Size(r.covisible()));
-      for (const schema::CovisibilityEdge& e : Span(r.covisible())) kf.covisible.emplace_back(kf_handles[e.keyframe()], e.weight());
+      for (const schema::CovisibilityEdge& e : Span(r.covisible()))
+        kf.covisible.emplace_back(kf_handles[e.keyframe()], e.weight());
     }
     const std::string problem = map.Validate();
     FLATSLAM_CHECK(problem.empty(), "map snapshot ", view.name(), ": map ", m, " is inconsistent: ", problem);

@@ -44,7 +44,7 @@ struct SnapshotSession {
 struct SnapshotMetadata {
   Calibration calibration;
   MapScales scales;
-  uint64_t vocabulary_checksum = 0;  // identity of the vocabulary the map was built with; 0 = none
+  uint64_t vocabulary_checksum = 0;        // identity of the vocabulary the map was built with; 0 = none
   std::optional<SnapshotSession> session;  // checkpoints only
   // RGB-D maps: the virtual stereo baseline of the keyframes' right_u (0 = not recorded).
   double rgbd_virtual_baseline_m = 0;
@@ -153,7 +153,8 @@ class MapSnapshotView {
 // Verifies the file (see MapSnapshotView) and rebuilds every map in fresh arenas: keyframe i and
 // point i of a segment get dense index i, keyframe ids are kept. Map::Validate() must pass, else
 // the file is refused. Throws flatslam::Error naming the file and problem.
-[[nodiscard]] LoadedSnapshot LoadMapSnapshot(const std::filesystem::path& path, const SnapshotReadOptions& options = {});
+[[nodiscard]] LoadedSnapshot LoadMapSnapshot(const std::filesystem::path& path,
+                                             const SnapshotReadOptions& options = {});
 [[nodiscard]] LoadedSnapshot LoadMapSnapshotFromBytes(std::span<const uint8_t> bytes, const std::string& name,
                                                       const SnapshotReadOptions& options = {});
 [[nodiscard]] LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view);

@@ -51,7 +51,7 @@ struct BundleAdjustmentOptions {
   double chi2_stereo = 7.815;            // outlier gate, 3 DoF at 95%
   double huber_mono = std::sqrt(5.991);  // Huber delta on the whitened residual
   double huber_stereo = std::sqrt(7.815);
-  bool robust_second_pass = false;  // ORB-SLAM2 drops the robust kernel in the second pass
+  bool robust_second_pass = false;   // ORB-SLAM2 drops the robust kernel in the second pass
   Solver solver = Solver::kSchurLm;  // kCeres: the same passes through Ceres (reference path)
   LinearSolver linear_solver = LinearSolver::kAuto;
   int dense_schur_max_poses = 40;  // kAuto: dense Schur up to this many free poses, else sparse
@@ -59,7 +59,7 @@ struct BundleAdjustmentOptions {
   // CHOLMOD's supernodal factorization (Eigen's simplicial LDLT took 60% of a 1,125-keyframe
   // merge weld); local BA windows stay well below it.
   int schur_lm_max_poses = 150;
-  int num_threads = 1;             // Ceres threads; 1 keeps the call single-threaded
+  int num_threads = 1;  // Ceres threads; 1 keeps the call single-threaded
   // Asked after every solver iteration; true ends the solve at the current iterate (the
   // outlier classification still runs). Local mapping uses it to yield to a waiting keyframe.
   std::function<bool()> stop_early;

@@ -76,12 +76,7 @@ class Solver {
  public:
   Solver(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
          const std::vector<uint8_t>& active, bool robust, bool dense, SchurWorkspace* w)
-      : in_(input),
-        options_(options),
-        robust_(robust),
-        dense_(dense),
-        bf_(input.camera.fx * input.baseline_m),
-        w_(*w) {
+      : in_(input), options_(options), robust_(robust), dense_(dense), bf_(input.camera.fx * input.baseline_m), w_(*w) {
     w_.free_poses.clear();
     w_.points.clear();
     w_.block_rows.clear();
@@ -174,7 +169,8 @@ class Solver {
           trial_poses[k].R = dR * (*poses)[k].R;
           trial_poses[k].t = dR * (*poses)[k].t + w_.delta_pose[f].tail<3>();
         }
-        for (size_t j = 0; j < w_.points.size(); ++j) trial_points[w_.points[j]] = (*points)[w_.points[j]] + w_.delta_point[j];
+        for (size_t j = 0; j < w_.points.size(); ++j)
+          trial_points[w_.points[j]] = (*points)[w_.points[j]] + w_.delta_point[j];
         solved = Cost(trial_poses, trial_points, &trial_cost);
       }
       // Gain ratio against the decrease the damped linear model predicts.
@@ -295,8 +291,10 @@ class Solver {
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
         const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
         const int free = w_.free_id[o.pose_index];
-        if (o.right_u >= 0) Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
-        else Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+        if (o.right_u >= 0)
+          Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+        else
+          Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
       }
       w_.V[j] = V;
       w_.b_point[j] = bl;
@@ -338,8 +336,10 @@ class Solver {
             continue;
           }
           // The block is stored once, as (min, max).
-          if (fa < fb) w_.blocks[w_.pair_blocks[pair]].noalias() -= Y * w_.W[b].transpose();
-          else w_.blocks[w_.pair_blocks[pair]].noalias() -= w_.W[b] * Y.transpose();
+          if (fa < fb)
+            w_.blocks[w_.pair_blocks[pair]].noalias() -= Y * w_.W[b].transpose();
+          else
+            w_.blocks[w_.pair_blocks[pair]].noalias() -= w_.W[b] * Y.transpose();
           ++pair;
         }
       }
@@ -389,12 +389,14 @@ class Solver {
     for (size_t f = 0; f < nf; ++f) {
       gradient_dot_delta_ += w_.b_pose[f].dot(w_.delta_pose[f]);
       for (int d = 0; d < 6; ++d)
-        damping_term_ += std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_pose[f](d) * w_.delta_pose[f](d);
+        damping_term_ +=
+            std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_pose[f](d) * w_.delta_pose[f](d);
     }
     for (size_t j = 0; j < w_.points.size(); ++j) {
       gradient_dot_delta_ += w_.b_point[j].dot(w_.delta_point[j]);
       for (int d = 0; d < 3; ++d)
-        damping_term_ += std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_point[j](d) * w_.delta_point[j](d);
+        damping_term_ +=
+            std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_point[j](d) * w_.delta_point[j](d);
     }
     return true;
   }
@@ -417,8 +419,12 @@ class Solver {
 
 }  // namespace
 
-SchurWorkspacePtr MakeSchurWorkspace() { return SchurWorkspacePtr(new SchurWorkspace); }
-void SchurWorkspaceDeleter::operator()(SchurWorkspace* w) const { delete w; }
+SchurWorkspacePtr MakeSchurWorkspace() {
+  return SchurWorkspacePtr(new SchurWorkspace);
+}
+void SchurWorkspaceDeleter::operator()(SchurWorkspace* w) const {
+  delete w;
+}
 
 bool SolvePassSchurLm(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
                       const std::vector<uint8_t>& active, bool robust, int iterations, bool dense,

@@ -16,11 +16,11 @@
 namespace flatslam {
 
 struct EssentialGraph {
-  std::vector<KeyFrameHandle> nodes;                  // every live keyframe
+  std::vector<KeyFrameHandle> nodes;                   // every live keyframe
   std::unordered_map<KeyFrameHandle, uint32_t> index;  // node of a keyframe
-  std::vector<Similarity3> S;                         // per node: the pose S_cw being optimized
-  std::vector<Similarity3> S_before;                  // per node: the pose the points were placed from
-  std::vector<bool> fixed;                            // per node: held by the optimization
+  std::vector<Similarity3> S;                          // per node: the pose S_cw being optimized
+  std::vector<Similarity3> S_before;                   // per node: the pose the points were placed from
+  std::vector<bool> fixed;                             // per node: held by the optimization
   PoseGraphEdgeSet edges;
 
   // Every live keyframe of map at its current pose (S = S_before), none fixed, no edge yet.

@@ -18,7 +18,9 @@ namespace flatslam {
 
 // Descriptor (256-bit steered BRIEF, bit i at word i/64, bit i%64) lives with the map in
 // ecs/descriptor.h; Hamming is its distance under the name the systems use.
-[[nodiscard]] inline int Hamming(const Descriptor& a, const Descriptor& b) { return DescriptorDistance(a, b); }
+[[nodiscard]] inline int Hamming(const Descriptor& a, const Descriptor& b) {
+  return DescriptorDistance(a, b);
+}
 
 // Keypoints of one image, struct-of-arrays: element i of every column describes keypoint i.
 struct Keypoints {

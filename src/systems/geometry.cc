@@ -272,7 +272,9 @@ std::vector<Motion> MotionsFromHomography(const Eigen::Matrix3d& H21, const Eige
 }
 
 // Transfer and epipolar errors difference two noisy keypoints: their variance is 2 sigma^2.
-double ModelInvSigma2(const TwoViewOptions& options) { return 1.0 / (2.0 * options.sigma_px * options.sigma_px); }
+double ModelInvSigma2(const TwoViewOptions& options) {
+  return 1.0 / (2.0 * options.sigma_px * options.sigma_px);
+}
 
 // Picks k distinct indices of [0, n) with a partial Fisher-Yates shuffle of *pool.
 void SampleIndices(int k, std::vector<int>* pool, std::mt19937_64& rng, std::vector<int>* out) {
@@ -560,8 +562,7 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   // plane H answers and the degenerate F is never consulted.
   bool used_h = prefer_h;
   std::optional<Reconstruction> rec = reconstruct(prefer_h);
-  const bool undecided =
-      ratio > options.homography_fallback_ratio && ratio < 1.0 - options.homography_fallback_ratio;
+  const bool undecided = ratio > options.homography_fallback_ratio && ratio < 1.0 - options.homography_fallback_ratio;
   if (options.homography_fallback && undecided && (!prefer_h || !rec)) {
     std::optional<Reconstruction> other = reconstruct(!prefer_h);
     if (other && (!rec || other->good > rec->good)) {

@@ -44,8 +44,8 @@ std::vector<PlaceCandidate> KeyFrameDatabase::DetectRelocalizationCandidates(con
   return Rank(map, bow, KeyFrameHandle::null(), 0.0f);
 }
 
-std::vector<PlaceCandidate> KeyFrameDatabase::Rank(const Map& map, const BowVector& bow,
-                                                   KeyFrameHandle exclude_around, float min_score) const {
+std::vector<PlaceCandidate> KeyFrameDatabase::Rank(const Map& map, const BowVector& bow, KeyFrameHandle exclude_around,
+                                                   float min_score) const {
   // Keyframes already connected to the query are not loop candidates.
   std::unordered_set<KeyFrameHandle> excluded;
   if (!exclude_around.is_null()) {

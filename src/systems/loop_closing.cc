@@ -42,7 +42,6 @@ void Slam::ForceLost() {
   force_lost_ = true;
 }
 
-
 void Slam::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
   FLATSLAM_CHECK(options_.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
   std::lock_guard<std::mutex> lock(map_mutex_);
@@ -91,15 +90,19 @@ void Slam::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {
   for (size_t i = 0; i < frames.size(); ++i) {
     AnchoredFramePose a = frames[i];
     Eigen::Isometry3d T_cam_ref = a.T_cam_ref.isometry();
-    if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref)) a.T_cam_ref = CompactPose(T_cam_ref);
-    else a.reference = KeyFrameHandle::null();
+    if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref))
+      a.T_cam_ref = CompactPose(T_cam_ref);
+    else
+      a.reference = KeyFrameHandle::null();
     (*out)[i] = a;
   }
 }
 
 void Slam::Warn(const std::string& message) const {
-  if (warning_sink_) warning_sink_(message);
-  else std::fprintf(stderr, "warning: %s\n", message.c_str());
+  if (warning_sink_)
+    warning_sink_(message);
+  else
+    std::fprintf(stderr, "warning: %s\n", message.c_str());
 }
 
 void Slam::EraseKeyFrame(KeyFrameHandle kf) {
@@ -155,8 +158,8 @@ bool Slam::Relocalize(TrackedFrame& frame) {
     }
     cv::Mat rvec, tvec;
     std::vector<int> inliers;
-    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 6.0f, 0.99,
-                                           inliers, cv::SOLVEPNP_EPNP);
+    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 6.0f, 0.99, inliers,
+                                           cv::SOLVEPNP_EPNP);
     if (!solved || inliers.size() < 10) continue;
     std::vector<char> keep(index.size(), 0);
     for (int k : inliers) keep[k] = 1;
@@ -197,7 +200,8 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
     // The loop must score at least as well as the least similar covisible keyframe.
     float min_score = 1;
     for (const auto& [n, w] : kf->covisible)
-      if (const KeyFrame* other = map_.keyframes().try_get(n)) min_score = std::min(min_score, Vocabulary::Score(kf->bow, other->bow));
+      if (const KeyFrame* other = map_.keyframes().try_get(n))
+        min_score = std::min(min_score, Vocabulary::Score(kf->bow, other->bow));
     if (kf->covisible.empty()) min_score = 0;
     candidates = database_.DetectLoopCandidates(map_, current, min_score);
   }
@@ -251,8 +255,10 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
           Warn(std::string("global bundle adjustment failed, the map keeps its loop correction: ") + e.what());
         }
       };
-      if (background_) background_(std::move(task));
-      else task();
+      if (background_)
+        background_(std::move(task));
+      else
+        task();
     }
     return;
   }
@@ -261,8 +267,8 @@ void Slam::DetectAndCloseLoop(KeyFrameHandle current) {
 bool Slam::VerifyLoop(KeyFrameHandle current, KeyFrameHandle candidate, LoopMatch* out) {
   PlaceVerificationOptions verification;
   verification.ransac.fix_scale = !monocular();
-  std::optional<PlaceMatch> match = VerifyPlace(map_.keyframe(current), map_, candidate, map_, geometry_,
-                                                options_.matcher, verification, loop_rng_);
+  std::optional<PlaceMatch> match =
+      VerifyPlace(map_.keyframe(current), map_, candidate, map_, geometry_, options_.matcher, verification, loop_rng_);
   if (!match) return false;
   static_cast<PlaceMatch&>(*out) = std::move(*match);
   out->candidate = candidate;

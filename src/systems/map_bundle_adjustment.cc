@@ -66,8 +66,9 @@ void BuildMapBundleAdjustment(const Map& map, const CameraGeometry& geometry, co
       obs.pose_index = info.index;
       obs.point_index = static_cast<uint32_t>(j);
       obs.uv = kf.uv[o.keypoint].cast<double>();
-      obs.right_u = geometry.bf > 0 ? StereoDepthRule::RightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], info.far_depth)
-                                    : -1.0;
+      obs.right_u = geometry.bf > 0
+                        ? StereoDepthRule::RightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], info.far_depth)
+                        : -1.0;
       obs.inv_sigma2 = geometry.pyramid.inv_sigma2[kf.octave[o.keypoint]];
       problem.observations.push_back(obs);
     }

@@ -39,7 +39,9 @@ double Median(std::vector<double> v) {
 }
 
 // The camera pose (rigid, T_cam_world) a pose S_cw implies, as a scale-1 similarity.
-Similarity3 PoseOf(const Similarity3& S_cw) { return Similarity3::FromIsometry(S_cw.ToIsometry()); }
+Similarity3 PoseOf(const Similarity3& S_cw) {
+  return Similarity3::FromIsometry(S_cw.ToIsometry());
+}
 
 // Verifies one place-recognition candidate: bag-of-words matches, RANSAC, guided search.
 bool VerifyPair(const Map& into, const Map& from, KeyFrameHandle query, KeyFrameHandle candidate,
@@ -74,8 +76,8 @@ bool Agree(const MergePair& a, const MergePair& b, const Map& from, bool monocul
   if (monocular && std::abs(a.S_into_from.s / b.S_into_from.s - 1.0) > options.max_scale_disagreement) return false;
   const Eigen::Vector3d ca = from.keyframe(a.from_keyframe).camera_center();
   const Eigen::Vector3d cb = from.keyframe(b.from_keyframe).camera_center();
-  const double error = std::max((a.S_into_from * ca - b.S_into_from * ca).norm(),
-                                (a.S_into_from * cb - b.S_into_from * cb).norm());
+  const double error =
+      std::max((a.S_into_from * ca - b.S_into_from * ca).norm(), (a.S_into_from * cb - b.S_into_from * cb).norm());
   const double separation = (a.S_into_from * ca - a.S_into_from * cb).norm();
   const double depth = 0.5 * (a.scene_depth + b.scene_depth);
   return error <= options.max_position_disagreement * depth + options.drift_fraction * separation;
@@ -107,8 +109,8 @@ MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const M
                                                  ScalePyramid::Make(scales.levels, scales.scale_factor));
   out.scales = scales;
   out.monocular = calibration.sensor == Sensor::kMonocular;
-  out.stereo_depth = StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m,
-                                             far_stereo_baselines);
+  out.stereo_depth =
+      StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m, far_stereo_baselines);
   return out;
 }
 
@@ -359,7 +361,8 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
     std::vector<KeyFrameHandle> path = {q};
     while (!into.keyframe(path.back()).parent.is_null() && path.size() <= from.keyframes().size())
       path.push_back(into.keyframe(path.back()).parent);
-    FLATSLAM_CHECK(into.keyframe(path.back()).parent.is_null(), "map merge: the spanning tree of the map merged in has a cycle");
+    FLATSLAM_CHECK(into.keyframe(path.back()).parent.is_null(),
+                   "map merge: the spanning tree of the map merged in has a cycle");
     for (size_t i = path.size() - 1; i >= 1; --i) {
       KeyFrame& upper = into.keyframe(path[i]);
       std::erase(upper.children, path[i - 1]);
@@ -416,8 +419,8 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   for (uint32_t i = 0; i < graph.nodes.size(); ++i) graph.fixed[i] = graph.nodes[i] == anchor;
   for (const MergePair* pair : seam) {
     const uint32_t i = graph.index.at(pair->into_keyframe), j = graph.index.at(remap(from, pair->from_keyframe));
-    const Similarity3 S_q = PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) *
-                                   pair->S_into_from.inverse());
+    const Similarity3 S_q =
+        PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) * pair->S_into_from.inverse());
     graph.edges.Add(i, j, graph.S[i] * S_q.inverse());
   }
   // Across the seam, only the pairs above.

@@ -26,7 +26,7 @@ class Vocabulary;
 struct MergeCamera {
   CameraGeometry geometry;
   MapScales scales;
-  bool monocular = false;  // Sim(3) alignment; otherwise SE(3) with scale fixed to 1
+  bool monocular = false;        // Sim(3) alignment; otherwise SE(3) with scale fixed to 1
   StereoDepthRule stereo_depth;  // which stereo observations the weld keeps as stereo
 
   // From a snapshot's calibration and scales; RGB-D keyframes carry a virtual right image at
@@ -51,13 +51,13 @@ struct MapMergeOptions {
   double drift_fraction = 0.05;
   double max_scale_disagreement = 0.1;  // monocular: |s_i / s_j - 1|
   int ransac_iterations = 300;
-  size_t weld_neighbours = 10;        // covisible keyframes freed with each seam keyframe in the weld
+  size_t weld_neighbours = 10;  // covisible keyframes freed with each seam keyframe in the weld
   // The weld frees every keyframe (into's oldest held): with seams in several places this also
   // takes out drift between them. Off: only the seam neighbourhoods move in the weld.
   bool global_bundle_adjustment = true;
   int pose_graph_iterations = 20;
   BundleAdjustmentOptions bundle_adjustment;
-  uint64_t seed = 1;                  // RANSAC sampling (each query keyframe gets its own stream)
+  uint64_t seed = 1;  // RANSAC sampling (each query keyframe gets its own stream)
 
   // The first requirement a field breaks, as its condition's text (empty: valid).
   [[nodiscard]] std::string Problem() const;
@@ -70,22 +70,22 @@ void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary);
 // A keyframe of the `from` map and a keyframe of the `into` map that see the same place.
 struct MergePair {
   KeyFrameHandle from_keyframe, into_keyframe;
-  Similarity3 S_into_from;              // world of from -> world of into, as this pair sees it
-  std::vector<PointHandle> matched;     // per keypoint of from_keyframe: the into-map point, or null
+  Similarity3 S_into_from;           // world of from -> world of into, as this pair sees it
+  std::vector<PointHandle> matched;  // per keypoint of from_keyframe: the into-map point, or null
   int matches = 0;
-  double scene_depth = 0;               // median depth of the matched into points, into units
+  double scene_depth = 0;  // median depth of the matched into points, into units
 };
 
 struct MapOverlap {
   bool found = false;
-  size_t queries = 0;       // from keyframes with a bag of words
-  size_t candidates = 0;    // place-recognition candidates verified geometrically
-  std::vector<MergePair> verified;    // every pair that passed the geometric check
-  std::vector<size_t> consistent;     // indices into verified: the largest agreeing group
-  size_t independent_pairs = 0;       // of the consistent group, pairs with distinct keyframes
-  Similarity3 S_into_from;            // fitted on every correspondence of the consistent group
-  size_t correspondences = 0;         // point pairs used for that fit
-  double residual_rms = 0;            // of those point pairs after the fit, into units
+  size_t queries = 0;               // from keyframes with a bag of words
+  size_t candidates = 0;            // place-recognition candidates verified geometrically
+  std::vector<MergePair> verified;  // every pair that passed the geometric check
+  std::vector<size_t> consistent;   // indices into verified: the largest agreeing group
+  size_t independent_pairs = 0;     // of the consistent group, pairs with distinct keyframes
+  Similarity3 S_into_from;          // fitted on every correspondence of the consistent group
+  size_t correspondences = 0;       // point pairs used for that fit
+  double residual_rms = 0;          // of those point pairs after the fit, into units
 };
 
 // Finds where `from` overlaps `into`: every from keyframe queries a keyframe database of into;
@@ -114,17 +114,17 @@ struct MergeReport {
   MapOverlap overlap;
   bool merged = false;
   size_t keyframes_added = 0, points_added = 0;
-  size_t points_fused = 0;       // duplicate points merged across the seam
-  size_t loop_edges = 0;         // added between matched keyframes
-  size_t welded_keyframes = 0;   // free in the seam bundle adjustment
-  size_t weld_outliers = 0;      // observations dropped by it
+  size_t points_fused = 0;      // duplicate points merged across the seam
+  size_t loop_edges = 0;        // added between matched keyframes
+  size_t welded_keyframes = 0;  // free in the seam bundle adjustment
+  size_t weld_outliers = 0;     // observations dropped by it
   double place_ms = 0, merge_ms = 0;
 };
 
 // Merges `from` into `into` when they overlap (into's frame is kept); leaves `into` untouched
 // otherwise. `from` is never modified. Both maps need bags of words (ComputeKeyFrameBow).
-[[nodiscard]] MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary,
-                                    const MergeCamera& camera, const MapMergeOptions& options);
+[[nodiscard]] MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
+                                    const MapMergeOptions& options);
 
 struct MergeAttempt {
   std::vector<size_t> into, from;  // input maps already in each side (into keeps its frame)
@@ -132,9 +132,9 @@ struct MergeAttempt {
 };
 
 struct MultiMapMerge {
-  std::vector<Map> maps;                    // one per group of overlapping inputs
-  std::vector<std::vector<size_t>> members; // input maps of each output map, first = its frame
-  std::vector<MergeAttempt> attempts;       // in the order they were made
+  std::vector<Map> maps;                     // one per group of overlapping inputs
+  std::vector<std::vector<size_t>> members;  // input maps of each output map, first = its frame
+  std::vector<MergeAttempt> attempts;        // in the order they were made
 };
 
 // Greedy merge of several maps: each input joins the first group it overlaps (input 0 founds

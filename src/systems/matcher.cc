@@ -64,8 +64,7 @@ bool Usable(const TrackedFrame& current, uint32_t k, int min_level, int max_leve
   if (!current.points[k].is_null()) return false;
   const int o = current.keypoints.octave[k];
   if (o < min_level || o > max_level) return false;
-  if (stereo && current.keypoints.right_u[k] >= 0 && std::abs(right_u - current.keypoints.right_u[k]) > r)
-    return false;
+  if (stereo && current.keypoints.right_u[k] >= 0 && std::abs(right_u - current.keypoints.right_u[k]) > r) return false;
   return true;
 }
 
@@ -165,15 +164,17 @@ bool EpipolarSegment(const Eigen::Vector3d& ray1, double near, double far, const
     for (int side = 0; side < 2; ++side) {
       const double edge = side == 0 ? lo[axis] : hi[axis];
       // Inside this edge where num + s * rate >= 0.
-      const double num = side == 0 ? (*p)(axis) - edge : edge - (*p)(axis);
+      const double num = side == 0 ? (*p)(axis)-edge : edge - (*p)(axis);
       const double rate = side == 0 ? d(axis) : -d(axis);
       if (rate == 0) {
         if (num < 0) return false;
         continue;
       }
       const double t = -num / rate;
-      if (rate > 0) s0 = std::max(s0, t);
-      else s1 = std::min(s1, t);
+      if (rate > 0)
+        s0 = std::max(s0, t);
+      else
+        s1 = std::min(s1, t);
     }
   }
   if (s0 > s1) return false;
@@ -185,21 +186,20 @@ bool EpipolarSegment(const Eigen::Vector3d& ray1, double near, double far, const
 
 }  // namespace
 
-int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map,
-                      const CameraGeometry& geometry, float radius, const MatcherOptions& options) {
+int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map, const CameraGeometry& geometry,
+                      float radius, const MatcherOptions& options) {
   return ProjectAndMatch(
-      current, source.size(),
-      [&](size_t i) { return source.outlier[i] ? PointHandle::null() : source.points[i]; },
+      current, source.size(), [&](size_t i) { return source.outlier[i] ? PointHandle::null() : source.points[i]; },
       [&](size_t i) { return static_cast<int>(source.keypoints.octave[i]); },
       [&](size_t i) { return source.keypoints.angle[i]; }, map, geometry, radius, options);
 }
 
-int MatchByProjection(TrackedFrame& current, const KeyFrame& source, const Map& map,
-                      const CameraGeometry& geometry, float radius, const MatcherOptions& options) {
+int MatchByProjection(TrackedFrame& current, const KeyFrame& source, const Map& map, const CameraGeometry& geometry,
+                      float radius, const MatcherOptions& options) {
   return ProjectAndMatch(
       current, source.size(), [&](size_t i) { return source.points[i]; },
-      [&](size_t i) { return static_cast<int>(source.octave[i]); }, [&](size_t i) { return source.angle[i]; },
-      map, geometry, radius, options);
+      [&](size_t i) { return static_cast<int>(source.octave[i]); }, [&](size_t i) { return source.angle[i]; }, map,
+      geometry, radius, options);
 }
 
 int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const PointHandle> points,
@@ -503,8 +503,10 @@ int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> 
       map.AddObservation(p, kf_handle, static_cast<uint32_t>(best_index));
     } else if (existing != p) {
       const size_t n_existing = map.point(existing).observations.size();
-      if (n_existing >= point->observations.size()) map.ReplacePoint(p, existing);
-      else map.ReplacePoint(existing, p);
+      if (n_existing >= point->observations.size())
+        map.ReplacePoint(p, existing);
+      else
+        map.ReplacePoint(existing, p);
     }
     ++fused;
   }
@@ -568,8 +570,7 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchDirectIndex(const FeatureVector&
   }
   if (options.check_orientation && !pairs.empty()) {
     RotationHistogram histogram;
-    for (uint32_t k = 0; k < pairs.size(); ++k)
-      histogram.Add(angle_a[pairs[k].first] - angle_b[pairs[k].second], k);
+    for (uint32_t k = 0; k < pairs.size(); ++k) histogram.Add(angle_a[pairs[k].first] - angle_b[pairs[k].second], k);
     std::vector<bool> drop(pairs.size(), false);
     for (uint32_t k : histogram.Rejected()) drop[k] = true;
     std::vector<std::pair<uint32_t, uint32_t>> kept;
@@ -585,8 +586,7 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchDirectIndex(const FeatureVector&
 int MatchByBow(TrackedFrame& frame, const KeyFrame& kf, const Map& map, const MatcherOptions& options, float ratio) {
   std::unordered_set<PointHandle> taken = MatchedPoints(frame);
   const auto pairs = MatchDirectIndex(
-      kf.bow_features, kf.descriptor, kf.angle, frame.bow_features, frame.keypoints.descriptor,
-      frame.keypoints.angle,
+      kf.bow_features, kf.descriptor, kf.angle, frame.bow_features, frame.keypoints.descriptor, frame.keypoints.angle,
       [&](uint32_t i) { return map.points().contains(kf.points[i]) && !taken.count(kf.points[i]); },
       [&](uint32_t j) { return frame.points[j].is_null(); }, options, ratio);
   int matches = 0;
@@ -611,8 +611,8 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a
 
 namespace flatslam {
 
-int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<const PointHandle> points,
-                      const Map& map, const CameraGeometry& g, float radius, const MatcherOptions& options,
+int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<const PointHandle> points, const Map& map,
+                      const CameraGeometry& g, float radius, const MatcherOptions& options,
                       std::vector<PointHandle>* matched) {
   matched->resize(kf.size(), PointHandle::null());
   FeatureGrid grid;

@@ -65,11 +65,11 @@ struct CameraGeometry {
 
 // Matches the map points seen by `source` (a previous frame) into `current`, whose pose is set.
 // Only unmatched keypoints of current are taken. Returns the number of new matches.
-int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map,
-                      const CameraGeometry& geometry, float radius, const MatcherOptions& options);
+int MatchByProjection(TrackedFrame& current, const TrackedFrame& source, const Map& map, const CameraGeometry& geometry,
+                      float radius, const MatcherOptions& options);
 // Same, from the map points of a keyframe.
-int MatchByProjection(TrackedFrame& current, const KeyFrame& source, const Map& map,
-                      const CameraGeometry& geometry, float radius, const MatcherOptions& options);
+int MatchByProjection(TrackedFrame& current, const KeyFrame& source, const Map& map, const CameraGeometry& geometry,
+                      float radius, const MatcherOptions& options);
 // Matches local map points (not yet matched in current) that fall in the frustum of current,
 // at the level predicted from their distance. Updates `visible` counts through `seen` (the
 // points that passed the frustum test are appended). Returns the number of new matches.
@@ -113,8 +113,8 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchKeyFramesByBow(const KeyFrame& a
 // and binds each to the best keypoint within radius x level scale at the level predicted from
 // its distance, under max_distance_strict. (*matched)[k] is the point for keypoint k (sized to
 // kf); entries already set are kept. Returns the number of new matches.
-int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<const PointHandle> points,
-                      const Map& map, const CameraGeometry& geometry, float radius, const MatcherOptions& options,
+int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<const PointHandle> points, const Map& map,
+                      const CameraGeometry& geometry, float radius, const MatcherOptions& options,
                       std::vector<PointHandle>* matched);
 
 // 3D-3D correspondences of matched keypoint pairs (i in a, j in b, both with live points): each

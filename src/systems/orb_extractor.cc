@@ -100,8 +100,12 @@ using Bytes32 = uint8_t __attribute__((vector_size(32)));
   std::memcpy(&v, p, sizeof(v));
   return v;
 }
-[[gnu::always_inline]] inline Bytes32 Min32(Bytes32 a, Bytes32 b) { return a < b ? a : b; }
-[[gnu::always_inline]] inline Bytes32 Max32(Bytes32 a, Bytes32 b) { return a > b ? a : b; }
+[[gnu::always_inline]] inline Bytes32 Min32(Bytes32 a, Bytes32 b) {
+  return a < b ? a : b;
+}
+[[gnu::always_inline]] inline Bytes32 Max32(Bytes32 a, Bytes32 b) {
+  return a > b ? a : b;
+}
 // Lanes of a > b (unsigned) as 0xff / 0, from min and equality: cheap without unsigned compares.
 [[gnu::always_inline]] inline Bytes32 Greater32(Bytes32 a, Bytes32 b) {
   return reinterpret_cast<Bytes32>(Min32(a, b) != a);
@@ -606,7 +610,9 @@ struct PatternColumns {
 };
 
 // Rounds to nearest by truncating a value shifted positive (the same in scalar and vector code).
-inline int RoundShifted(float v) { return static_cast<int>(v + 64.5f) - 64; }
+inline int RoundShifted(float v) {
+  return static_cast<int>(v + 64.5f) - 64;
+}
 
 // Steered BRIEF on the blurred level: the pattern rotated by `angle`, points rounded to pixels.
 Descriptor SteeredBrief(const cv::Mat& blurred, int x, int y, float angle, const PatternColumns& pattern) {

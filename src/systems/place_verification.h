@@ -17,11 +17,11 @@
 namespace flatslam {
 
 struct PlaceVerificationOptions {
-  int min_bow_matches = 20;          // bag-of-words pairs with map points on both sides, before RANSAC
-  float bow_ratio = 0.75f;           // best/second-best ratio of those matches
-  SimilarityRansacOptions ransac;    // fix_scale: true unless monocular
-  size_t neighbours = 20;            // best covisible keyframes of the candidate whose points are searched
-  float search_radius_px = 10;       // around each projected point, times its level scale
+  int min_bow_matches = 20;        // bag-of-words pairs with map points on both sides, before RANSAC
+  float bow_ratio = 0.75f;         // best/second-best ratio of those matches
+  SimilarityRansacOptions ransac;  // fix_scale: true unless monocular
+  size_t neighbours = 20;          // best covisible keyframes of the candidate whose points are searched
+  float search_radius_px = 10;     // around each projected point, times its level scale
 
   [[nodiscard]] bool Check() const {
     return min_bow_matches >= 3 && bow_ratio > 0 && bow_ratio <= 1 && ransac.Check() && search_radius_px > 0;

@@ -84,7 +84,9 @@ Eigen::Isometry3d ParametersToPose(const double* parameters) {
   return T;
 }
 
-std::unique_ptr<ceres::Manifold> MakePoseManifold() { return std::make_unique<PoseManifold>(); }
+std::unique_ptr<ceres::Manifold> MakePoseManifold() {
+  return std::make_unique<PoseManifold>();
+}
 
 }  // namespace detail
 

@@ -58,8 +58,8 @@ bool Reprojects(const PinholeCamera& cam, const Eigen::Vector3d& Xc, const Eigen
   return (u - uv.x()) * (u - uv.x()) + (v - uv.y()) * (v - uv.y()) < gate;
 }
 
-int CountInliers(const PinholeCamera& cam, std::span<const PointCorrespondence> m, const Similarity3& S_21,
-                 double chi2, std::vector<bool>* inlier) {
+int CountInliers(const PinholeCamera& cam, std::span<const PointCorrespondence> m, const Similarity3& S_21, double chi2,
+                 std::vector<bool>* inlier) {
   const Similarity3 S_12 = S_21.inverse();
   int n = 0;
   inlier->assign(m.size(), false);
@@ -81,8 +81,16 @@ namespace {
 // uv1, each whitened by its level's sigma.
 struct SimilarityReprojectionCost {
   SimilarityReprojectionCost(const PinholeCamera& cam, const PointCorrespondence& m)
-      : fx(cam.fx), fy(cam.fy), cx(cam.cx), cy(cam.cy), X1(m.X1), X2(m.X2), uv1(m.uv1), uv2(m.uv2),
-        w1(1.0 / std::sqrt(m.sigma2_1)), w2(1.0 / std::sqrt(m.sigma2_2)) {}
+      : fx(cam.fx),
+        fy(cam.fy),
+        cx(cam.cx),
+        cy(cam.cy),
+        X1(m.X1),
+        X2(m.X2),
+        uv1(m.uv1),
+        uv2(m.uv2),
+        w1(1.0 / std::sqrt(m.sigma2_1)),
+        w2(1.0 / std::sqrt(m.sigma2_2)) {}
 
   template <class T>
   bool operator()(const T* q, const T* t, const T* log_s, T* residual) const {
@@ -117,8 +125,7 @@ struct SimilarityReprojectionCost {
 
 // Refines S_21 on the inliers by reprojection error in both images (robust Huber loss).
 Similarity3 RefineSimilarity(const PinholeCamera& cam, std::span<const PointCorrespondence> matches,
-                             const std::vector<bool>& inlier, const Similarity3& S_21, bool fix_scale,
-                             double chi2) {
+                             const std::vector<bool>& inlier, const Similarity3& S_21, bool fix_scale, double chi2) {
   Eigen::Quaterniond q(S_21.R);
   q.normalize();
   Eigen::Vector3d t = S_21.t;
@@ -192,7 +199,8 @@ std::optional<SimilarityRansacResult> EstimateSimilarityRansac(const PinholeCame
   }
   // The closed form weighs 3D errors, which grow with depth; reprojection errors are what the
   // keypoints measure. Kept when it holds at least as many inliers.
-  const Similarity3 refined = RefineSimilarity(camera, matches, best.inlier, best.S_21, options.fix_scale, options.chi2);
+  const Similarity3 refined =
+      RefineSimilarity(camera, matches, best.inlier, best.S_21, options.fix_scale, options.chi2);
   const int count = CountInliers(camera, matches, refined, options.chi2, &inlier);
   if (count >= best.num_inliers) best = {refined, inlier, count};
   return best;
@@ -220,8 +228,8 @@ struct EdgeCost {
     T R_err[9];
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 3; ++c)
-        R_err[3 * r + c] = T(R_meas_t(r, 0)) * R_pred[c] + T(R_meas_t(r, 1)) * R_pred[3 + c] +
-                           T(R_meas_t(r, 2)) * R_pred[6 + c];
+        R_err[3 * r + c] =
+            T(R_meas_t(r, 0)) * R_pred[c] + T(R_meas_t(r, 1)) * R_pred[3 + c] + T(R_meas_t(r, 2)) * R_pred[6 + c];
     // ceres expects column-major for RotationMatrixToAngleAxis; transpose of row-major.
     T R_err_cm[9];
     for (int r = 0; r < 3; ++r)
@@ -263,8 +271,8 @@ double OptimizePoseGraph(std::vector<Similarity3>& S_cw, const std::vector<bool>
   for (const PoseGraphEdge& e : edges) {
     FLATSLAM_CHECK(e.i < n && e.j < n && e.i != e.j, "pose graph edge ", e.i, "-", e.j, " out of range");
     auto* cost = new ceres::AutoDiffCostFunction<EdgeCost, 7, 4, 3, 1, 4, 3, 1>(new EdgeCost(e.S_ij, e.weight));
-    problem.AddResidualBlock(cost, nullptr, q[e.i].coeffs().data(), t[e.i].data(), &log_s[e.i],
-                             q[e.j].coeffs().data(), t[e.j].data(), &log_s[e.j]);
+    problem.AddResidualBlock(cost, nullptr, q[e.i].coeffs().data(), t[e.i].data(), &log_s[e.i], q[e.j].coeffs().data(),
+                             t[e.j].data(), &log_s[e.j]);
   }
   for (size_t k = 0; k < n; ++k) {
     if (!problem.HasParameterBlock(q[k].coeffs().data())) continue;

@@ -26,7 +26,9 @@ struct Similarity3 {
   Eigen::Vector3d t = Eigen::Vector3d::Zero();
   double s = 1.0;
 
-  [[nodiscard]] static Similarity3 FromIsometry(const Eigen::Isometry3d& T) { return {T.linear(), T.translation(), 1.0}; }
+  [[nodiscard]] static Similarity3 FromIsometry(const Eigen::Isometry3d& T) {
+    return {T.linear(), T.translation(), 1.0};
+  }
   // The rigid part with the translation divided by the scale (the camera pose a Sim(3) of a
   // camera implies: same center, same orientation).
   [[nodiscard]] Eigen::Isometry3d ToIsometry() const;
@@ -40,7 +42,7 @@ struct Similarity3 {
 
 // Least-squares S with X2 ~ S * X1 (Umeyama). nullopt for fewer than 3 points or a degenerate set.
 [[nodiscard]] std::optional<Similarity3> AlignPoints(std::span<const Eigen::Vector3d> X1,
-                                                    std::span<const Eigen::Vector3d> X2, bool fix_scale);
+                                                     std::span<const Eigen::Vector3d> X2, bool fix_scale);
 
 // A putative match between two keyframes: the point of keyframe 1 in camera-1 coordinates and
 // the one of keyframe 2 in camera-2 coordinates, with the pixels that observed them.

@@ -39,9 +39,12 @@ int MatchedCount(const TrackedFrame& frame) {
 
 const char* TrackingStateName(TrackingState state) {
   switch (state) {
-    case TrackingState::kNotInitialized: return "not_initialized";
-    case TrackingState::kOk: return "ok";
-    case TrackingState::kLost: return "lost";
+    case TrackingState::kNotInitialized:
+      return "not_initialized";
+    case TrackingState::kOk:
+      return "ok";
+    case TrackingState::kLost:
+      return "lost";
   }
   return "unknown";
 }
@@ -112,8 +115,8 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
   }
   if (o.max_frames_between_keyframes == 0) {
     o.max_frames_between_keyframes = rate > 0 ? static_cast<int>(std::lround(rate)) : 10;
-    note("max_frames_between_keyframes", rate > 0 ? "one second of frames at the camera's frame rate"
-                                                  : "10 frames: the frame rate is unknown");
+    note("max_frames_between_keyframes",
+         rate > 0 ? "one second of frames at the camera's frame rate" : "10 frames: the frame rate is unknown");
   }
   if (mono) {
     o.motion_search_radius = o.mono_search_radius;
@@ -261,7 +264,8 @@ FrameReport Slam::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new
   } else {
     report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kOk;
     state_ = TrackingState::kOk;
-    if (last_frame_ && !report.reinitialized && !report.relocalized) velocity_ = frame.T_cam_world * last_frame_->T_cam_world.inverse();
+    if (last_frame_ && !report.reinitialized && !report.relocalized)
+      velocity_ = frame.T_cam_world * last_frame_->T_cam_world.inverse();
     FramePose pose;
     pose.t_ns = frame.t_ns;
     pose.reference = reference_keyframe_;
@@ -383,11 +387,12 @@ bool Slam::TrackWithMotion(TrackedFrame& frame) {
   if (!velocity_ || !last_frame_) return false;
   frame.T_cam_world = *velocity_ * last_frame_->T_cam_world;
   std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
-  int matches = MatchByProjection(frame, *last_frame_, map_, geometry_, options_.motion_search_radius, options_.matcher);
+  int matches =
+      MatchByProjection(frame, *last_frame_, map_, geometry_, options_.motion_search_radius, options_.matcher);
   if (matches < 20) {
     std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
-    matches = MatchByProjection(frame, *last_frame_, map_, geometry_, 2 * options_.motion_search_radius,
-                                options_.matcher);
+    matches =
+        MatchByProjection(frame, *last_frame_, map_, geometry_, 2 * options_.motion_search_radius, options_.matcher);
   }
   if (matches < 20) return false;
   // A pose carried by a sliver of the last frame's matches is more likely wrong than right:
@@ -403,8 +408,8 @@ bool Slam::TrackReferenceKeyFrame(TrackedFrame& frame) {
   // Without a motion prior, search wide around the last pose.
   frame.T_cam_world = last_frame_->T_cam_world;
   std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
-  int matches = MatchByProjection(frame, *last_frame_, map_, geometry_, 4 * options_.motion_search_radius,
-                                  options_.matcher);
+  int matches =
+      MatchByProjection(frame, *last_frame_, map_, geometry_, 4 * options_.motion_search_radius, options_.matcher);
   matches += MatchByProjection(frame, *reference, map_, geometry_, 4 * options_.motion_search_radius, options_.matcher);
   if (matches < 15) return false;
   return OptimizeFramePose(frame) >= options_.min_motion_inliers;
@@ -490,8 +495,10 @@ bool Slam::NeedKeyFrame(const TrackedFrame& frame, int inliers) const {
   for (size_t i = 0; i < frame.size(); ++i) {
     const float d = frame.keypoints.depth[i];
     if (d <= 0 || d >= close) continue;
-    if (frame.points[i].is_null()) ++untracked_close;
-    else ++tracked_close;
+    if (frame.points[i].is_null())
+      ++untracked_close;
+    else
+      ++tracked_close;
   }
   const bool need_close = tracked_close < 100 && untracked_close > 70;
   const size_t since = frame.index - last_keyframe_frame_;
@@ -576,8 +583,8 @@ KeyFrameHandle Slam::CreateKeyFrame(TrackedFrame& frame, bool all_depth_points) 
     if (frame.keypoints.depth[i] > close && considered > 100) break;
     ++considered;
     if (!frame.points[i].is_null()) continue;
-    const PointHandle p =
-        map_.AddPoint(Unproject(geometry_.camera, frame.T_cam_world, frame.keypoints.uv[i], frame.keypoints.depth[i]), h);
+    const PointHandle p = map_.AddPoint(
+        Unproject(geometry_.camera, frame.T_cam_world, frame.keypoints.uv[i], frame.keypoints.depth[i]), h);
     map_.AddObservation(p, h, i);
     map_.UpdatePointStats(p, map_scales_);
     frame.points[i] = p;

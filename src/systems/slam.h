@@ -65,18 +65,18 @@ struct SlamOptions {
   // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC. A frame whose
   // median measured depth lies beyond it keeps stereo up to that median (the scale needs them).
   double far_stereo_baselines = kFarStereoBaselines;
-  int min_init_points = 150;            // keypoints with depth needed to start a map (stereo/RGB-D)
-  int min_init_matches = 100;           // monocular: matches between the two initial frames
-  float mono_search_radius = 15;        // monocular: projection search radius, pixels x level scale
-  uint64_t seed = 1;                    // RANSAC of the monocular initialization
-  int min_motion_inliers = 10;          // after frame-to-frame tracking
-  int min_local_map_inliers = 30;       // after tracking the local map
-  float motion_search_radius = 7;       // pixels (x level scale) around the predicted position
-  int max_frames_between_keyframes = 0; // 0 = the frame rate (one second)
+  int min_init_points = 150;             // keypoints with depth needed to start a map (stereo/RGB-D)
+  int min_init_matches = 100;            // monocular: matches between the two initial frames
+  float mono_search_radius = 15;         // monocular: projection search radius, pixels x level scale
+  uint64_t seed = 1;                     // RANSAC of the monocular initialization
+  int min_motion_inliers = 10;           // after frame-to-frame tracking
+  int min_local_map_inliers = 30;        // after tracking the local map
+  float motion_search_radius = 7;        // pixels (x level scale) around the predicted position
+  int max_frames_between_keyframes = 0;  // 0 = the frame rate (one second)
   // An idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor
   // (2 monocular: forward motion thins the tracked points every frame; 0 with depth).
   int min_frames_between_keyframes = -1;
-  size_t local_keyframes = 10;          // covisible keyframes used for triangulation
+  size_t local_keyframes = 10;  // covisible keyframes used for triangulation
   // Least angle between the rays of a point triangulated from two keyframes; 0 = by sensor: 2 deg
   // monocular (depth within about 4% at a pixel of noise; on KITTI 07 it also keeps out cars
   // driving ahead, whose features look like points at infinity), 1.146 deg (ORB-SLAM2's cos 0.9998)
@@ -93,15 +93,15 @@ struct SlamOptions {
   // keyframe is made only if tracking is weak (under half the reference keyframe's points, or
   // under 50 close points). Keeps the map from growing while a place is revisited; 0 = off.
   double revisit_radius = 0.1;
-  uint32_t agent = 0;                   // stamped on every keyframe (multi-agent maps)
-  bool localization_only = false;       // track against the map without changing it (no keyframes)
+  uint32_t agent = 0;              // stamped on every keyframe (multi-agent maps)
+  bool localization_only = false;  // track against the map without changing it (no keyframes)
   // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
   const Vocabulary* vocabulary = nullptr;  // must outlive the Slam
   bool loop_closing = true;
-  bool global_bundle_adjustment = true;    // after each loop correction, in the background
-  int relocalization_frames = 10;          // lost frames spent relocalizing before a new map segment starts
-  int loop_consistency = 3;                // consecutive keyframes that must agree on a loop
-  int min_loop_matches = 40;               // map points matched across the loop after the Sim(3)/SE(3) search
+  bool global_bundle_adjustment = true;  // after each loop correction, in the background
+  int relocalization_frames = 10;        // lost frames spent relocalizing before a new map segment starts
+  int loop_consistency = 3;              // consecutive keyframes that must agree on a loop
+  int min_loop_matches = 40;             // map points matched across the loop after the Sim(3)/SE(3) search
   InjectedFault inject_fault = InjectedFault::kNone;  // tests only (see InjectedFault)
 
   // The first requirement a field breaks, as its condition's text (empty: valid).
@@ -142,13 +142,13 @@ bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFram
 
 // One loop closure, for the run summary and tests.
 struct LoopClosure {
-  size_t frame_index = 0;        // input frame of the keyframe that closed the loop
-  size_t matched_frame_index = 0;  // input frame of the keyframe it matched
+  size_t frame_index = 0;              // input frame of the keyframe that closed the loop
+  size_t matched_frame_index = 0;      // input frame of the keyframe it matched
   int64_t t_ns = 0, matched_t_ns = 0;  // their timestamps
-  int matches = 0;               // map points matched across the loop
-  double scale = 1;              // Sim(3) scale of the correction (1 for stereo/RGB-D)
-  double correction_m = 0;       // how far the closing keyframe moved
-  double correction_ms = 0;      // fusion + essential graph
+  int matches = 0;                     // map points matched across the loop
+  double scale = 1;                    // Sim(3) scale of the correction (1 for stereo/RGB-D)
+  double correction_m = 0;             // how far the closing keyframe moved
+  double correction_ms = 0;            // fusion + essential graph
 };
 [[nodiscard]] const char* TrackingStateName(TrackingState state);
 
@@ -161,11 +161,11 @@ struct FrameReport {
   bool reinitialized = false;  // tracking was lost and a new map segment started here
   bool relocalized = false;    // tracking was lost and resumed in the existing map here
   int features = 0;
-  int stereo_points = 0;       // keypoints with depth
-  int matches = 0;             // map points matched before the final pose optimization
+  int stereo_points = 0;  // keypoints with depth
+  int matches = 0;        // map points matched before the final pose optimization
   int inliers = 0;
-  size_t map_keyframes = 0;    // keyframes in the map after this frame
-  size_t map_points = 0;       // map points after this frame
+  size_t map_keyframes = 0;  // keyframes in the map after this frame
+  size_t map_points = 0;     // map points after this frame
   double extract_ms = 0;
   double track_ms = 0;
   // The frame's image could not be read; it was never given to tracking (see SlamRunOptions).
@@ -176,13 +176,13 @@ struct FrameReport {
 
 // Where local mapping spends its time, summed over the keyframes it mapped (milliseconds).
 struct MappingTimes {
-  size_t keyframes = 0;        // keyframes mapped
-  double prepare_ms = 0;       // point statistics, covisibility, recent-point culling, copies
-  double triangulate_ms = 0;   // bag of words and new points against the neighbours (no lock)
-  double fuse_ms = 0;          // adding the new points, fusing duplicates
-  double local_ba_ms = 0;      // local bundle adjustment (solved without the lock)
-  double cull_ms = 0;          // redundant keyframes
-  double place_ms = 0;         // keyframe database, loop detection and correction
+  size_t keyframes = 0;               // keyframes mapped
+  double prepare_ms = 0;              // point statistics, covisibility, recent-point culling, copies
+  double triangulate_ms = 0;          // bag of words and new points against the neighbours (no lock)
+  double fuse_ms = 0;                 // adding the new points, fusing duplicates
+  double local_ba_ms = 0;             // local bundle adjustment (solved without the lock)
+  double cull_ms = 0;                 // redundant keyframes
+  double place_ms = 0;                // keyframe database, loop detection and correction
   size_t local_ba_stopped_early = 0;  // adjustments ended early for a waiting keyframe
 };
 
@@ -318,7 +318,7 @@ class Slam {
   size_t segment_keyframes_ = 0;  // keyframes made since the current map segment started
   std::vector<KeyFrameHandle> local_keyframes_;
   std::vector<PointHandle> local_points_;
-  int last_inliers_ = 0;  // of the last frame's local-map tracking
+  int last_inliers_ = 0;   // of the last frame's local-map tracking
   size_t next_frame_ = 0;  // input index after the last frame tracked (under map_mutex_)
   // One per tracked frame, for the trajectory (written by Track under map_mutex_). Fixed chunks
   // that never move: no doubling's unused half in a long session, and a checkpoint reads them
@@ -343,7 +343,7 @@ class Slam {
   int lost_frames_ = 0;
   bool force_lost_ = false;
   bool allow_new_segments_ = true;  // false on an adopted map and in localization-only mode
-  bool map_corrected_ = false;  // a loop correction moved keyframes: refresh the last frame's pose
+  bool map_corrected_ = false;      // a loop correction moved keyframes: refresh the last frame's pose
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;

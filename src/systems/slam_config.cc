@@ -131,11 +131,16 @@ const char* TypeName(const Field& field) {
   return std::visit(
       [](auto* p) -> const char* {
         using T = std::remove_pointer_t<decltype(p)>;
-        if constexpr (std::is_same_v<T, bool>) return "true or false";
-        else if constexpr (std::is_same_v<T, BaSolver>) return "schur_lm or ceres";
-        else if constexpr (std::is_floating_point_v<T>) return "a real number";
-        else if constexpr (std::is_signed_v<T>) return "an integer";
-        else return "a non-negative integer";
+        if constexpr (std::is_same_v<T, bool>)
+          return "true or false";
+        else if constexpr (std::is_same_v<T, BaSolver>)
+          return "schur_lm or ceres";
+        else if constexpr (std::is_floating_point_v<T>)
+          return "a real number";
+        else if constexpr (std::is_signed_v<T>)
+          return "an integer";
+        else
+          return "a non-negative integer";
       },
       field);
 }
@@ -210,13 +215,16 @@ std::vector<std::string> DescribeSlamOptions(const SlamOptions& options, std::sp
     std::visit(
         [&](auto* p) {
           using T = std::remove_pointer_t<decltype(p)>;
-          if constexpr (std::is_same_v<T, bool>) line << (*p ? "true" : "false");
-          else if constexpr (std::is_same_v<T, BaSolver>) line << (*p == BaSolver::kCeres ? "ceres" : "schur_lm");
+          if constexpr (std::is_same_v<T, bool>)
+            line << (*p ? "true" : "false");
+          else if constexpr (std::is_same_v<T, BaSolver>)
+            line << (*p == BaSolver::kCeres ? "ceres" : "schur_lm");
           else if constexpr (std::is_floating_point_v<T>) {
             char buffer[64];  // shortest text that reads back as the same value
             const auto result = std::to_chars(buffer, buffer + sizeof(buffer), *p);
             line << std::string_view(buffer, result.ptr - buffer);
-          } else line << *p;
+          } else
+            line << *p;
         },
         entry.field(copy));
     out.push_back(line.str());

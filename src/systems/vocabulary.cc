@@ -711,15 +711,33 @@ Vocabulary Vocabulary::Load(const std::filesystem::path& path) {
   return Vocabulary(std::move(impl));
 }
 
-bool Vocabulary::empty() const { return impl_ == nullptr; }
-int Vocabulary::branching() const { return impl_ ? static_cast<int>(impl_->tree.branching) : 0; }
-int Vocabulary::levels() const { return impl_ ? static_cast<int>(impl_->tree.levels) : 0; }
-size_t Vocabulary::word_count() const { return impl_ ? impl_->tree.word_count : 0; }
-size_t Vocabulary::node_count() const { return impl_ ? impl_->tree.node_count : 0; }
-uint64_t Vocabulary::checksum() const { return impl_ ? impl_->checksum : 0; }
-uint64_t Vocabulary::training_descriptors() const { return impl_ ? impl_->tree.training_descriptors : 0; }
-uint64_t Vocabulary::training_images() const { return impl_ ? impl_->tree.training_images : 0; }
-size_t Vocabulary::byte_size() const { return impl_ ? impl_->size : 0; }
+bool Vocabulary::empty() const {
+  return impl_ == nullptr;
+}
+int Vocabulary::branching() const {
+  return impl_ ? static_cast<int>(impl_->tree.branching) : 0;
+}
+int Vocabulary::levels() const {
+  return impl_ ? static_cast<int>(impl_->tree.levels) : 0;
+}
+size_t Vocabulary::word_count() const {
+  return impl_ ? impl_->tree.word_count : 0;
+}
+size_t Vocabulary::node_count() const {
+  return impl_ ? impl_->tree.node_count : 0;
+}
+uint64_t Vocabulary::checksum() const {
+  return impl_ ? impl_->checksum : 0;
+}
+uint64_t Vocabulary::training_descriptors() const {
+  return impl_ ? impl_->tree.training_descriptors : 0;
+}
+uint64_t Vocabulary::training_images() const {
+  return impl_ ? impl_->tree.training_images : 0;
+}
+size_t Vocabulary::byte_size() const {
+  return impl_ ? impl_->size : 0;
+}
 
 float Vocabulary::weight(WordId word) const {
   FLATSLAM_CHECK(impl_ && word < impl_->tree.word_count, "Vocabulary::weight: word ", word, " out of range (",

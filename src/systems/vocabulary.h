@@ -23,8 +23,8 @@ namespace flatslam {
 
 struct VocabularyTrainOptions {
   int branching = 10;
-  int levels = 6;            // depth of the leaves below the root
-  int max_iterations = 10;   // k-majority iterations per cluster
+  int levels = 6;           // depth of the leaves below the root
+  int max_iterations = 10;  // k-majority iterations per cluster
   uint64_t seed = 1;
   // Called with (descriptors settled in a word, descriptors in all) as training proceeds, from
   // worker threads one call at a time; may be empty.
@@ -59,8 +59,7 @@ class Vocabulary {
   // order; word_weights has one positive weight per leaf. Throws flatslam::Error when the arrays
   // do not describe a consistent tree.
   [[nodiscard]] static Vocabulary FromNodes(int branching, int levels, std::span<const Descriptor> node_descriptors,
-                                            std::span<const uint8_t> child_counts,
-                                            std::span<const float> word_weights);
+                                            std::span<const uint8_t> child_counts, std::span<const float> word_weights);
   // Slots of the implicit array of a tree with this branching and depth: (B^(L+1) - 1) / (B - 1).
   [[nodiscard]] static size_t node_count_for(int branching, int levels);
 

@@ -57,7 +57,9 @@ RpeResult RpeFromPairs(const std::vector<Eigen::Isometry3d>& gt, const std::vect
   return result;
 }
 
-int64_t SecondsToNs(double seconds) { return std::llround(seconds * 1e9); }
+int64_t SecondsToNs(double seconds) {
+  return std::llround(seconds * 1e9);
+}
 
 }  // namespace
 
@@ -65,8 +67,7 @@ bool AssociationOptions::Check() const {
   return std::isfinite(max_diff_s) && max_diff_s >= 0 && std::isfinite(est_offset_s);
 }
 
-std::vector<IndexPair> AssociateByTime(const Trajectory& gt, const Trajectory& est,
-                                       const AssociationOptions& options) {
+std::vector<IndexPair> AssociateByTime(const Trajectory& gt, const Trajectory& est, const AssociationOptions& options) {
   FLATSLAM_CHECK(options.Check(), "AssociateByTime: invalid options (max_diff_s ", options.max_diff_s,
                  ", est_offset_s ", options.est_offset_s, ")");
   FLATSLAM_CHECK(!gt.empty(), "AssociateByTime: the ground truth has no poses");
@@ -83,8 +84,7 @@ std::vector<IndexPair> AssociateByTime(const Trajectory& gt, const Trajectory& e
   // Long timestamps sorted, stable so that equal times keep file order (argmin takes the first).
   std::vector<std::pair<int64_t, size_t>> sorted(long_traj.size());
   for (size_t k = 0; k < long_traj.size(); ++k) sorted[k] = {long_traj[k].t_ns + long_offset, k};
-  std::stable_sort(sorted.begin(), sorted.end(),
-                   [](const auto& a, const auto& b) { return a.first < b.first; });
+  std::stable_sort(sorted.begin(), sorted.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
   auto first_with_time = [&](int64_t t) {
     return std::lower_bound(sorted.begin(), sorted.end(), t,
                             [](const auto& entry, int64_t value) { return entry.first < value; });
@@ -119,9 +119,12 @@ std::vector<IndexPair> AssociateByIndex(const Trajectory& gt, const Trajectory& 
 
 const char* AlignmentName(Alignment alignment) {
   switch (alignment) {
-    case Alignment::kNone: return "none";
-    case Alignment::kSE3: return "se3";
-    case Alignment::kSim3: return "sim3";
+    case Alignment::kNone:
+      return "none";
+    case Alignment::kSE3:
+      return "se3";
+    case Alignment::kSim3:
+      return "sim3";
   }
   return "?";
 }

@@ -69,8 +69,7 @@ struct AlignmentResult {
 
 // Umeyama least squares (Eigen::umeyama) of est_positions onto gt_positions, same length.
 [[nodiscard]] AlignmentResult AlignUmeyama(const std::vector<Eigen::Vector3d>& gt_positions,
-                                           const std::vector<Eigen::Vector3d>& est_positions,
-                                           Alignment alignment);
+                                           const std::vector<Eigen::Vector3d>& est_positions, Alignment alignment);
 
 // ---- Error statistics ----
 
@@ -90,7 +89,7 @@ struct ErrorStats {
                                     const std::vector<Eigen::Isometry3d>& est);
 
 struct RpeResult {
-  size_t pairs = 0;         // number of (i, j) pose pairs compared
+  size_t pairs = 0;          // number of (i, j) pose pairs compared
   ErrorStats translation_m;  // |t| of E = (gt_i^-1 gt_j)^-1 (est_i^-1 est_j)
   ErrorStats rotation_deg;   // rotation angle of E
 };
@@ -116,9 +115,9 @@ struct KittiMetricResult {
   // False when no segment fits (ground-truth path shorter than the shortest length).
   bool available = false;
   size_t segments = 0;
-  double path_length_m = 0;           // length of the ground-truth path
-  double t_rel_percent = 0;           // mean over segments of t_err / length, in %
-  double r_rel_deg_per_100m = 0;      // mean over segments of r_err / length, in deg per 100 m
+  double path_length_m = 0;       // length of the ground-truth path
+  double t_rel_percent = 0;       // mean over segments of t_err / length, in %
+  double r_rel_deg_per_100m = 0;  // mean over segments of r_err / length, in deg per 100 m
 };
 
 // The KITTI odometry devkit's metric: for each start frame (every step_frames) and length L,

@@ -103,7 +103,9 @@ bool IsUnsignedInteger(std::string_view s) {
 }
 
 // Names a place in a file for error messages: "path:line".
-std::string Where(const fs::path& path, size_t line) { return path.string() + ":" + std::to_string(line); }
+std::string Where(const fs::path& path, size_t line) {
+  return path.string() + ":" + std::to_string(line);
+}
 
 double NumberAt(const fs::path& path, const DataLine& line, std::string_view token, const char* what) {
   auto value = ParseFiniteDouble(token);
@@ -111,8 +113,8 @@ double NumberAt(const fs::path& path, const DataLine& line, std::string_view tok
   return *value;
 }
 
-Eigen::Quaterniond NormalizedQuaternion(const fs::path& path, const DataLine& line, double w, double x,
-                                        double y, double z) {
+Eigen::Quaterniond NormalizedQuaternion(const fs::path& path, const DataLine& line, double w, double x, double y,
+                                        double z) {
   Eigen::Quaterniond q(w, x, y, z);
   const double norm = q.norm();
   if (!(norm > 1e-9)) Fail(Where(path, line.number), ": zero quaternion (norm ", norm, ")");
@@ -134,8 +136,7 @@ std::string Lowercase(std::string s) {
 void CheckWritable(const fs::path& path, const Trajectory& trajectory) {
   FLATSLAM_CHECK(!trajectory.empty(), path.string(), ": refusing to write an empty trajectory");
   for (size_t i = 0; i < trajectory.size(); ++i) {
-    FLATSLAM_CHECK(trajectory[i].T_world_cam.matrix().allFinite(), path.string(), ": pose ", i,
-                   " is not finite");
+    FLATSLAM_CHECK(trajectory[i].T_world_cam.matrix().allFinite(), path.string(), ": pose ", i, " is not finite");
   }
 }
 
@@ -143,17 +144,20 @@ void CheckWritable(const fs::path& path, const Trajectory& trajectory) {
 
 const char* TrajectoryFormatName(TrajectoryFormat format) {
   switch (format) {
-    case TrajectoryFormat::kAuto: return "auto";
-    case TrajectoryFormat::kTum: return "tum";
-    case TrajectoryFormat::kKitti: return "kitti";
-    case TrajectoryFormat::kEuroc: return "euroc";
+    case TrajectoryFormat::kAuto:
+      return "auto";
+    case TrajectoryFormat::kTum:
+      return "tum";
+    case TrajectoryFormat::kKitti:
+      return "kitti";
+    case TrajectoryFormat::kEuroc:
+      return "euroc";
   }
   return "?";
 }
 
 std::optional<TrajectoryFormat> ParseTrajectoryFormat(std::string_view name) {
-  for (auto f : {TrajectoryFormat::kAuto, TrajectoryFormat::kTum, TrajectoryFormat::kKitti,
-                 TrajectoryFormat::kEuroc}) {
+  for (auto f : {TrajectoryFormat::kAuto, TrajectoryFormat::kTum, TrajectoryFormat::kKitti, TrajectoryFormat::kEuroc}) {
     if (name == TrajectoryFormatName(f)) return f;
   }
   return std::nullopt;
@@ -225,8 +229,8 @@ std::string FormatNsAsSeconds(int64_t t_ns) {
   const bool negative = t_ns < 0;
   const uint64_t magnitude = negative ? uint64_t{0} - static_cast<uint64_t>(t_ns) : static_cast<uint64_t>(t_ns);
   char buffer[48];
-  std::snprintf(buffer, sizeof(buffer), "%s%" PRIu64 ".%09" PRIu64, negative ? "-" : "",
-                magnitude / 1000000000u, magnitude % 1000000000u);
+  std::snprintf(buffer, sizeof(buffer), "%s%" PRIu64 ".%09" PRIu64, negative ? "-" : "", magnitude / 1000000000u,
+                magnitude % 1000000000u);
   return buffer;
 }
 
@@ -256,8 +260,7 @@ Trajectory ReadTum(const fs::path& path) {
   Trajectory trajectory;
   for (const DataLine& line : ReadDataLines(path)) {
     const auto f = SplitLoose(line.text);
-    if (f.size() != 8)
-      Fail(Where(path, line.number), ": expected 8 numbers (t tx ty tz qx qy qz qw), got ", f.size());
+    if (f.size() != 8) Fail(Where(path, line.number), ": expected 8 numbers (t tx ty tz qx qy qz qw), got ", f.size());
     const auto t_ns = ParseSecondsToNs(f[0]);
     CheckTimesAreFinite(path, line, f[0], t_ns);
     double v[8];
@@ -278,8 +281,7 @@ Trajectory ReadKitti(const fs::path& path, const std::vector<int64_t>& times_ns,
   Trajectory trajectory;
   for (const DataLine& line : ReadDataLines(path)) {
     const auto f = SplitLoose(line.text);
-    if (f.size() != 12)
-      Fail(Where(path, line.number), ": expected 12 numbers (3x4 row-major pose), got ", f.size());
+    if (f.size() != 12) Fail(Where(path, line.number), ": expected 12 numbers (3x4 row-major pose), got ", f.size());
     Eigen::Matrix<double, 3, 4> m;
     for (int k = 0; k < 12; ++k) m(k / 4, k % 4) = NumberAt(path, line, f[k], "value");
     const Eigen::Matrix3d r = m.leftCols<3>();
@@ -296,8 +298,8 @@ Trajectory ReadKitti(const fs::path& path, const std::vector<int64_t>& times_ns,
     trajectory.push_back(pose);
   }
   if (!times_ns.empty()) {
-    FLATSLAM_CHECK(times_ns.size() == trajectory.size(), path.string(), ": ", trajectory.size(),
-                   " poses but ", times_ns.size(), " timestamps");
+    FLATSLAM_CHECK(times_ns.size() == trajectory.size(), path.string(), ": ", trajectory.size(), " poses but ",
+                   times_ns.size(), " timestamps");
     for (size_t i = 0; i < trajectory.size(); ++i) trajectory[i].t_ns = times_ns[i];
   }
   return trajectory;
@@ -312,8 +314,10 @@ Trajectory ReadEuroc(const fs::path& path) {
     // A header without the leading '#' ("timestamp,p_x,...") is skipped.
     if (n == 0 && !f.front().empty() && std::isalpha(static_cast<unsigned char>(f.front().front()))) continue;
     if (f.size() < 8)
-      Fail(Where(path, line.number), ": expected at least 8 comma-separated values "
-           "(timestamp_ns, px, py, pz, qw, qx, qy, qz), got ", f.size());
+      Fail(Where(path, line.number),
+           ": expected at least 8 comma-separated values "
+           "(timestamp_ns, px, py, pz, qw, qx, qy, qz), got ",
+           f.size());
     if (!IsUnsignedInteger(f[0]))
       Fail(Where(path, line.number), ": timestamp '", f[0], "' is not an integer number of nanoseconds");
     int64_t t_ns = 0;
@@ -351,13 +355,17 @@ Trajectory ReadTrajectory(const fs::path& path, const TrajectoryReadOptions& opt
   TrajectoryFormat format = options.format;
   if (format == TrajectoryFormat::kAuto) format = DetectTrajectoryFormat(path);
   FLATSLAM_CHECK(format == TrajectoryFormat::kKitti || options.kitti_times_ns.empty(), path.string(),
-                 ": timestamps were given, but only KITTI files take them (this is ",
-                 TrajectoryFormatName(format), ")");
+                 ": timestamps were given, but only KITTI files take them (this is ", TrajectoryFormatName(format),
+                 ")");
   switch (format) {
-    case TrajectoryFormat::kTum: return ReadTum(path);
-    case TrajectoryFormat::kKitti: return ReadKitti(path, options.kitti_times_ns, options.kitti_frame_rate_hz);
-    case TrajectoryFormat::kEuroc: return ReadEuroc(path);
-    case TrajectoryFormat::kAuto: break;
+    case TrajectoryFormat::kTum:
+      return ReadTum(path);
+    case TrajectoryFormat::kKitti:
+      return ReadKitti(path, options.kitti_times_ns, options.kitti_frame_rate_hz);
+    case TrajectoryFormat::kEuroc:
+      return ReadEuroc(path);
+    case TrajectoryFormat::kAuto:
+      break;
   }
   Fail(path.string(), ": unknown trajectory format");
 }

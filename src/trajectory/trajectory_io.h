@@ -45,13 +45,11 @@ struct TrajectoryReadOptions {
 // Reads any supported format. Every parse error names the file, the line and what is
 // wrong ("poses.txt:17: expected 12 numbers, got 11"); a file without poses is an error.
 // Quaternions are normalized; a zero quaternion is an error.
-[[nodiscard]] Trajectory ReadTrajectory(const std::filesystem::path& path,
-                                        const TrajectoryReadOptions& options = {});
+[[nodiscard]] Trajectory ReadTrajectory(const std::filesystem::path& path, const TrajectoryReadOptions& options = {});
 
 [[nodiscard]] Trajectory ReadTum(const std::filesystem::path& path);
 // times_ns: one per pose, or empty to use index / frame_rate_hz.
-[[nodiscard]] Trajectory ReadKitti(const std::filesystem::path& path,
-                                   const std::vector<int64_t>& times_ns = {},
+[[nodiscard]] Trajectory ReadKitti(const std::filesystem::path& path, const std::vector<int64_t>& times_ns = {},
                                    double frame_rate_hz = 10.0);
 [[nodiscard]] Trajectory ReadEuroc(const std::filesystem::path& path);
 // KITTI times.txt: one time in seconds per line.

@@ -75,7 +75,7 @@ TEST(FlatslamCli, SynthWritesWhatInfoReadsAndEvalScores) {
 TEST(FlatslamCli, EvalReproducesPublishedAte) {
   const auto traj = testing::DatasetsDir() / "trajectories";
   Result r = RunApp("eval " + (traj / "fr2_desk_ORB.txt").string() + " " +
-                 (traj / "fr2_desk_groundtruth.txt").string() + " --align se3 --json");
+                    (traj / "fr2_desk_groundtruth.txt").string() + " --align se3 --json");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(Contains(r.output, "2225")) << r.output;
   EXPECT_TRUE(Contains(r.output, "0.0081")) << r.output;

@@ -35,8 +35,9 @@ class MapCli : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = testing::FreshTempDir("map_cli");
-    run_ = RunApp("run synth:room:duration=6,width=480,height=360 --deterministic --quiet --vocabulary none --save-map " +
-                  (dir_ / "room.fsmap").string());
+    run_ =
+        RunApp("run synth:room:duration=6,width=480,height=360 --deterministic --quiet --vocabulary none --save-map " +
+               (dir_ / "room.fsmap").string());
   }
   static void TearDownTestSuite() { fs::remove_all(dir_); }
   static fs::path dir_;
@@ -57,8 +58,9 @@ TEST_F(MapCli, RunSavesAMapThatVerifies) {
 TEST_F(MapCli, InfoPrintsCountsAgentsBoundsAndVersion) {
   const Result r = RunApp("map info " + (dir_ / "room.fsmap").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  for (const char* part : {"format        version 1", "vocabulary    checksum 0000000000000000 (none)", "maps          1",
-                           "agents [0]", "keyframes", "map points", "bounding box [", "MiB", "sensor        stereo"})
+  for (const char* part :
+       {"format        version 1", "vocabulary    checksum 0000000000000000 (none)", "maps          1", "agents [0]",
+        "keyframes", "map points", "bounding box [", "MiB", "sensor        stereo"})
     EXPECT_TRUE(Contains(r.output, part)) << part << " missing in:\n" << r.output;
 }
 

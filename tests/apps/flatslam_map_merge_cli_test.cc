@@ -32,14 +32,13 @@ class MapMergeCli : public ::testing::Test {
   static void SetUpTestSuite() {
     dir_ = testing::FreshTempDir("map_merge_cli");
     const std::string common = " --deterministic --quiet --save-map ";
-    setup_ = RunApp("run synth:room:duration=6,width=480,height=360 --agent 0" + common + path("room1")).output +
-             RunApp("run synth:room:duration=6,width=480,height=360,seed=2 --agent 1" + common + path("room2")).output +
-             RunApp("run synth:street:duration=6,width=480,height=360,baseline=0.12 --agent 2" + common +
-                    path("street"))
-                 .output +
-             RunApp("run synth:room:duration=3,width=640,height=480" + common + path("room640")).output +
-             RunApp("run synth:room:duration=3,width=480,height=360 --vocabulary none" + common + path("novocab"))
-                 .output;
+    setup_ =
+        RunApp("run synth:room:duration=6,width=480,height=360 --agent 0" + common + path("room1")).output +
+        RunApp("run synth:room:duration=6,width=480,height=360,seed=2 --agent 1" + common + path("room2")).output +
+        RunApp("run synth:street:duration=6,width=480,height=360,baseline=0.12 --agent 2" + common + path("street"))
+            .output +
+        RunApp("run synth:room:duration=3,width=640,height=480" + common + path("room640")).output +
+        RunApp("run synth:room:duration=3,width=480,height=360 --vocabulary none" + common + path("novocab")).output;
   }
   static void TearDownTestSuite() { fs::remove_all(dir_); }
   static std::string path(const std::string& name) { return (dir_ / (name + ".fsmap")).string(); }
@@ -57,8 +56,8 @@ TEST_F(MapMergeCli, JoinsOverlappingMapsAndKeepsOthersApart) {
   for (const char* name : {"room1", "room2", "street"}) ASSERT_TRUE(fs::exists(path(name))) << setup_;
   const std::string before1 = ReadBytes(path("room1")), before2 = ReadBytes(path("room2")),
                     before3 = ReadBytes(path("street"));
-  const Result r = RunApp("map merge " + path("room1") + " " + path("room2") + " " + path("street") + " -o " +
-                          path("merged"));
+  const Result r =
+      RunApp("map merge " + path("room1") + " " + path("room2") + " " + path("street") + " -o " + path("merged"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
   for (const char* part : {"pairs verified", "transform", "points fused", "output map 0   inputs 0+1, agents [0,1]",
                            "output map 1   inputs 2, agents [2]", "kept separate", "2 maps", "time"})

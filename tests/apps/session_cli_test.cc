@@ -104,7 +104,9 @@ fs::path CopyKitti06(const fs::path& root) {
   return root / "sequences" / "06";
 }
 
-void Truncate(const fs::path& file, size_t bytes) { fs::resize_file(file, bytes); }
+void Truncate(const fs::path& file, size_t bytes) {
+  fs::resize_file(file, bytes);
+}
 
 TEST(SessionCli, UnreadableFramesAreSkippedAndTheSessionKeepsItsResults) {
   const fs::path dir = FreshTempDir("session_bad_frames");
@@ -212,7 +214,8 @@ TEST(SessionCli, KilledRunResumesFromItsLastCheckpoint) {
 
   const auto reference = RunApp("run " + scene + " --quiet --out " + (dir / "reference").string());
   ASSERT_EQ(reference.exit_code, 0) << reference.output;
-  const double reference_ate = testing::ScoreTrajectory(gt, ReadTum(dir / "reference" / "trajectory.tum")).se3.ate_m.rmse;
+  const double reference_ate =
+      testing::ScoreTrajectory(gt, ReadTum(dir / "reference" / "trajectory.tum")).se3.ate_m.rmse;
   std::printf("uninterrupted: ATE %.4f m over %zu frames\n", reference_ate, frames);
 
   std::mt19937 rng(11242026);
@@ -275,8 +278,8 @@ TEST(SessionCli, BackgroundFailuresBecomeWarnings) {
     SCOPED_TRACE(c.fault);
     const fs::path out = dir / c.fault;
     const auto run = testing::RunCommand(std::string("FLATSLAM_INJECT_FAULT=") + c.fault + " " + testing::AppPath() +
-                                         " run synth:room:width=480,height=360,duration=" + std::to_string(c.seconds) + " --quiet --out " +
-                                         out.string() + " --checkpoint-every 1 --checkpoint " +
+                                         " run synth:room:width=480,height=360,duration=" + std::to_string(c.seconds) +
+                                         " --quiet --out " + out.string() + " --checkpoint-every 1 --checkpoint " +
                                          (dir / (std::string(c.fault) + ".fsmap")).string());
     EXPECT_EQ(run.exit_code, 0) << run.output;
     EXPECT_TRUE(Contains(run.output, c.warning)) << run.output;

@@ -20,8 +20,8 @@ TEST(ObjectPool, ReleasedObjectsAreReusedWithTheirCapacity) {
   }
   EXPECT_EQ(pool.idle(), 1u);
   auto again = pool.Acquire();
-  EXPECT_EQ(again.get(), first);          // the same object comes back
-  EXPECT_GE(again->capacity(), 1000u);    // with its buffer
+  EXPECT_EQ(again.get(), first);        // the same object comes back
+  EXPECT_GE(again->capacity(), 1000u);  // with its buffer
   EXPECT_EQ(pool.idle(), 0u);
 }
 

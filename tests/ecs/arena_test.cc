@@ -201,8 +201,7 @@ TEST(Arena, EraseIfRemovesMatching) {
   Arena<Point> arena;
   std::vector<Handle<Point>> handles;
   for (uint64_t i = 0; i < 1000; ++i) handles.push_back(arena.create(Point{i}));
-  const size_t erased =
-      arena.erase_if([](Handle<Point>, const Point& p) { return p.id % 3 != 1; });
+  const size_t erased = arena.erase_if([](Handle<Point>, const Point& p) { return p.id % 3 != 1; });
   EXPECT_EQ(erased, 667u);
   EXPECT_EQ(arena.size(), 333u);
   for (uint64_t i = 0; i < 1000; ++i) {
@@ -318,8 +317,7 @@ TEST(Arena, MatchesReferenceModelUnderRandomOps) {
       // A small erase_if sweep over ids with a given residue.
       const uint64_t residue = rng() % 64;
       const size_t before = arena.size();
-      const size_t erased = arena.erase_if(
-          [&](Handle<Point>, const Point& p) { return p.id % 64 == residue; });
+      const size_t erased = arena.erase_if([&](Handle<Point>, const Point& p) { return p.id % 64 == residue; });
       for (size_t k = live.size(); k-- > 0;) {
         if (model[live[k]] % 64 != residue) continue;
         const Handle<Point> h = live[k];
@@ -478,9 +476,9 @@ TEST(SlotTable, ExhaustedGenerationRetiresSlot) {
 
 TEST(SlotTable, ClearRetiresExhaustedSlots) {
   detail::SlotTable table;
-  const uint32_t live_last = table.acquire();   // live at the last usable generation
-  const uint32_t free_last = table.acquire();   // free, next generation is the last
-  const uint32_t retired = table.acquire();     // already retired
+  const uint32_t live_last = table.acquire();  // live at the last usable generation
+  const uint32_t free_last = table.acquire();  // free, next generation is the last
+  const uint32_t retired = table.acquire();    // already retired
   const uint32_t ordinary = table.acquire();
   table[live_last] = {detail::kMaxGeneration - 1, 0};
   table[free_last] = {detail::kMaxGeneration - 2, 0};

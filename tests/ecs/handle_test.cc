@@ -76,9 +76,8 @@ TEST(Handle, EqualityComparesIndexAndGeneration) {
 }
 
 TEST(Handle, PackedRoundTrip) {
-  const std::vector<KeyFrameHandle> handles = {
-      KeyFrameHandle(0, 0), KeyFrameHandle(1, 0), KeyFrameHandle(0, 1),
-      KeyFrameHandle(0xfffffffeu, 0xffffffffu), KeyFrameHandle::null()};
+  const std::vector<KeyFrameHandle> handles = {KeyFrameHandle(0, 0), KeyFrameHandle(1, 0), KeyFrameHandle(0, 1),
+                                               KeyFrameHandle(0xfffffffeu, 0xffffffffu), KeyFrameHandle::null()};
   for (const auto& h : handles) {
     EXPECT_EQ(KeyFrameHandle::from_packed(h.packed()), h) << h;
   }
@@ -93,13 +92,11 @@ TEST(Handle, OrdersByIndexThenGeneration) {
   // The null handle has the largest index, so it sorts last.
   EXPECT_LT(KeyFrameHandle(0xfffffffeu, 0xffffffffu), KeyFrameHandle::null());
 
-  std::vector<KeyFrameHandle> handles = {KeyFrameHandle(2, 1), KeyFrameHandle::null(),
-                                         KeyFrameHandle(0, 5), KeyFrameHandle(2, 0),
-                                         KeyFrameHandle(1, 1)};
+  std::vector<KeyFrameHandle> handles = {KeyFrameHandle(2, 1), KeyFrameHandle::null(), KeyFrameHandle(0, 5),
+                                         KeyFrameHandle(2, 0), KeyFrameHandle(1, 1)};
   std::sort(handles.begin(), handles.end());
-  const std::vector<KeyFrameHandle> expected = {KeyFrameHandle(0, 5), KeyFrameHandle(1, 1),
-                                                KeyFrameHandle(2, 0), KeyFrameHandle(2, 1),
-                                                KeyFrameHandle::null()};
+  const std::vector<KeyFrameHandle> expected = {KeyFrameHandle(0, 5), KeyFrameHandle(1, 1), KeyFrameHandle(2, 0),
+                                                KeyFrameHandle(2, 1), KeyFrameHandle::null()};
   EXPECT_EQ(handles, expected);
 }
 

@@ -134,10 +134,10 @@ TEST(Map, BindMatchedPointsFusesOrObserves) {
   const KeyFrame& k = f.map.keyframe(kf);
   EXPECT_FALSE(f.map.points().contains(own));  // fused into point 0
   EXPECT_EQ(k.points[0], f.pts[0]);
-  EXPECT_EQ(k.points[1], f.pts[1]);           // a free keypoint now observes point 1
-  EXPECT_TRUE(k.points[3].is_null());         // point 3 is seen at keypoint 4 already
+  EXPECT_EQ(k.points[1], f.pts[1]);    // a free keypoint now observes point 1
+  EXPECT_TRUE(k.points[3].is_null());  // point 3 is seen at keypoint 4 already
   EXPECT_EQ(k.points[4], f.pts[3]);
-  EXPECT_TRUE(k.points[5].is_null());         // an erased match binds nothing
+  EXPECT_TRUE(k.points[5].is_null());  // an erased match binds nothing
   EXPECT_EQ(f.map.point(f.pts[0]).observations.size(), 3u);
   EXPECT_EQ(f.map.Validate(), "");
 }
@@ -148,7 +148,7 @@ TEST(Map, PointStatsFromObservations) {
   f.map.UpdatePointStats(f.pts[0], scales);
   const MapPoint& p = f.map.point(f.pts[0]);
   EXPECT_NEAR(p.normal.norm(), 1.0, 1e-12);
-  EXPECT_GT(p.normal.z(), 0.9);  // cameras sit at z = 0 looking at z = 5
+  EXPECT_GT(p.normal.z(), 0.9);            // cameras sit at z = 0 looking at z = 5
   EXPECT_NEAR(p.max_distance, 5.0, 1e-5);  // reference kf 0 at the origin, octave 0
   EXPECT_NEAR(p.min_distance, 5.0 / std::pow(1.2, 7), 1e-4);
 }

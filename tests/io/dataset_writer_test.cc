@@ -23,12 +23,13 @@ void ExpectSamePoses(const Trajectory& a, const Trajectory& b) {
   ASSERT_EQ(a.size(), b.size());
   for (size_t i = 0; i < a.size(); ++i) {
     EXPECT_EQ(a[i].t_ns, b[i].t_ns) << "pose " << i;
-    EXPECT_LT((a[i].T_world_cam.matrix() - b[i].T_world_cam.matrix()).cwiseAbs().maxCoeff(), 1e-9)
-        << "pose " << i;
+    EXPECT_LT((a[i].T_world_cam.matrix() - b[i].T_world_cam.matrix()).cwiseAbs().maxCoeff(), 1e-9) << "pose " << i;
   }
 }
 
-double MaxDiff(const cv::Mat& a, const cv::Mat& b) { return cv::norm(a, b, cv::NORM_INF); }
+double MaxDiff(const cv::Mat& a, const cv::Mat& b) {
+  return cv::norm(a, b, cv::NORM_INF);
+}
 
 TEST(DatasetWriter, KittiStereoRoundTrip) {
   const auto source = SmallScene("stereo");

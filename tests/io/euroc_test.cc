@@ -22,7 +22,9 @@ namespace fs = std::filesystem;
 
 using testing::ExpectErrorMentions;
 
-fs::path Sequence() { return testing::DatasetsDir() / "euroc/V1_01_first20"; }
+fs::path Sequence() {
+  return testing::DatasetsDir() / "euroc/V1_01_first20";
+}
 
 // Projects a point given in the raw camera frame through the distorted model.
 cv::Point2d ProjectRaw(const EurocCameraModel& camera, const Eigen::Vector3d& p) {
@@ -42,7 +44,9 @@ cv::Point2d RectifyRaw(const EurocDataset& dataset, int i, cv::Point2d raw) {
   return out[0];
 }
 
-bool Inside(cv::Point2d p, cv::Size size) { return p.x >= 0 && p.y >= 0 && p.x < size.width && p.y < size.height; }
+bool Inside(cv::Point2d p, cv::Size size) {
+  return p.x >= 0 && p.y >= 0 && p.x < size.width && p.y < size.height;
+}
 
 TEST(Euroc, SensorYamlIsParsed) {
   const auto camera = ReadEurocSensorYaml(Sequence() / "mav0/cam0/sensor.yaml");
@@ -88,9 +92,8 @@ TEST(Euroc, RectificationAlignsRows) {
   const Calibration& calib = dataset.calibration();
   const cv::Size size(calib.camera.width, calib.camera.height);
   const double b = calib.baseline_m;
-  const std::vector<Eigen::Vector3d> points_cam0 = {{0, 0, 1},     {0.5, -0.3, 2}, {-1, 0.6, 3},
-                                                    {2, 1.2, 10},  {-0.2, -0.4, 0.8}, {0.9, 0.7, 1.5},
-                                                    {-3, -2, 8},   {0.05, 0.05, 50}};
+  const std::vector<Eigen::Vector3d> points_cam0 = {{0, 0, 1},         {0.5, -0.3, 2},  {-1, 0.6, 3}, {2, 1.2, 10},
+                                                    {-0.2, -0.4, 0.8}, {0.9, 0.7, 1.5}, {-3, -2, 8},  {0.05, 0.05, 50}};
   int checked = 0;
   for (const Eigen::Vector3d& p_cam0 : points_cam0) {
     const Eigen::Vector3d p_body = dataset.raw_camera(0).T_body_sensor * p_cam0;
@@ -160,7 +163,8 @@ TEST(Euroc, GroundTruthIsTheRectifiedLeftCamera) {
   const Eigen::Quaterniond q(0.069433, -0.824237, -0.106942, -0.551702);
   EXPECT_LT(Eigen::Quaterniond(T_world_body.linear()).angularDistance(q.normalized()), 1e-4);
   // T_body_cam is cam0's T_BS turned by the (small) rectification rotation.
-  const Eigen::Isometry3d T_cam0_rect = dataset.raw_camera(0).T_body_sensor.inverse() * dataset.calibration().T_body_cam;
+  const Eigen::Isometry3d T_cam0_rect =
+      dataset.raw_camera(0).T_body_sensor.inverse() * dataset.calibration().T_body_cam;
   EXPECT_LT(T_cam0_rect.translation().norm(), 1e-12);
   EXPECT_LT(Eigen::AngleAxisd(T_cam0_rect.linear()).angle(), 0.05);
 }

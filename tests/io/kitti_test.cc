@@ -20,7 +20,9 @@ namespace fs = std::filesystem;
 
 using testing::ExpectErrorMentions;
 
-fs::path Sequence(const std::string& nn) { return testing::DatasetsDir() / "kitti/sequences" / nn; }
+fs::path Sequence(const std::string& nn) {
+  return testing::DatasetsDir() / "kitti/sequences" / nn;
+}
 
 TEST(Kitti, Sequence07IsMonoWithGroundTruth) {
   const auto dataset = OpenDataset(Sequence("07").string());

@@ -36,7 +36,9 @@ std::string Option(const OrbSettings& settings, const std::string& key) {
   return "(unset)";
 }
 
-fs::path Euroc() { return testing::DatasetsDir() / "euroc/V1_01_first20"; }
+fs::path Euroc() {
+  return testing::DatasetsDir() / "euroc/V1_01_first20";
+}
 
 // ORB-SLAM2's monocular file for TUM fr1 (distorted Kinect camera, no size: taken from the images).
 const char* const kOrbSlam2Mono = R"(%YAML:1.0

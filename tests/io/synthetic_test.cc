@@ -109,8 +109,8 @@ TEST(SyntheticScene, DepthAndPosesAreExactAcrossStereoAndTime) {
     // A pose off by one degree (about 4 px here) must show up: the warp is then far worse.
     const Eigen::Isometry3d T_wrong = T_later * Eigen::AngleAxisd(M_PI / 180, Eigen::Vector3d::UnitY());
     const double wrong_error = MedianWarpError(scene, T_left, left, depth, T_wrong, later);
-    std::printf("%s: median warp error stereo %.2f, 6 frames later %.2f, with 1 deg error %.2f\n",
-                name, stereo_error, temporal_error, wrong_error);
+    std::printf("%s: median warp error stereo %.2f, 6 frames later %.2f, with 1 deg error %.2f\n", name, stereo_error,
+                temporal_error, wrong_error);
     // Measured: below 1 grey level for both (noise-free images, bilinear warp).
     EXPECT_LT(stereo_error, 1.5) << name;
     EXPECT_LT(temporal_error, 2.0) << name;
@@ -151,8 +151,9 @@ TEST(SyntheticScene, TrajectoryLoopsAtConstantSpeed) {
     ASSERT_GT(gt[i].t_ns, gt[i - 1].t_ns);
     const Eigen::Vector3d d = gt[i].T_world_cam.translation() - gt[i - 1].T_world_cam.translation();
     EXPECT_NEAR(d.head<2>().norm(), step, 0.2 * step) << "frame " << i;
-    EXPECT_LT((gt[i].T_world_cam.linear().transpose() * gt[i].T_world_cam.linear() -
-               Eigen::Matrix3d::Identity()).norm(), 1e-9);
+    EXPECT_LT(
+        (gt[i].T_world_cam.linear().transpose() * gt[i].T_world_cam.linear() - Eigen::Matrix3d::Identity()).norm(),
+        1e-9);
   }
   // After one lap the camera is back near its start: a revisit.
   const double lap_s = scene.loop_length_m() / scene.description().agents[0].speed_mps;
@@ -255,8 +256,7 @@ std::vector<double> AngularSpeeds(const Trajectory& gt) {
   for (size_t i = 1; i < gt.size(); ++i) {
     const double dt = (gt[i].t_ns - gt[i - 1].t_ns) * 1e-9;
     speeds.push_back(
-        Eigen::AngleAxisd(gt[i - 1].T_world_cam.linear().transpose() * gt[i].T_world_cam.linear()).angle() /
-        dt);
+        Eigen::AngleAxisd(gt[i - 1].T_world_cam.linear().transpose() * gt[i].T_world_cam.linear()).angle() / dt);
   }
   return speeds;
 }
@@ -319,11 +319,9 @@ TEST(SceneMover, PoseInterpolatesWrapsAndRepeats) {
   mover.keys = {{0.0, {0, 0, 0}, 3.0}, {1.0, {2, 0, 0}, -3.0}};  // heading crosses +-pi
   const Eigen::Isometry3d half = mover.PoseAt(0.5);
   EXPECT_NEAR((half.translation() - Eigen::Vector3d(1, 0, 0)).norm(), 0, 1e-12);
-  EXPECT_NEAR(std::abs(std::remainder(std::atan2(half.linear()(1, 0), half.linear()(0, 0)) - M_PI, 2 * M_PI)),
-              0, 1e-12)
+  EXPECT_NEAR(std::abs(std::remainder(std::atan2(half.linear()(1, 0), half.linear()(0, 0)) - M_PI, 2 * M_PI)), 0, 1e-12)
       << "the short way round: through pi, not 0";
-  EXPECT_NEAR((mover.PoseAt(7).translation() - Eigen::Vector3d(2, 0, 0)).norm(), 0, 1e-12)
-      << "held at the end";
+  EXPECT_NEAR((mover.PoseAt(7).translation() - Eigen::Vector3d(2, 0, 0)).norm(), 0, 1e-12) << "held at the end";
   EXPECT_NEAR(mover.PoseAt(-3).translation().norm(), 0, 1e-12) << "held at the start";
   mover.period_s = 2;  // back to the first key over [1, 2)
   EXPECT_NEAR((mover.PoseAt(1.5).translation() - Eigen::Vector3d(1, 0, 0)).norm(), 0, 1e-12);
@@ -347,8 +345,8 @@ TEST(SyntheticHighway, DrivesAtMotorwaySpeedOnALoopLongerThanTheRun) {
     fastest = std::max(fastest, speed);
     height += gt[i].T_world_cam.translation().z() / gt.size();
   }
-  std::printf("highway: %.1f-%.1f m/s, camera %.2f m above the road, %.0f m of a %.0f m loop\n", slowest,
-              fastest, height, highway.path_length_m(), highway.loop_length_m());
+  std::printf("highway: %.1f-%.1f m/s, camera %.2f m above the road, %.0f m of a %.0f m loop\n", slowest, fastest,
+              height, highway.path_length_m(), highway.loop_length_m());
   EXPECT_GT(slowest, 20.0);
   EXPECT_LT(fastest, 30.0);
   EXPECT_NEAR(height, 1.65, 0.05);
@@ -361,8 +359,7 @@ TEST(SyntheticHighway, DrivesAtMotorwaySpeedOnALoopLongerThanTheRun) {
 
 TEST(SyntheticHighway, MostTextureIsFarWithTheRoadNearAndSkyAbove) {
   std::string scene;
-  const SyntheticScene highway(MakeScene("highway"),
-                               Parse("highway:width=620,height=188,sensor=mono", &scene));
+  const SyntheticScene highway(MakeScene("highway"), Parse("highway:width=620,height=188,sensor=mono", &scene));
   const int W = highway.calibration().camera.width, H = highway.calibration().camera.height;
   std::vector<double> textured, road, above;
   double sky_top = 0, top_pixels = 0;
@@ -421,8 +418,8 @@ TEST(SyntheticHighway, TrafficMovesWhileTheCameraStandsStill) {
   const Frame f = highway.Render(i);
   cv::Mat left, right;
   highway.RenderView(highway.PoseAt(t), t, 0, &left, nullptr);
-  highway.RenderView(highway.PoseAt(t) * Eigen::Translation3d(highway.calibration().baseline_m, 0, 0), t, 0,
-                     &right, nullptr);
+  highway.RenderView(highway.PoseAt(t) * Eigen::Translation3d(highway.calibration().baseline_m, 0, 0), t, 0, &right,
+                     nullptr);
   EXPECT_EQ(cv::norm(f.left, left, cv::NORM_INF), 0.0);
   EXPECT_EQ(cv::norm(f.right, right, cv::NORM_INF), 0.0);
 }
@@ -444,19 +441,17 @@ TEST(SyntheticScene, DynamicObjectsCoverAtMostTheirFraction) {
       cv::Mat gray, depth_dynamic, depth_still;
       dynamic.RenderView(T, t, 0, &gray, &depth_dynamic);
       still.RenderView(T, t, 0, &gray, &depth_still);
-      const double covered =
-          cv::countNonZero(depth_dynamic != depth_still) / static_cast<double>(gray.total());
+      const double covered = cv::countNonZero(depth_dynamic != depth_still) / static_cast<double>(gray.total());
       largest = std::max(largest, covered);
       busy += covered > 0.05;
     }
   }
-  std::printf("dynamic=0.3: objects cover up to %.1f%% of the image, more than 5%% in %zu views\n",
-              100 * largest, busy);
+  std::printf("dynamic=0.3: objects cover up to %.1f%% of the image, more than 5%% in %zu views\n", 100 * largest,
+              busy);
   EXPECT_LE(largest, 0.3);
   EXPECT_GT(largest, 0.1);
   // F = 0 leaves a scene bit-identical.
-  const SyntheticScene zero(MakeScene(scene),
-                            Parse("room:width=320,height=240,duration=14,dynamic=0", &scene));
+  const SyntheticScene zero(MakeScene(scene), Parse("room:width=320,height=240,duration=14,dynamic=0", &scene));
   const SyntheticScene none(MakeScene(scene), Parse("room:width=320,height=240,duration=14", &scene));
   EXPECT_EQ(zero.description().movers.size(), 0u);
   EXPECT_EQ(cv::norm(zero.Render(100).left, none.Render(100).left, cv::NORM_INF), 0.0);
@@ -471,9 +466,8 @@ TEST(SyntheticHandheld, FastGlancesAtWalkingPaceOnALoop) {
   size_t fast = 0;
   for (double w : turn) fast += w > 2.0;
   const double speed = handheld.description().agents[0].speed_mps;
-  std::printf(
-      "handheld: angular speed median %.2f rad/s, peak %.2f rad/s, %zu frames above 2 rad/s; %.1f m/s\n",
-      median, peak, fast, speed);
+  std::printf("handheld: angular speed median %.2f rad/s, peak %.2f rad/s, %zu frames above 2 rad/s; %.1f m/s\n",
+              median, peak, fast, speed);
   EXPECT_GT(peak, 2.5);
   EXPECT_LT(peak, 3.5);
   EXPECT_LT(median, 1.0) << "quick glances, not a constant spin";
@@ -484,14 +478,12 @@ TEST(SyntheticHandheld, FastGlancesAtWalkingPaceOnALoop) {
   const size_t lap = static_cast<size_t>(handheld.loop_length_m() / speed * handheld.options().frame_rate_hz);
   ASSERT_LT(3 * lap, gt.size());
   for (size_t k = 1; k <= 3; ++k)
-    EXPECT_LT((gt[k * lap].T_world_cam.translation() - gt[0].T_world_cam.translation()).norm(), 0.15)
-        << "lap " << k;
+    EXPECT_LT((gt[k * lap].T_world_cam.translation() - gt[0].T_world_cam.translation()).norm(), 0.15) << "lap " << k;
 }
 
 TEST(SyntheticHandheld, EveryFrameSeesCloseTexture) {
   std::string scene;
-  const SyntheticScene handheld(MakeScene("handheld"),
-                                Parse("handheld:width=320,height=240,sensor=mono", &scene));
+  const SyntheticScene handheld(MakeScene("handheld"), Parse("handheld:width=320,height=240,sensor=mono", &scene));
   std::vector<double> medians;
   for (size_t i = 0; i < handheld.frame_count(); i += 9) {
     const double t = handheld.timestamp_ns(i) * 1e-9;
@@ -509,8 +501,8 @@ TEST(SyntheticHandheld, EveryFrameSeesCloseTexture) {
   }
   std::sort(medians.begin(), medians.end());
   const double typical = medians[medians.size() / 2];
-  std::printf("handheld: median depth per frame %.2f-%.2f m, typically %.2f m\n", medians.front(),
-              medians.back(), typical);
+  std::printf("handheld: median depth per frame %.2f-%.2f m, typically %.2f m\n", medians.front(), medians.back(),
+              typical);
   EXPECT_GT(medians.front(), 0.5);
   EXPECT_LT(typical, 3.0);
   EXPECT_LT(medians.back(), 4.5) << "the room's long diagonal";
@@ -529,8 +521,8 @@ TEST(SyntheticHandheld, MotionBlurFollowsTheMotion) {
   const Frame fast = blurred.Render(fastest), slow = blurred.Render(slowest);
   const double fast_ratio = GradientEnergy(fast.left) / GradientEnergy(sharp.Render(fastest).left);
   const double slow_ratio = GradientEnergy(slow.left) / GradientEnergy(sharp.Render(slowest).left);
-  std::printf("handheld: gradient energy with blur / without: %.2f at %.2f rad/s, %.2f at %.2f rad/s\n",
-              fast_ratio, turn[fastest - 1], slow_ratio, turn[slowest - 1]);
+  std::printf("handheld: gradient energy with blur / without: %.2f at %.2f rad/s, %.2f at %.2f rad/s\n", fast_ratio,
+              turn[fastest - 1], slow_ratio, turn[slowest - 1]);
   EXPECT_LT(fast_ratio, 0.85);
   EXPECT_GT(slow_ratio, 0.97);
   Frame again;
@@ -553,12 +545,10 @@ TEST(SyntheticHandheld, ExposureGainShiftsTheBrightness) {
     if (g < lowest) lowest = g, darkest = i;
     highest = std::max(highest, g);
     if (i > 0)
-      biggest_step =
-          std::max(biggest_step, std::abs(g / varying.GainAt(varying.timestamp_ns(i - 1) * 1e-9) - 1));
+      biggest_step = std::max(biggest_step, std::abs(g / varying.GainAt(varying.timestamp_ns(i - 1) * 1e-9) - 1));
     ASSERT_EQ(fixed.GainAt(varying.timestamp_ns(i) * 1e-9), 1.0);
   }
-  std::printf("handheld: gain %.2f-%.2f, largest change between frames %.0f%%\n", lowest, highest,
-              100 * biggest_step);
+  std::printf("handheld: gain %.2f-%.2f, largest change between frames %.0f%%\n", lowest, highest, 100 * biggest_step);
   EXPECT_LT(lowest, 0.85);
   EXPECT_GT(highest, 1.1);
   EXPECT_GT(biggest_step, 0.15) << "an auto-exposure step";

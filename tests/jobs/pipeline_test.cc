@@ -45,7 +45,9 @@ void RaiseMax(std::atomic<int>& slot, int value) {
   }
 }
 
-bool HasTwoThreads() { return tbb::info::default_concurrency() >= 2 && std::thread::hardware_concurrency() >= 2; }
+bool HasTwoThreads() {
+  return tbb::info::default_concurrency() >= 2 && std::thread::hardware_concurrency() >= 2;
+}
 
 // Counts live items (moved-from shells excluded) so tests can bound memory.
 struct LiveCounter {
@@ -141,14 +143,15 @@ TEST(FramePipeline, ParallelStageConcurrencyLimitHolds) {
   std::atomic<int> current{0};
   std::atomic<int> most{0};
   FramePipeline<Item> pipeline;
-  pipeline.set_source(CountingSource(100)).add_parallel_stage(
-      "extract",
-      [&](Item&) {
-        RaiseMax(most, current.fetch_add(1) + 1);
-        std::this_thread::sleep_for(200us);
-        current.fetch_sub(1);
-      },
-      ParallelStageOptions{.concurrency = 1});
+  pipeline.set_source(CountingSource(100))
+      .add_parallel_stage(
+          "extract",
+          [&](Item&) {
+            RaiseMax(most, current.fetch_add(1) + 1);
+            std::this_thread::sleep_for(200us);
+            current.fetch_sub(1);
+          },
+          ParallelStageOptions{.concurrency = 1});
   WithWatchdog([&] { return pipeline.run(); });
   EXPECT_EQ(most.load(), 1);
 }
@@ -182,8 +185,9 @@ TEST(FramePipeline, RejectsZeroInFlightLimit) {
 TEST(FramePipeline, EmptySourceFinishes) {
   FramePipeline<Item> pipeline;
   size_t calls = 0;
-  pipeline.set_source([](size_t) -> std::optional<Item> { return std::nullopt; })
-      .add_serial_stage("track", [&](Item&) { ++calls; });
+  pipeline.set_source([](size_t) -> std::optional<Item> { return std::nullopt; }).add_serial_stage("track", [&](Item&) {
+    ++calls;
+  });
   const PipelineStats stats = WithWatchdog([&] { return pipeline.run(); });
   EXPECT_EQ(stats.items_processed, 0u);
   EXPECT_EQ(calls, 0u);
@@ -230,7 +234,8 @@ TEST(FramePipeline, ParallelStageExceptionStopsRun) {
   LiveCounter counter;
   std::atomic<bool> armed{true};
   FramePipeline<Item> pipeline;
-  pipeline.set_source(CountingSource(0, &counter))  // endless: only the failure ends the run
+  pipeline
+      .set_source(CountingSource(0, &counter))  // endless: only the failure ends the run
       .add_parallel_stage("extract",
                           [&](Item& item) {
                             if (armed.load() && item.seq == 500) throw std::runtime_error("extract exploded");

@@ -49,17 +49,19 @@ Outcome RunScenario(const std::string& spec, bool loop_closing, const SlamRunOpt
     out.reinitialized += r.reinitialized;
   }
   for (const LoopClosure& l : out.run.loop_closures) {
-    const double apart = (out.gt[l.frame_index].T_world_cam.translation() -
-                          out.gt[l.matched_frame_index].T_world_cam.translation()).norm();
+    const double apart =
+        (out.gt[l.frame_index].T_world_cam.translation() - out.gt[l.matched_frame_index].T_world_cam.translation())
+            .norm();
     if (apart > 2.0) ++out.false_loops;
     std::printf("  loop frame %zu -> %zu (true centres %.2f m apart), %d points, scale %.4f, %.1f ms\n", l.frame_index,
                 l.matched_frame_index, apart, l.matches, l.scale, l.correction_ms);
   }
-  std::printf("%s loops %s: %zu tracked, %zu lost, %zu relocalized, %zu reinit, %zu keyframes, %zu loops, ATE SE3 %.4f m "
-              "(%.3f%% of %.1f m), Sim3 %.4f m\n",
-              spec.c_str(), loop_closing ? "on" : "off", out.run.trajectory.size(), out.lost, out.relocalized,
-              out.reinitialized, out.run.keyframe_count, out.run.loop_closures.size(), out.se3.ate_m.rmse,
-              100 * out.se3.ate_m.rmse / out.path_m, out.path_m, out.sim3.ate_m.rmse);
+  std::printf(
+      "%s loops %s: %zu tracked, %zu lost, %zu relocalized, %zu reinit, %zu keyframes, %zu loops, ATE SE3 %.4f m "
+      "(%.3f%% of %.1f m), Sim3 %.4f m\n",
+      spec.c_str(), loop_closing ? "on" : "off", out.run.trajectory.size(), out.lost, out.relocalized,
+      out.reinitialized, out.run.keyframe_count, out.run.loop_closures.size(), out.se3.ate_m.rmse,
+      100 * out.se3.ate_m.rmse / out.path_m, out.path_m, out.sim3.ate_m.rmse);
   return out;
 }
 
@@ -108,7 +110,9 @@ void ExpectLoopClosureHelps(const std::string& spec, double max_path_fraction, b
 }
 
 // bench/place_bench.sh runs the 60 s versions of all three sensors with and without loops.
-TEST(LoopClosing, StereoRoom) { ExpectLoopClosureHelps("synth:room:duration=60,width=480,height=360", 0.005, false); }
+TEST(LoopClosing, StereoRoom) {
+  ExpectLoopClosureHelps("synth:room:duration=60,width=480,height=360", 0.005, false);
+}
 
 TEST(LoopClosing, MonocularRoom) {
   ExpectLoopClosureHelps("synth:room:duration=40,width=480,height=360,sensor=mono", 0.02, true);

@@ -47,11 +47,12 @@ Outcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = 
     if (r.state == TrackingState::kOk) out.first_tracked = std::min(out.first_tracked, r.index);
   for (const FrameReport& r : out.run.reports)
     if (r.index > out.first_tracked && r.state != TrackingState::kOk) ++out.lost_after;
-  std::printf("%s (%s): %zu frames, first tracked %zu, %zu lost after, %zu keyframes, ATE %.4f m (%.3f%% of %.1f m), "
-              "Sim(3) %.4f m, scale %.4f\n",
-              spec.c_str(), SensorName(dataset->calibration().sensor), out.run.reports.size(), out.first_tracked,
-              out.lost_after, out.run.keyframe_count, out.se3.ate_m.rmse, 100 * out.se3.ate_m.rmse / out.path_m,
-              out.path_m, out.sim3.ate_m.rmse, out.sim3.alignment.scale);
+  std::printf(
+      "%s (%s): %zu frames, first tracked %zu, %zu lost after, %zu keyframes, ATE %.4f m (%.3f%% of %.1f m), "
+      "Sim(3) %.4f m, scale %.4f\n",
+      spec.c_str(), SensorName(dataset->calibration().sensor), out.run.reports.size(), out.first_tracked,
+      out.lost_after, out.run.keyframe_count, out.se3.ate_m.rmse, 100 * out.se3.ate_m.rmse / out.path_m, out.path_m,
+      out.sim3.ate_m.rmse, out.sim3.alignment.scale);
   return out;
 }
 

@@ -18,7 +18,8 @@ namespace {
 // A synthetic dataset whose listed frames cannot be read.
 class DamagedDataset final : public Dataset {
  public:
-  DamagedDataset(std::unique_ptr<Dataset> inner, std::set<size_t> bad) : inner_(std::move(inner)), bad_(std::move(bad)) {}
+  DamagedDataset(std::unique_ptr<Dataset> inner, std::set<size_t> bad)
+      : inner_(std::move(inner)), bad_(std::move(bad)) {}
   std::string name() const override { return inner_->name(); }
   const Calibration& calibration() const override { return inner_->calibration(); }
   size_t size() const override { return inner_->size(); }

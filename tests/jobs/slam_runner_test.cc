@@ -108,7 +108,7 @@ TEST(SlamRun, KittiMonocularSnippet) {
   size_t first_tracked = o.run.reports.size();
   for (const FrameReport& r : o.run.reports)
     if (r.state == TrackingState::kOk) first_tracked = std::min(first_tracked, r.index);
-  EXPECT_LE(first_tracked, 10u);  // ORB-SLAM2 initializes at frame 5
+  EXPECT_LE(first_tracked, 10u);                                             // ORB-SLAM2 initializes at frame 5
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size() - first_tracked);  // nothing lost after that
   // Bar: 0.28 m after Sim(3) (ORB-SLAM2 0.283 m).
   EXPECT_LT(o.sim3.ate_m.rmse, 0.28);
@@ -131,8 +131,10 @@ TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
     const SlamRunResult r = RunSlam(*dataset, options, run);
     size_t first_tracked = r.reports.size(), lost_after = 0;
     for (const FrameReport& f : r.reports) {
-      if (f.state == TrackingState::kOk) first_tracked = std::min(first_tracked, f.index);
-      else if (f.index > first_tracked) ++lost_after;
+      if (f.state == TrackingState::kOk)
+        first_tracked = std::min(first_tracked, f.index);
+      else if (f.index > first_tracked)
+        ++lost_after;
     }
     EvalOptions eval;
     eval.alignment = Alignment::kSim3;

@@ -20,8 +20,7 @@ inline TrajectoryScore ScoreTrajectory(const Trajectory& ground_truth, const Tra
   eval.alignment = Alignment::kSim3;
   score.sim3 = Evaluate(ground_truth, estimate, eval);
   for (size_t i = 1; i < ground_truth.size(); ++i)
-    score.path_m +=
-        (ground_truth[i].T_world_cam.translation() - ground_truth[i - 1].T_world_cam.translation()).norm();
+    score.path_m += (ground_truth[i].T_world_cam.translation() - ground_truth[i - 1].T_world_cam.translation()).norm();
   return score;
 }
 

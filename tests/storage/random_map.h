@@ -14,12 +14,12 @@ namespace flatslam::testing {
 
 struct RandomMapOptions {
   size_t keyframes = 20;
-  size_t keypoints = 300;            // per keyframe
+  size_t keypoints = 300;  // per keyframe
   size_t points = 1000;
-  size_t observations_per_point = 4; // consecutive keyframes see each point
+  size_t observations_per_point = 4;  // consecutive keyframes see each point
   size_t loop_edges = 2;
   uint32_t agents = 2;
-  bool erase_some = true;            // erase and re-add a few entities: generations and reordered dense arrays
+  bool erase_some = true;  // erase and re-add a few entities: generations and reordered dense arrays
   uint64_t seed = 7;
 };
 

@@ -48,7 +48,9 @@ std::string ErrorOf(const std::function<void()>& fn) {
   return {};
 }
 
-bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+bool Contains(const std::string& text, const std::string& part) {
+  return text.find(part) != std::string::npos;
+}
 
 SnapshotMetadata TestMetadata(uint64_t vocabulary = 0) {
   SnapshotMetadata m;
@@ -292,10 +294,10 @@ TEST(MapSnapshot, SessionRoundTrips) {
     AnchoredFramePose f;
     f.t_ns = 1000 + static_cast<int64_t>(i);
     f.reference = i % 7 == 3 ? KeyFrameHandle::null() : handles[i % handles.size()];
-    f.T_cam_ref = CompactPose(Eigen::Isometry3d(Eigen::Translation3d(0.1 * i, 0, 1) *
-                                                Eigen::AngleAxisd(0.01 * i, Eigen::Vector3d::UnitY())));
-    f.T_cam_world = CompactPose(Eigen::Isometry3d(Eigen::Translation3d(0, 0.2 * i, 0) *
-                                                  Eigen::AngleAxisd(0.02 * i, Eigen::Vector3d::UnitZ())));
+    f.T_cam_ref = CompactPose(
+        Eigen::Isometry3d(Eigen::Translation3d(0.1 * i, 0, 1) * Eigen::AngleAxisd(0.01 * i, Eigen::Vector3d::UnitY())));
+    f.T_cam_world = CompactPose(
+        Eigen::Isometry3d(Eigen::Translation3d(0, 0.2 * i, 0) * Eigen::AngleAxisd(0.02 * i, Eigen::Vector3d::UnitZ())));
     session.frames.push_back(f);
   }
   metadata.session = session;
@@ -319,7 +321,8 @@ TEST(MapSnapshot, SessionRoundTrips) {
       EXPECT_TRUE(f.reference.is_null());
     } else {
       // The same keyframe: dense positions are kept by a load.
-      EXPECT_EQ(loaded_map.keyframes().dense_index(f.reference), map.keyframes().dense_index(session.frames[i].reference));
+      EXPECT_EQ(loaded_map.keyframes().dense_index(f.reference),
+                map.keyframes().dense_index(session.frames[i].reference));
     }
     // Stored as given: bit for bit.
     EXPECT_EQ(std::memcmp(&f.T_cam_ref, &session.frames[i].T_cam_ref, sizeof(CompactPose)), 0);
@@ -393,8 +396,8 @@ TEST_F(MapSnapshotBadInput, FlippedBytesAnywhere) {
 
 TEST_F(MapSnapshotBadInput, WrongFileType) {
   const auto dir = testing::FreshTempDir("snapshot_type");
-  const uint8_t png[] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n', 0, 0, 0, 13, 'I', 'H', 'D', 'R',
-                         0,    0,   0,   1,   0,    0,    0,    1,    8, 0, 0, 0,  0};
+  const uint8_t png[] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n', 0, 0, 0, 13, 'I', 'H', 'D',
+                         'R',  0,   0,   0,   1,    0,    0,    0,    1, 8, 0, 0,  0,   0};
   WriteBytes(dir / "image.png", png);
   std::string e = ErrorOf([&] { (void)LoadMapSnapshot(dir / "image.png"); });
   EXPECT_TRUE(Contains(e, "image.png")) << e;
@@ -414,17 +417,17 @@ TEST_F(MapSnapshotBadInput, WrongFileType) {
 // Builds a small valid snapshot by hand (2 keyframes, 2 points); edit changes fields to make it bad.
 struct Crafted {
   uint32_t version = kMapSnapshotFormatVersion;
-  uint32_t point_index = 0;         // keyframe 0 keypoint 0
-  uint32_t parent = 0;              // of keyframe 1
-  uint32_t child = 1;               // of keyframe 0
-  uint32_t covisible = 1;           // of keyframe 0
-  uint32_t loop = kNoIndex;         // of keyframe 0, none
-  uint32_t reference = 0;           // of point 0
+  uint32_t point_index = 0;  // keyframe 0 keypoint 0
+  uint32_t parent = 0;       // of keyframe 1
+  uint32_t child = 1;        // of keyframe 0
+  uint32_t covisible = 1;    // of keyframe 0
+  uint32_t loop = kNoIndex;  // of keyframe 0, none
+  uint32_t reference = 0;    // of point 0
   uint32_t observation_keyframe = 0;
   uint32_t observation_keypoint = 0;
   uint32_t last_offset = 2;
   uint32_t agent = 0;
-  size_t depth_size = 2;            // keyframe 0's depth column
+  size_t depth_size = 2;  // keyframe 0's depth column
 };
 
 std::vector<uint8_t> Craft(const Crafted& c) {
@@ -439,15 +442,15 @@ std::vector<uint8_t> Craft(const Crafted& c) {
     const std::vector<float> depth(k == 0 ? c.depth_size : 2, 1.0f);
     const std::vector<uint8_t> octave = {0, 1};
     const std::vector<s::Descriptor256> desc(2);
-    const std::vector<uint32_t> points = k == 0 ? std::vector<uint32_t>{c.point_index, kNoIndex}
-                                                : std::vector<uint32_t>{1, kNoIndex};
+    const std::vector<uint32_t> points =
+        k == 0 ? std::vector<uint32_t>{c.point_index, kNoIndex} : std::vector<uint32_t>{1, kNoIndex};
     const std::vector<uint32_t> children = k == 0 ? std::vector<uint32_t>{c.child} : std::vector<uint32_t>{};
     std::vector<uint32_t> loops;
     if (k == 0 && c.loop != kNoIndex) loops.push_back(c.loop);
     const std::vector<s::CovisibilityEdge> covis = {{k == 0 ? c.covisible : 0, 1}};
-    const auto off = s::CreateKeyFrameRecordDirect(b, k, k, k * 1000, c.agent, &identity, k == 0 ? kNoIndex : c.parent,
-                                                   &children, &covis, &loops, &uv, &scalars, &depth, &scalars, &octave,
-                                                   &desc, &points);
+    const auto off =
+        s::CreateKeyFrameRecordDirect(b, k, k, k * 1000, c.agent, &identity, k == 0 ? kNoIndex : c.parent, &children,
+                                      &covis, &loops, &uv, &scalars, &depth, &scalars, &octave, &desc, &points);
     kfs.push_back(off);
   }
   std::vector<s::PointRecord> points(2);

@@ -19,7 +19,9 @@ using testing::Pose;
 using testing::RandomUnit;
 using testing::TestCamera;
 
-Eigen::Vector3d CameraCentre(const Eigen::Isometry3d& T_cam_world) { return T_cam_world.inverse().translation(); }
+Eigen::Vector3d CameraCentre(const Eigen::Isometry3d& T_cam_world) {
+  return T_cam_world.inverse().translation();
+}
 
 struct BaScene {
   BundleAdjustmentProblem truth;  // exact poses and points, noisy observations
@@ -134,8 +136,8 @@ void CheckRecovers(bool stereo, Solver solver) {
   }
   const int inliers = static_cast<int>(r.outlier.size()) - outliers;
   printf("  %s %s BA, %zu keyframes (first and last fixed), %zu points, %zu observations: %.1f ms, %d iterations\n",
-         solver == Solver::kCeres ? "Ceres" : "Schur LM", stereo ? "stereo" : "mono", problem.poses.size(), problem.points.size(), problem.observations.size(), ms,
-         r.iterations);
+         solver == Solver::kCeres ? "Ceres" : "Schur LM", stereo ? "stereo" : "mono", problem.poses.size(),
+         problem.points.size(), problem.observations.size(), ms, r.iterations);
   printf(
       "  RMSE %.3f -> %.3f px (noise %.3f px), mean error %.3f px, max free-pose error %.2f mm, outliers "
       "flagged %d/%d, inliers flagged %d/%d\n",
@@ -151,13 +153,21 @@ void CheckRecovers(bool stereo, Solver solver) {
   EXPECT_EQ(r.num_outliers, flagged + false_flags);
 }
 
-TEST(LocalBundleAdjustment, MonoRecoversPosesAndFlagsOutliers) { CheckRecovers(false, Solver::kSchurLm); }
+TEST(LocalBundleAdjustment, MonoRecoversPosesAndFlagsOutliers) {
+  CheckRecovers(false, Solver::kSchurLm);
+}
 
-TEST(LocalBundleAdjustment, StereoRecoversPosesAndFlagsOutliers) { CheckRecovers(true, Solver::kSchurLm); }
+TEST(LocalBundleAdjustment, StereoRecoversPosesAndFlagsOutliers) {
+  CheckRecovers(true, Solver::kSchurLm);
+}
 
-TEST(LocalBundleAdjustment, CeresMonoRecoversPosesAndFlagsOutliers) { CheckRecovers(false, Solver::kCeres); }
+TEST(LocalBundleAdjustment, CeresMonoRecoversPosesAndFlagsOutliers) {
+  CheckRecovers(false, Solver::kCeres);
+}
 
-TEST(LocalBundleAdjustment, CeresStereoRecoversPosesAndFlagsOutliers) { CheckRecovers(true, Solver::kCeres); }
+TEST(LocalBundleAdjustment, CeresStereoRecoversPosesAndFlagsOutliers) {
+  CheckRecovers(true, Solver::kCeres);
+}
 
 TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
   for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
@@ -194,8 +204,8 @@ TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
     EXPECT_NEAR(rf.final_rmse_px, rr.final_rmse_px, 1e-4);
     double max_pose = 0, max_point = 0;
     for (size_t k = 0; k < fast.poses.size(); ++k)
-      max_pose = std::max(max_pose, (CameraCentre(fast.poses[k].T_cam_world) -
-                                     CameraCentre(reference.poses[k].T_cam_world)).norm());
+      max_pose = std::max(
+          max_pose, (CameraCentre(fast.poses[k].T_cam_world) - CameraCentre(reference.poses[k].T_cam_world)).norm());
     // Points seen in at least two keyframes after outlier removal (one view leaves a mono depth
     // free: each solver's damping settles it differently). Both stop at a relative cost decrease
     // of 1e-6, so weakly constrained points stop at slightly different places: the bulk must
@@ -215,48 +225,48 @@ TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
 // stop_early ends the solve after the iteration where it first answers true; the partial solution
 // is kept and classified, and the refining pass is skipped.
 TEST(LocalBundleAdjustment, StopEarlyEndsTheSolveAndKeepsItsProgress) {
- for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
-  SCOPED_TRACE(solver == Solver::kCeres ? "Ceres" : "Schur LM");
-  const BaScene scene = MakeScene(8, 600, 0.5, false, 42);
-  BundleAdjustmentProblem full = Perturbed(scene.truth, 11);
-  BundleAdjustmentProblem stopped = full;
-  const BundleAdjustmentResult rf = LocalBundleAdjustment(full, WithSolver(solver));
-  BundleAdjustmentOptions options = WithSolver(solver);
-  int asked = 0;
-  options.stop_early = [&asked] { return ++asked >= 2; };
-  const BundleAdjustmentResult rs = LocalBundleAdjustment(stopped, options);
-  ASSERT_TRUE(rf.success && rs.success);
-  EXPECT_FALSE(rf.stopped_early);
-  EXPECT_TRUE(rs.stopped_early);
-  EXPECT_LE(rs.iterations, 2);
-  EXPECT_GT(rf.iterations, rs.iterations);
-  EXPECT_EQ(rs.outlier.size(), stopped.observations.size());
-  // Progress made before the stop is kept: the error fell well below its start.
-  EXPECT_LT(rs.final_rmse_px, 0.5 * rs.initial_rmse_px);
-  EXPECT_LE(rf.final_rmse_px, rs.final_rmse_px);
- }
+  for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
+    SCOPED_TRACE(solver == Solver::kCeres ? "Ceres" : "Schur LM");
+    const BaScene scene = MakeScene(8, 600, 0.5, false, 42);
+    BundleAdjustmentProblem full = Perturbed(scene.truth, 11);
+    BundleAdjustmentProblem stopped = full;
+    const BundleAdjustmentResult rf = LocalBundleAdjustment(full, WithSolver(solver));
+    BundleAdjustmentOptions options = WithSolver(solver);
+    int asked = 0;
+    options.stop_early = [&asked] { return ++asked >= 2; };
+    const BundleAdjustmentResult rs = LocalBundleAdjustment(stopped, options);
+    ASSERT_TRUE(rf.success && rs.success);
+    EXPECT_FALSE(rf.stopped_early);
+    EXPECT_TRUE(rs.stopped_early);
+    EXPECT_LE(rs.iterations, 2);
+    EXPECT_GT(rf.iterations, rs.iterations);
+    EXPECT_EQ(rs.outlier.size(), stopped.observations.size());
+    // Progress made before the stop is kept: the error fell well below its start.
+    EXPECT_LT(rs.final_rmse_px, 0.5 * rs.initial_rmse_px);
+    EXPECT_LE(rf.final_rmse_px, rs.final_rmse_px);
+  }
 }
 
 TEST(LocalBundleAdjustment, NoiseFreeIsExact) {
- for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
-  SCOPED_TRACE(solver == Solver::kCeres ? "Ceres" : "Schur LM");
-  BaScene scene = MakeScene(5, 200, 0.0, true, 41);
-  // Re-project without noise.
-  const BundleAdjustmentProblem& t = scene.truth;
-  const double bf = t.camera.fx * t.baseline_m;
-  for (BundleAdjustmentObservation& obs : scene.truth.observations) {
-    const Eigen::Vector3d x = t.poses[obs.pose_index].T_cam_world * t.points[obs.point_index];
-    obs.uv = Eigen::Vector2d(t.camera.fx * x.x() / x.z() + t.camera.cx, t.camera.fy * x.y() / x.z() + t.camera.cy);
-    if (obs.right_u >= 0) obs.right_u = obs.uv.x() - bf / x.z();
+  for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
+    SCOPED_TRACE(solver == Solver::kCeres ? "Ceres" : "Schur LM");
+    BaScene scene = MakeScene(5, 200, 0.0, true, 41);
+    // Re-project without noise.
+    const BundleAdjustmentProblem& t = scene.truth;
+    const double bf = t.camera.fx * t.baseline_m;
+    for (BundleAdjustmentObservation& obs : scene.truth.observations) {
+      const Eigen::Vector3d x = t.poses[obs.pose_index].T_cam_world * t.points[obs.point_index];
+      obs.uv = Eigen::Vector2d(t.camera.fx * x.x() / x.z() + t.camera.cx, t.camera.fy * x.y() / x.z() + t.camera.cy);
+      if (obs.right_u >= 0) obs.right_u = obs.uv.x() - bf / x.z();
+    }
+    BundleAdjustmentProblem problem = Perturbed(scene.truth, 10);
+    const BundleAdjustmentResult r = LocalBundleAdjustment(problem, WithSolver(solver));
+    ASSERT_TRUE(r.success);
+    EXPECT_EQ(r.num_outliers, 0);
+    EXPECT_LT(r.final_rmse_px, 1e-4);
+    for (size_t k = 0; k < problem.poses.size(); ++k)
+      EXPECT_LT((CameraCentre(problem.poses[k].T_cam_world) - CameraCentre(t.poses[k].T_cam_world)).norm(), 1e-5);
   }
-  BundleAdjustmentProblem problem = Perturbed(scene.truth, 10);
-  const BundleAdjustmentResult r = LocalBundleAdjustment(problem, WithSolver(solver));
-  ASSERT_TRUE(r.success);
-  EXPECT_EQ(r.num_outliers, 0);
-  EXPECT_LT(r.final_rmse_px, 1e-4);
-  for (size_t k = 0; k < problem.poses.size(); ++k)
-    EXPECT_LT((CameraCentre(problem.poses[k].T_cam_world) - CameraCentre(t.poses[k].T_cam_world)).norm(), 1e-5);
- }
 }
 
 TEST(LocalBundleAdjustment, RejectsMisuse) {

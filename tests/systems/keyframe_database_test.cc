@@ -44,9 +44,9 @@ TEST(BowScoreTest, HandComputedL1Scores) {
 class KeyFrameDatabaseTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    kf0 = AddKeyFrame(map, {{1, 0.5f}, {2, 0.5f}});  // score 1 against the query
-    kf1 = AddKeyFrame(map, {{1, 0.5f}, {3, 0.5f}});  // 0.5
-    kf2 = AddKeyFrame(map, {{4, 1.0f}});             // no common word
+    kf0 = AddKeyFrame(map, {{1, 0.5f}, {2, 0.5f}});    // score 1 against the query
+    kf1 = AddKeyFrame(map, {{1, 0.5f}, {3, 0.5f}});    // 0.5
+    kf2 = AddKeyFrame(map, {{4, 1.0f}});               // no common word
     kf3 = AddKeyFrame(map, {{2, 0.25f}, {5, 0.75f}});  // 0.25
     for (KeyFrameHandle h : {kf0, kf1, kf2, kf3}) db.Add(h, map.keyframe(h).bow);
   }

@@ -37,7 +37,8 @@ struct Scene {
       kf.T_cam_world.translation() = Eigen::Vector3d(-static_cast<double>(i), 0, 0);
       for (size_t j = 0; j < points; ++j) {
         const Eigen::Vector3d X = kf.T_cam_world * Position(j);
-        kf.uv[j] = Eigen::Vector2f(static_cast<float>(kFx * X.x() / X.z() + 320), static_cast<float>(kFx * X.y() / X.z() + 240));
+        kf.uv[j] = Eigen::Vector2f(static_cast<float>(kFx * X.x() / X.z() + 320),
+                                   static_cast<float>(kFx * X.y() / X.z() + 240));
         kf.depth[j] = static_cast<float>(X.z());
         kf.right_u[j] = static_cast<float>(kf.uv[j].x() - g.bf / X.z());
         kf.octave[j] = static_cast<uint8_t>(j % 3);
@@ -102,8 +103,10 @@ TEST(MapBundleAdjustment, FreeKeyframesTheirPointsAndEveryOtherObserverFixed) {
     EXPECT_EQ(o.uv, kf.uv[keypoint].cast<double>());
     EXPECT_FLOAT_EQ(o.inv_sigma2, g.pyramid.inv_sigma2[kf.octave[keypoint]]);
     ASSERT_DOUBLE_EQ(stereo.FarDepth(kf.depth), 13.0);
-    if (kf.depth[keypoint] > 13.0) EXPECT_EQ(o.right_u, -1) << "beyond the cut: monocular";
-    else EXPECT_EQ(o.right_u, kf.right_u[keypoint]);
+    if (kf.depth[keypoint] > 13.0)
+      EXPECT_EQ(o.right_u, -1) << "beyond the cut: monocular";
+    else
+      EXPECT_EQ(o.right_u, kf.right_u[keypoint]);
   }
   EXPECT_EQ(monocular, 4);  // points 2 and 3, each seen by kf0 and kf1
 

@@ -99,8 +99,8 @@ MergeCamera CameraOf(const AgentRun& run) {
 // starts at the far end of its loop and drives the shared parts of both roads in the same
 // directions, so the maps overlap in two places 40 m apart. 10 frames/s keeps the runs short.
 std::string Town(int agent) {
-  return "synth:town:agent=" + std::to_string(agent) + ",width=480,height=360,fps=10,duration=" +
-         (agent == 0 ? "36" : "55");
+  return "synth:town:agent=" + std::to_string(agent) +
+         ",width=480,height=360,fps=10,duration=" + (agent == 0 ? "36" : "55");
 }
 
 TEST(MapMerge, AppendMapRemapsEveryHandle) {
@@ -169,11 +169,12 @@ TEST(MapMerge, TwoTownAgentsShareOneFrame) {
   ASSERT_EQ(merged.attempts.size(), 1u);
   const MergeReport& report = merged.attempts[0].report;
   const MapOverlap& overlap = report.overlap;
-  std::printf("queries %zu, candidates %zu, verified %zu, agreeing %zu (%zu independent), %zu point pairs rms %.3f m, "
-              "fused %zu, welded %zu, place %.0f ms, merge %.0f ms\n",
-              overlap.queries, overlap.candidates, overlap.verified.size(), overlap.consistent.size(),
-              overlap.independent_pairs, overlap.correspondences, overlap.residual_rms, report.points_fused,
-              report.welded_keyframes, report.place_ms, report.merge_ms);
+  std::printf(
+      "queries %zu, candidates %zu, verified %zu, agreeing %zu (%zu independent), %zu point pairs rms %.3f m, "
+      "fused %zu, welded %zu, place %.0f ms, merge %.0f ms\n",
+      overlap.queries, overlap.candidates, overlap.verified.size(), overlap.consistent.size(),
+      overlap.independent_pairs, overlap.correspondences, overlap.residual_rms, report.points_fused,
+      report.welded_keyframes, report.place_ms, report.merge_ms);
   ASSERT_TRUE(report.merged);
   ASSERT_EQ(merged.maps.size(), 1u);
   EXPECT_EQ(merged.members[0], (std::vector<size_t>{0, 1}));
@@ -197,9 +198,10 @@ TEST(MapMerge, TwoTownAgentsShareOneFrame) {
   }
 
   const std::vector<double> ate = JointAte({&map}, {&a0, &a1});
-  std::printf("keyframe ATE: agent 0 own %.3f m, merged %.3f m; agent 1 own %.3f m, merged %.3f m; "
-              "unmerged maps in one frame %.1f / %.1f m\n",
-              a0.own_ate_m, ate[0], a1.own_ate_m, ate[1], apart[0], apart[1]);
+  std::printf(
+      "keyframe ATE: agent 0 own %.3f m, merged %.3f m; agent 1 own %.3f m, merged %.3f m; "
+      "unmerged maps in one frame %.1f / %.1f m\n",
+      a0.own_ate_m, ate[0], a1.own_ate_m, ate[1], apart[0], apart[1]);
   EXPECT_GT(std::max(apart[0], apart[1]), 10.0);  // before the merge the frames differ
   EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
   EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);
@@ -218,9 +220,10 @@ TEST(MapMerge, MonocularMapsMergeWithScale) {
   // gt = own_scale_k * map_k, so map_0 = (own_scale_1 / own_scale_0) * map_1.
   const double expected_scale = a1.own_scale / a0.own_scale;
   const std::vector<double> ate = JointAte({&merged.maps[0]}, {&a0, &a1}, Alignment::kSim3);
-  std::printf("scale %.4f (expected %.4f); keyframe Sim(3) ATE: agent 0 own %.4f, merged %.4f; agent 1 own %.4f, "
-              "merged %.4f\n",
-              report.overlap.S_into_from.s, expected_scale, a0.own_ate_m, ate[0], a1.own_ate_m, ate[1]);
+  std::printf(
+      "scale %.4f (expected %.4f); keyframe Sim(3) ATE: agent 0 own %.4f, merged %.4f; agent 1 own %.4f, "
+      "merged %.4f\n",
+      report.overlap.S_into_from.s, expected_scale, a0.own_ate_m, ate[0], a1.own_ate_m, ate[1]);
   EXPECT_NEAR(report.overlap.S_into_from.s / expected_scale, 1.0, 0.05);
   EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
   EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);

@@ -25,7 +25,9 @@ CameraGeometry Geometry() {
   return g;
 }
 
-Descriptor RandomDescriptor(std::mt19937_64& rng) { return {rng(), rng(), rng(), rng()}; }
+Descriptor RandomDescriptor(std::mt19937_64& rng) {
+  return {rng(), rng(), rng(), rng()};
+}
 
 // The descriptor with `bits` of its bits flipped (distinct bits).
 Descriptor Flip(Descriptor d, int bits, std::mt19937_64& rng) {
@@ -102,8 +104,10 @@ std::pair<int, int> Score(const TrackedFrame& f, const Scene& s) {
   int right = 0, wrong = 0;
   for (size_t k = 0; k < f.size(); ++k) {
     if (f.points[k].is_null()) continue;
-    if (k < kPoints && f.points[k] == s.points[k]) ++right;
-    else ++wrong;
+    if (k < kPoints && f.points[k] == s.points[k])
+      ++right;
+    else
+      ++wrong;
   }
   return {right, wrong};
 }

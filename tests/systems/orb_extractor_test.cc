@@ -23,7 +23,9 @@
 namespace flatslam {
 namespace {
 
-cv::Mat KittiImage() { return ReadGrayImage(testing::DatasetsDir() / "kitti/sequences/07/image_0/000000.png"); }
+cv::Mat KittiImage() {
+  return ReadGrayImage(testing::DatasetsDir() / "kitti/sequences/07/image_0/000000.png");
+}
 
 cv::Mat SyntheticImage(size_t frame = 40) {
   SyntheticOptions options;

@@ -115,9 +115,13 @@ void CheckConverges(bool stereo) {
          scene.observations.size(), ms);
 }
 
-TEST(OptimizePose, MonoConvergesAndFlagsOutliers) { CheckConverges(false); }
+TEST(OptimizePose, MonoConvergesAndFlagsOutliers) {
+  CheckConverges(false);
+}
 
-TEST(OptimizePose, StereoConvergesAndFlagsOutliers) { CheckConverges(true); }
+TEST(OptimizePose, StereoConvergesAndFlagsOutliers) {
+  CheckConverges(true);
+}
 
 TEST(OptimizePose, NoiseFreeIsExact) {
   PoseScene scene = MakeScene(60, 0.0, true, 3);

@@ -144,8 +144,7 @@ TEST(PoseGraphTest, LoopEdgeRemovesDrift) {
     edges.push_back({static_cast<uint32_t>(n - 1), 0, truth[n - 1] * truth[0].inverse(), 1.0});
     auto center_error = [&](const std::vector<Similarity3>& S) {
       double worst = 0;
-      for (int k = 0; k < n; ++k)
-        worst = std::max(worst, (S[k].inverse().t - truth[k].inverse().t).norm());
+      for (int k = 0; k < n; ++k) worst = std::max(worst, (S[k].inverse().t - truth[k].inverse().t).norm());
       return worst;
     };
     const double before = center_error(drifted);

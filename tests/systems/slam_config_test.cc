@@ -60,8 +60,9 @@ TEST(SlamConfig, ErrorsNameTheKeyAndWhatWasExpected) {
   EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "pose.chi2_mono", "nan"); }).find("a real number"), std::string::npos);
   EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features"); }).find("expected KEY=VALUE"), std::string::npos);
   // A value that parses but breaks an option's range is refused, naming the requirement it breaks.
-  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features=-5"); }).find("out of range (orb: features >= 1 does not hold)"),
-            std::string::npos);
+  EXPECT_NE(
+      ErrorOf([&] { ApplySlamSetting(&o, "orb.features=-5"); }).find("out of range (orb: features >= 1 does not hold)"),
+      std::string::npos);
   EXPECT_EQ(o.orb.features, -5);  // the caller's options are not used after a throw
 }
 
@@ -91,8 +92,9 @@ TEST(SlamConfig, OptionProblemsNameTheField) {
     c.camera.cy = 240;
     return c;
   }();
-  EXPECT_NE(ErrorOf([&] { Slam slam(calibration, o); })
-                .find("invalid SLAM options: matcher: nn_ratio > 0 && nn_ratio <= 1 does not hold"),
+  EXPECT_NE(ErrorOf([&] {
+              Slam slam(calibration, o);
+            }).find("invalid SLAM options: matcher: nn_ratio > 0 && nn_ratio <= 1 does not hold"),
             std::string::npos);
   MapMergeOptions merge;
   merge.min_consistent_pairs = 0;
@@ -183,7 +185,8 @@ TEST(SlamOptions, DerivedValuesAreExplained) {
   const auto features = std::find(lines.begin(), lines.end(), "orb.features = 2000");
   ASSERT_NE(features, lines.end());
   ASSERT_NE(features, lines.begin());
-  EXPECT_EQ(std::prev(features)->rfind("# derived: one feature per 300 px^2 of 1241x376", 0), 0u) << *std::prev(features);
+  EXPECT_EQ(std::prev(features)->rfind("# derived: one feature per 300 px^2 of 1241x376", 0), 0u)
+      << *std::prev(features);
   std::string text;
   for (const std::string& line : lines) text += line + "\n";
   const auto path = WriteFile("derived.conf", text);

@@ -28,7 +28,9 @@
 namespace flatslam {
 namespace {
 
-Descriptor RandomDescriptor(std::mt19937_64& rng) { return {rng(), rng(), rng(), rng()}; }
+Descriptor RandomDescriptor(std::mt19937_64& rng) {
+  return {rng(), rng(), rng(), rng()};
+}
 
 Descriptor FlipBits(Descriptor d, int bits, std::mt19937_64& rng) {
   for (int i = 0; i < bits; ++i) {
@@ -106,7 +108,9 @@ std::string LoadError(const std::filesystem::path& path) {
   return "";
 }
 
-bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+bool Contains(const std::string& text, const std::string& part) {
+  return text.find(part) != std::string::npos;
+}
 
 TEST(Vocabulary, TransformMatchesBruteForceDescent) {
   const TrainingSet set = MakeTrainingSet(30000, 400, 40, 60, 7);
@@ -417,7 +421,9 @@ TEST(Vocabulary, DefaultVocabularyLoads) {
               v.levels(), v.word_count(), v.byte_size() / 1048576.0);
 }
 
-double Mean(const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / v.size(); }
+double Mean(const std::vector<double>& v) {
+  return std::accumulate(v.begin(), v.end(), 0.0) / v.size();
+}
 double Median(std::vector<double> v) {
   std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
   return v[v.size() / 2];

@@ -12,7 +12,9 @@
 namespace flatslam {
 namespace {
 
-std::filesystem::path TrajectoriesDir() { return testing::DatasetsDir() / "trajectories"; }
+std::filesystem::path TrajectoriesDir() {
+  return testing::DatasetsDir() / "trajectories";
+}
 
 Eigen::Isometry3d Pose(const Eigen::Matrix3d& r, const Eigen::Vector3d& t) {
   Eigen::Isometry3d pose = Eigen::Isometry3d::Identity();
@@ -21,7 +23,9 @@ Eigen::Isometry3d Pose(const Eigen::Matrix3d& r, const Eigen::Vector3d& t) {
   return pose;
 }
 
-Eigen::Matrix3d RotZ(double a) { return Eigen::AngleAxisd(a, Eigen::Vector3d::UnitZ()).toRotationMatrix(); }
+Eigen::Matrix3d RotZ(double a) {
+  return Eigen::AngleAxisd(a, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+}
 
 // A 3D helix with turning orientation, 10 Hz: spread in every axis, so alignment is well posed.
 Trajectory Helix(size_t n) {
@@ -81,7 +85,6 @@ TEST(Metrics, V102MatchesEvo) {
   EXPECT_NEAR(r.ate_m.rmse, 0.0917, 0.00005);
   std::printf("V102: %zu pairs, ATE rmse %.6f m\n", r.pairs.size(), r.ate_m.rmse);
 }
-
 
 TEST(Metrics, ReferenceAssociationIteratesOverTheShorterTrajectory) {
   const Trajectory gt = ReadTrajectory(TrajectoriesDir() / "fr2_desk_groundtruth.txt");
@@ -257,9 +260,8 @@ TEST(Rpe, ConstantPerStepDriftGivesConstantError) {
   // Ground truth: 1 m forward and 2 degrees of yaw per step. The estimate composes every
   // step with the same error D (2 cm sideways, 0.5 degree about a tilted axis).
   const Eigen::Isometry3d step = Pose(RotZ(2.0 * M_PI / 180), {1, 0, 0});
-  const Eigen::Isometry3d drift =
-      Pose(Eigen::AngleAxisd(0.5 * M_PI / 180, Eigen::Vector3d(0.3, 0.4, 1).normalized()).toRotationMatrix(),
-           {0, 0.02, 0});
+  const Eigen::Isometry3d drift = Pose(
+      Eigen::AngleAxisd(0.5 * M_PI / 180, Eigen::Vector3d(0.3, 0.4, 1).normalized()).toRotationMatrix(), {0, 0.02, 0});
   Trajectory gt(50), est(50);
   for (size_t i = 1; i < gt.size(); ++i) {
     gt[i].t_ns = est[i].t_ns = static_cast<int64_t>(i) * 100'000'000;

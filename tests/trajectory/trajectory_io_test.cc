@@ -211,8 +211,8 @@ TEST(TrajectoryIo, EmptyAndMissingFilesAreErrorsNamingTheFile) {
   const fs::path empty = WriteText("empty.txt", "");
   const fs::path comments = WriteText("comments.txt", "# nothing\n\n   \n");
   for (const fs::path& path : {empty, comments}) {
-    for (auto format : {TrajectoryFormat::kAuto, TrajectoryFormat::kTum, TrajectoryFormat::kKitti,
-                        TrajectoryFormat::kEuroc}) {
+    for (auto format :
+         {TrajectoryFormat::kAuto, TrajectoryFormat::kTum, TrajectoryFormat::kKitti, TrajectoryFormat::kEuroc}) {
       TrajectoryReadOptions options;
       options.format = format;
       const std::string message = ErrorOf([&] { (void)ReadTrajectory(path, options); });
@@ -234,8 +234,9 @@ TEST(TrajectoryIo, NonUnitQuaternionsAreNormalized) {
   ASSERT_EQ(t.size(), 2u);
   EXPECT_EQ(t[0].t_ns, 500'000'000);
   EXPECT_LT((t[0].T_world_cam.linear() - Eigen::Matrix3d::Identity()).norm(), 1e-15);
-  EXPECT_LT((t[1].T_world_cam.linear() -
-             Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ()).toRotationMatrix()).norm(), 1e-15);
+  EXPECT_LT(
+      (t[1].T_world_cam.linear() - Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ()).toRotationMatrix()).norm(),
+      1e-15);
 }
 
 TEST(TrajectoryIo, DetectsFormatsAndExplainsFailures) {
@@ -244,13 +245,13 @@ TEST(TrajectoryIo, DetectsFormatsAndExplainsFailures) {
   EXPECT_EQ(DetectTrajectoryFormat(WriteText("c.csv", "#t\n100,0,0,0,1,0,0,0,5,5\n")), TrajectoryFormat::kEuroc);
   EXPECT_EQ(DetectTrajectoryFormat(WriteText("d.txt", "1 0 0 0 0 1 0 0 0 0 1 0\n")), TrajectoryFormat::kKitti);
   const std::string message = ErrorOf([&] { (void)DetectTrajectoryFormat(WriteText("e.txt", "\n1 2 3\n")); });
-  EXPECT_NE(message.find("e.txt:2: cannot detect the trajectory format from 3 columns"), std::string::npos)
-      << message;
+  EXPECT_NE(message.find("e.txt:2: cannot detect the trajectory format from 3 columns"), std::string::npos) << message;
   // An explicit format wins over detection.
   TrajectoryReadOptions options;
   options.format = TrajectoryFormat::kKitti;
-  EXPECT_NE(ErrorOf([&] { (void)ReadTrajectory(WriteText("f.txt", "1 0 0 0 0 0 0 1\n"), options); })
-                .find("f.txt:1: expected 12 numbers"),
+  EXPECT_NE(ErrorOf([&] {
+              (void)ReadTrajectory(WriteText("f.txt", "1 0 0 0 0 0 0 1\n"), options);
+            }).find("f.txt:1: expected 12 numbers"),
             std::string::npos);
   EXPECT_EQ(ParseTrajectoryFormat("euroc"), TrajectoryFormat::kEuroc);
   EXPECT_FALSE(ParseTrajectoryFormat("csv"));
@@ -261,8 +262,9 @@ TEST(TrajectoryIo, WritersRefuseBadInput) {
   Trajectory nan_pose(1);
   nan_pose[0].T_world_cam.translation().x() = std::nan("");
   EXPECT_THROW(WriteKitti(TempDir() / "nan.txt", nan_pose), Error);
-  EXPECT_NE(ErrorOf([&] { WriteTum(TempDir() / "no_dir/x.txt", RandomTrajectory(2, 1)); }).find("cannot open for writing"),
-            std::string::npos);
+  EXPECT_NE(
+      ErrorOf([&] { WriteTum(TempDir() / "no_dir/x.txt", RandomTrajectory(2, 1)); }).find("cannot open for writing"),
+      std::string::npos);
 }
 
 }  // namespace
