@@ -173,8 +173,11 @@ TEST(MatchForInitialization, PairsKeypointsWithinTheWindow) {
   const auto near = MatchForInitialization(first, second, 5.0f, MatcherOptions{});
   EXPECT_LT(within, 100);
   EXPECT_LE(static_cast<int>(near.size()), within + 2);
-  for (const auto& [i1, i2] : near)
-    if (i1 == i2) EXPECT_LE((first.keypoints.uv[i1] - second.keypoints.uv[i2]).cwiseAbs().maxCoeff(), 5.0f);
+  for (const auto& [i1, i2] : near) {
+    if (i1 == i2) {
+      EXPECT_LE((first.keypoints.uv[i1] - second.keypoints.uv[i2]).cwiseAbs().maxCoeff(), 5.0f);
+    }
+  }
 }
 
 TEST(MatchBySimilarity, BindsPointsThroughAScaledPose) {
