@@ -92,8 +92,9 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // the session when the last copy has been written).
   std::atomic<bool> checkpoint_busy{false};
   // One copy of the session, reused by every checkpoint (one is written at a time). The copy is
-  // taken by the background job, not the track stage: tracking waits only if it needs the map
-  // lock while the copy runs (measured in the frames' track_ms).
+  // taken by a job on the mapping queue (or, with mapping inline, by the checkpoint job), not by
+  // the track stage: tracking waits only if it needs the map lock while the copy runs (measured
+  // in the frames' track_ms).
   Slam::State checkpoint_state;
   // Held by the track stage from Track to on_frame, and by a checkpoint's copy: a checkpoint never
   // covers a frame whose report has not been handed out.
