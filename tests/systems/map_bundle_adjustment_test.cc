@@ -5,19 +5,17 @@
 
 #include <gtest/gtest.h>
 
+#include "geometry_fixtures.h"
+
 namespace flatslam {
 namespace {
 
-constexpr double kFx = 500, kBaseline = 0.5;
+constexpr double kBaseline = 0.5;
 
 CameraGeometry Geometry() {
   CameraGeometry g;
-  g.camera.width = 640;
-  g.camera.height = 480;
-  g.camera.fx = g.camera.fy = kFx;
-  g.camera.cx = 320;
-  g.camera.cy = 240;
-  g.bf = kBaseline * kFx;
+  g.camera = testing::TestCamera();
+  g.bf = kBaseline * g.camera.fx;
   g.pyramid = ScalePyramid::Make(8, 1.2f);
   return g;
 }
@@ -37,8 +35,8 @@ struct Scene {
       kf.T_cam_world.translation() = Eigen::Vector3d(-static_cast<double>(i), 0, 0);
       for (size_t j = 0; j < points; ++j) {
         const Eigen::Vector3d X = kf.T_cam_world * Position(j);
-        kf.uv[j] = Eigen::Vector2f(static_cast<float>(kFx * X.x() / X.z() + 320),
-                                   static_cast<float>(kFx * X.y() / X.z() + 240));
+        kf.uv[j] = Eigen::Vector2f(static_cast<float>(g.camera.fx * X.x() / X.z() + g.camera.cx),
+                                   static_cast<float>(g.camera.fy * X.y() / X.z() + g.camera.cy));
         kf.depth[j] = static_cast<float>(X.z());
         kf.right_u[j] = static_cast<float>(kf.uv[j].x() - g.bf / X.z());
         kf.octave[j] = static_cast<uint8_t>(j % 3);

@@ -9,6 +9,8 @@
 
 #include <gtest/gtest.h>
 
+#include "geometry_fixtures.h"
+
 namespace flatslam {
 namespace {
 
@@ -16,11 +18,7 @@ constexpr int kPoints = 120;
 
 CameraGeometry Geometry() {
   CameraGeometry g;
-  g.camera.width = 640;
-  g.camera.height = 480;
-  g.camera.fx = g.camera.fy = 500;
-  g.camera.cx = 320;
-  g.camera.cy = 240;
+  g.camera = testing::TestCamera();
   g.pyramid = ScalePyramid::Make(8, 1.2f);
   return g;
 }
@@ -89,6 +87,16 @@ struct Scene {
     }
     f.Prepare(g.camera.width, g.camera.height);
     return f;
+  }
+  // The same view as a keyframe (pose, pixels, descriptors) of no map yet.
+  [[nodiscard]] KeyFrame KeyFrameAt(const Eigen::Isometry3d& T_cam_world, int noise_bits) {
+    const TrackedFrame f = FrameAt(T_cam_world, noise_bits);
+    KeyFrame k;
+    k.resize(f.size());
+    k.T_cam_world = T_cam_world;
+    k.uv = f.keypoints.uv;
+    k.descriptor = f.keypoints.descriptor;
+    return k;
   }
 };
 
@@ -185,11 +193,7 @@ TEST(MatchBySimilarity, BindsPointsThroughAScaledPose) {
   // A keyframe of another map whose units are twice ours (a monocular map): S_cw maps our world
   // into its camera, so its camera coordinates are twice the true ones and the pixels the same.
   const Eigen::Isometry3d T = Moved(-0.25, 1.5);
-  TrackedFrame f = s.FrameAt(T, 8);
-  KeyFrame query;
-  query.resize(f.size());
-  query.uv = f.keypoints.uv;
-  query.descriptor = f.keypoints.descriptor;
+  const KeyFrame query = s.KeyFrameAt(T, 8);
   Similarity3 S_cw = Similarity3::FromIsometry(T);
   S_cw.s = 2;
   S_cw.t *= 2;
@@ -210,14 +214,7 @@ TEST(FusePoints, MergesDuplicatesAndAddsMissedObservations) {
   Scene s;
   // A second keyframe sees every point; half of them it took as new duplicate points, the other
   // half it did not match at all.
-  const Eigen::Isometry3d T = Moved(-0.3, 1);
-  TrackedFrame f = s.FrameAt(T, 0);
-  KeyFrame k;
-  k.resize(f.size());
-  k.T_cam_world = T;
-  k.uv = f.keypoints.uv;
-  k.descriptor = f.keypoints.descriptor;
-  const KeyFrameHandle kf2 = s.map.AddKeyFrame(std::move(k));
+  const KeyFrameHandle kf2 = s.map.AddKeyFrame(s.KeyFrameAt(Moved(-0.3, 1), 0));
   std::vector<PointHandle> duplicates;
   for (int j = 0; j < kPoints; j += 2) {
     const PointHandle d = s.map.AddPoint(s.map.point(s.points[j]).position + Eigen::Vector3d(0.001, 0, 0), kf2);

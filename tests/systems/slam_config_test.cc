@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include "core/error.h"
+#include "geometry_fixtures.h"
 #include "systems/map_merge.h"
 
 namespace flatslam {
@@ -83,15 +84,8 @@ TEST(SlamConfig, OptionProblemsNameTheField) {
   EXPECT_FALSE(o.Check());
   o.matcher.nn_ratio = 1.5f;  // the first broken requirement is reported
   EXPECT_EQ(o.Problem(), "matcher: nn_ratio > 0 && nn_ratio <= 1");
-  const Calibration calibration = [] {
-    Calibration c;
-    c.camera.width = 640;
-    c.camera.height = 480;
-    c.camera.fx = c.camera.fy = 500;
-    c.camera.cx = 320;
-    c.camera.cy = 240;
-    return c;
-  }();
+  Calibration calibration;
+  calibration.camera = testing::TestCamera();
   EXPECT_NE(ErrorOf([&] {
               Slam slam(calibration, o);
             }).find("invalid SLAM options: matcher: nn_ratio > 0 && nn_ratio <= 1 does not hold"),
