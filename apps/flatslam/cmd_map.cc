@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 #include <string>
 #include <system_error>
 #include <thread>
@@ -12,6 +13,7 @@
 #include "args.h"
 #include "commands.h"
 #include "core/error.h"
+#include "storage/colmap_export.h"
 #include "storage/snapshot.h"
 #include "systems/map_merge.h"
 #include "systems/slam.h"
@@ -24,6 +26,7 @@ const char* const kMapUsage =
     "usage: flatslam map info FILE\n"
     "       flatslam map verify FILE [--vocabulary-checksum N]\n"
     "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary] [--trajectory traj.tum]\n"
+    "                               [--colmap DIR]\n"
     "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
     "                       [--local-weld] [--seed N]\n\n"
     "Map snapshots (.fsmap) hold one or more maps with their keyframes, map points and graph edges.\n"
@@ -31,9 +34,15 @@ const char* const kMapUsage =
     "           agents, keyframes, map points, observations, bounding box (read in place: fast)\n"
     "  verify   checks everything: structure, every index, the content hash, that each map\n"
     "           rebuilds consistently; prints 'ok' and exits 0, else the problem and exits 1\n"
-    "  export   map points as a PLY point cloud (all maps; ascii by default) and the keyframe\n"
+    "  export   map points as a PLY point cloud (all maps; ascii by default), the keyframe\n"
     "           trajectory (T_world_cam, TUM format, sorted by time; with several maps the\n"
-    "           poses of each stay in that map's own frame)\n"
+    "           poses of each stay in that map's own frame) and/or a COLMAP model:\n"
+    "    --colmap DIR  a COLMAP text model (cameras.txt, images.txt, points3D.txt; DIR is created):\n"
+    "                  one PINHOLE camera (the left/colour camera), an image per keyframe (pose\n"
+    "                  world-to-camera, its keypoints as POINTS2D), a 3D point per map point with\n"
+    "                  observations (grey, its tracks). Image names are <timestamp ns>.png\n"
+    "                  (agent<N>/<timestamp ns>.png for maps of several agents): labels, not files\n"
+    "                  on disk. A snapshot of several maps gets DIR/<map id>/ per map\n"
     "  merge    joins the maps of several snapshots (same calibration and vocabulary) where they\n"
     "           overlap: place recognition between keyframes, a verified SE(3) transform (Sim(3)\n"
     "           for monocular maps) that several keyframe pairs must agree on, duplicate points\n"
@@ -143,10 +152,15 @@ void WritePly(const std::string& path, const MapSnapshotView& view, bool binary)
 int Export(const std::string& file, const Args& args) {
   const auto ply = args.get("ply");
   const auto trajectory = args.get("trajectory");
-  if (!ply && !trajectory) throw UsageError{"export needs --ply FILE and/or --trajectory FILE"};
+  const auto colmap = args.get("colmap");
+  if (!ply && !trajectory && !colmap)
+    throw UsageError{"export needs --ply FILE, --trajectory FILE and/or --colmap DIR"};
   const std::string format = args.get_or("ply-format", "ascii");
   if (format != "ascii" && format != "binary") throw UsageError{"--ply-format is ascii or binary"};
   const MapSnapshotView view = MapSnapshotView::Open(file);
+  // A COLMAP model needs the whole map (keypoints, observations), not only what the view reads in
+  // place. Loaded before anything is written, so a map that does not rebuild leaves no output.
+  const std::optional<LoadedSnapshot> loaded = colmap ? std::optional(LoadMapSnapshot(view)) : std::nullopt;
   if (ply) {
     WritePly(*ply, view, format == "binary");
     size_t count = 0;
@@ -162,6 +176,15 @@ int Export(const std::string& file, const Args& args) {
     std::stable_sort(all.begin(), all.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
     WriteTum(*trajectory, all);
     std::printf("wrote %s: %zu keyframe poses\n", trajectory->c_str(), all.size());
+  }
+  if (colmap) {
+    for (const ColmapMapExport& e : WriteColmapModels(*loaded, *colmap)) {
+      const ColmapExportCounts& c = e.counts;
+      std::printf("wrote %s: map %u, %zu images, %zu points, %zu observations, mean reprojection error %.3f px",
+                  e.dir.c_str(), e.map_id, c.images, c.points, c.observations, c.mean_reprojection_error_px);
+      if (c.points_unobserved > 0) std::printf(" (%zu map points without observations left out)", c.points_unobserved);
+      std::printf("\n");
+    }
   }
   return 0;
 }
@@ -324,8 +347,8 @@ int RunMap(const std::vector<std::string>& argv) {
   for (std::string& a : expanded)
     if (a == "-o") a = "--out";
   const Args args(expanded,
-                  {"ply", "ply-format", "trajectory", "vocabulary-checksum", "out", "vocabulary", "min-matches",
-                   "min-pairs", "seed"},
+                  {"ply", "ply-format", "trajectory", "colmap", "vocabulary-checksum", "out", "vocabulary",
+                   "min-matches", "min-pairs", "seed"},
                   {"local-weld"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);

@@ -1,6 +1,4 @@
 // flatslam run: the SLAM pipeline over a dataset, writing trajectories, per-frame stats and a summary.
-#include <mimalloc.h>
-#include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -19,12 +17,13 @@
 
 #include "args.h"
 #include "commands.h"
+#include "stop_signals.h"
 #include "core/atomic_write.h"
 #include "core/error.h"
 #include "io/dataset.h"
 #include "io/orb_settings.h"
+#include "jobs/sequence_run.h"
 #include "jobs/slam_runner.h"
-#include "storage/line_log.h"
 #include "storage/snapshot.h"
 #include "systems/slam_config.h"
 #include "systems/vocabulary.h"
@@ -45,7 +44,9 @@ const char* const kRunUsage =
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
     "as fast as it can read, and prints a summary: frames, frames lost, keyframes, map points, ms per\n"
     "frame, frames/s, peak RSS, and ATE/RPE when the dataset has ground truth.\n"
-    "  --out DIR        write trajectory.tum, trajectory.kitti, keyframes.tum and stats.csv;\n"
+    "  --out DIR        write trajectory.tum, trajectory.kitti, keyframes.tum and stats.csv, and\n"
+    "                   groundtruth.tum, results.csv (the run's row, as flatslam batch writes it) and\n"
+    "                   report.html (plots against ground truth; open it in a browser, offline);\n"
     "                   trajectory.tum (poses as tracked) and stats.csv grow as frames are tracked\n"
     "                   (whole lines, flushed at least every second) and trajectory.tum is\n"
     "                   rewritten with the refined poses at the end\n"
@@ -88,27 +89,6 @@ const char* const kRunUsage =
 
 namespace {
 
-double PeakRssMiB() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return usage.ru_maxrss / 1024.0;
-}
-
-// Memory the allocator has committed now (the heap, without code, stacks and mapped files).
-double HeapCommittedMiB() {
-  size_t elapsed = 0, user = 0, system = 0, rss = 0, peak_rss = 0, commit = 0, peak_commit = 0, faults = 0;
-  mi_process_info(&elapsed, &user, &system, &rss, &peak_rss, &commit, &peak_commit, &faults);
-  return static_cast<double>(commit) / (1024.0 * 1024.0);
-}
-
-// Resident set size now, from /proc/self/statm (0 where unavailable).
-double CurrentRssMiB() {
-  std::ifstream statm("/proc/self/statm");
-  double size = 0, resident = 0;
-  if (!(statm >> size >> resident)) return 0;
-  return resident * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
-}
-
 // "A:B,C:D" -> {{A, B}, {C, D}}; "N,M" -> {{N, N}, {M, M}} when ranges are not wanted.
 std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, const std::string& text, bool ranges) {
   std::vector<std::pair<size_t, size_t>> out;
@@ -139,35 +119,6 @@ std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, cons
   }
   return out;
 }
-
-// Per-frame times of a session of any length in fixed memory: log-spaced bins 1% apart from
-// 1 us to 100 s give the median within 1%; mean and maximum are exact.
-class TimeStats {
- public:
-  void Add(double ms) {
-    const double clamped = std::clamp(ms, kMinMs, kMaxMs);
-    ++bins_[static_cast<size_t>(std::log(clamped / kMinMs) / std::log(kStep))];
-    ++count_;
-    sum_ += ms;
-    max_ = std::max(max_, ms);
-  }
-  [[nodiscard]] double Median() const {
-    size_t seen = 0;
-    for (size_t b = 0; b < bins_.size(); ++b) {
-      seen += bins_[b];
-      if (2 * seen > count_) return kMinMs * std::pow(kStep, static_cast<double>(b) + 0.5);
-    }
-    return 0;
-  }
-  [[nodiscard]] double Mean() const { return count_ == 0 ? 0 : sum_ / static_cast<double>(count_); }
-  [[nodiscard]] double Max() const { return max_; }
-
- private:
-  static constexpr double kMinMs = 1e-3, kMaxMs = 1e5, kStep = 1.01;
-  std::array<uint32_t, 1900> bins_{};  // log(1e8) / log(1.01) = 1852 bins
-  size_t count_ = 0;
-  double sum_ = 0, max_ = 0;
-};
 
 // Flags of `flatslam run` that take a value, and switches.
 const std::set<std::string> kRunFlags = {
@@ -208,69 +159,11 @@ std::vector<std::string> ResumableArguments(const std::vector<std::string>& argv
   return out;
 }
 
-// Signals: the first SIGINT/SIGTERM asks the run to stop; a second one ends the process at once.
-std::atomic<bool> g_stop{false};
-volatile std::sig_atomic_t g_signal = 0;
-
-extern "C" void OnStopSignal(int signal) {
-  if (g_signal != 0) {
-    constexpr char kNow[] = "\nflatslam run: second interrupt: exiting now\n";
-    (void)!::write(STDERR_FILENO, kNow, sizeof(kNow) - 1);
-    ::_exit(128 + signal);
-  }
-  g_signal = signal;
-  g_stop.store(true);
-  constexpr char kStopping[] =
-      "\nflatslam run: interrupted: finishing the frames in flight, then writing the results (interrupt again "
-      "to quit at once)\n";
-  (void)!::write(STDERR_FILENO, kStopping, sizeof(kStopping) - 1);
-}
-
-// Installs OnStopSignal for SIGINT and SIGTERM while it lives; restores the previous handlers.
-class StopSignals {
- public:
-  StopSignals() {
-    g_stop = false;
-    g_signal = 0;
-    struct sigaction action {};
-    action.sa_handler = OnStopSignal;
-    sigemptyset(&action.sa_mask);
-    ::sigaction(SIGINT, &action, &old_int_);
-    ::sigaction(SIGTERM, &action, &old_term_);
-  }
-  ~StopSignals() {
-    ::sigaction(SIGINT, &old_int_, nullptr);
-    ::sigaction(SIGTERM, &old_term_, nullptr);
-  }
-  StopSignals(const StopSignals&) = delete;
-  StopSignals& operator=(const StopSignals&) = delete;
-
- private:
-  struct sigaction old_int_ {
-  }, old_term_{};
-};
-
 // Test hook: FLATSLAM_INJECT_FAULT=global-ba|loop-closing|checkpoint makes that background work
 // throw, so tests can check that its failure becomes a warning and the session goes on.
 std::string InjectedFaultName() {
   const char* fault = std::getenv("FLATSLAM_INJECT_FAULT");
   return fault ? fault : "";
-}
-
-// stats.csv lines of frames before `next_frame` (a resumed run keeps the first part's lines).
-std::string StatsBefore(const std::filesystem::path& path, size_t next_frame, const std::string& header) {
-  std::ifstream in(path);
-  std::string out = header, line;
-  if (!in) return out;
-  std::getline(in, line);  // header
-  while (std::getline(in, line)) {
-    if (in.eof()) break;  // a last line without its newline is incomplete
-    size_t frame = 0;
-    const auto [ptr, ec] = std::from_chars(line.data(), line.data() + line.size(), frame);
-    if (ec != std::errc() || *ptr != ',' || frame >= next_frame) continue;
-    out += line + "\n";
-  }
-  return out;
 }
 
 }  // namespace
@@ -380,19 +273,11 @@ int RunRun(const std::vector<std::string>& original_argv) {
   const int64_t agent = args.get_int("agent", 0);
   if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
   options.agent = static_cast<uint32_t>(agent);
-  if (settings_file)
-    for (const auto& [key, value] : SettingsSlamOptions(*dataset_options.settings, dataset->calibration().sensor))
-      SetSlamOption(&options, key, value, *settings_file);
-  options.orb.features = static_cast<int>(args.get_int("features", options.orb.features));
   options.seed = dataset_options.seed;
-  if (auto config = args.get("config")) LoadSlamConfig(*config, &options);
-  if (auto settings = args.get("set")) {
-    for (size_t pos = 0; pos <= settings->size();) {
-      const size_t comma = std::min(settings->find(',', pos), settings->size());
-      ApplySlamSetting(&options, std::string_view(*settings).substr(pos, comma - pos));
-      pos = comma + 1;
-    }
-  }
+  std::vector<std::string> set;
+  if (auto settings = args.get("set")) set.push_back(*settings);
+  ApplySlamOptionSources(&options, dataset_options.settings.get(), dataset->calibration().sensor,
+                         static_cast<int>(args.get_int("features", 0)), args.get_or("config", ""), set);
   if (args.has("list-options")) {
     std::vector<DerivedOption> derived;
     const SlamOptions resolved = ResolvedOptions(options, dataset->calibration(), &derived);
@@ -491,81 +376,30 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::fprintf(stderr, "\nwarning: frame %zu skipped: %s\n", index, reason.c_str());
   };
   // Per-frame statistics and the trajectory as tracked go to stats.csv and trajectory.tum as
-  // frames are tracked (whole lines, flushed at least every second): a session of any length
-  // keeps only two timings per frame (for the medians) besides its trajectory, and a killed run
-  // leaves both files readable. A resumed run keeps the first part's lines.
-  const std::string csv_header =
-      "frame,t_ns,state,keyframe,reinitialized,relocalized,features,stereo_points,matches,inliers,extract_ms,"
-      "track_ms,rss_mib,heap_mib,map_keyframes,map_points\n";
-  std::optional<LineLog> csv, streamed;
-  if (out_dir) {
-    const std::filesystem::path csv_path = *out_dir / "stats.csv";
-    if (resume_session) {
-      const std::string kept = StatsBefore(csv_path, run.first_frame, csv_header);
-      WriteFileAtomically(csv_path, [&](std::FILE* f) { std::fputs(kept.c_str(), f); });
-      csv.emplace(csv_path, "", LineLog::Mode::kAppend);
-    } else {
-      csv.emplace(csv_path, csv_header);
-    }
-    std::string prefix = kTumHeader;
-    if (resume_session)
-      for (const AnchoredFramePose& f : resume_session->frames)
-        prefix += FormatTumLine({f.t_ns, f.T_cam_world.isometry().inverse()});
-    streamed.emplace(*out_dir / "trajectory.tum", prefix);
-  }
-  size_t done = 0, keyframes_so_far = 0, lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
-  TimeStats track_ms, extract_ms;
+  // frames are tracked: a session of any length keeps only two timings per frame (for the
+  // medians) besides its trajectory. A resumed run keeps the first part's lines.
+  RunRecorder recorder(out_dir, run.first_frame, resume_session ? &resume_session->frames : nullptr);
+  const RunRecorder::Counts& counts = recorder.counts();
   run.keep_reports = false;
   const size_t to_do = frames - run.first_frame;
   run.on_frame = [&](const FrameReport& r) {
-    ++done;
-    if (!r.skipped) {
-      keyframes_so_far += r.keyframe;
-      lost += r.state == TrackingState::kLost;
-      not_initialized += r.state == TrackingState::kNotInitialized;
-      relocalized += r.relocalized;
-      reinitialized += r.reinitialized;
-      track_ms.Add(r.track_ms);
-      extract_ms.Add(r.extract_ms);
-    }
-    // Resident set and committed heap sampled every frame: long sessions show whether memory
-    // stays flat.
-    if (csv) {
-      char line[512];
-      std::snprintf(line, sizeof(line), "%zu,%lld,%s,%d,%d,%d,%d,%d,%d,%d,%g,%g,%g,%g,%zu,%zu\n", r.index,
-                    static_cast<long long>(r.t_ns), r.skipped ? "skipped" : TrackingStateName(r.state), r.keyframe,
-                    r.reinitialized, r.relocalized, r.features, r.stereo_points, r.matches, r.inliers, r.extract_ms,
-                    r.track_ms, CurrentRssMiB(), HeapCommittedMiB(), r.map_keyframes, r.map_points);
-      csv->Append(line);
-    }
-    if (streamed && r.T_world_cam) streamed->Append(FormatTumLine({r.t_ns, *r.T_world_cam}));
-    if (!quiet && (done % 10 == 0 || done == to_do))
-      std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", done, to_do,
-                   r.skipped ? "skipped" : TrackingStateName(r.state), keyframes_so_far);
+    recorder.OnFrame(r);
+    if (!quiet && (counts.frames % 10 == 0 || counts.frames == to_do))
+      std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", counts.frames, to_do,
+                   r.skipped ? "skipped" : TrackingStateName(r.state), counts.keyframes);
   };
   // A checkpoint's rows and poses are on disk before the checkpoint itself.
-  run.before_checkpoint = [&] {
-    if (csv) csv->Flush();
-    if (streamed) streamed->Flush();
-  };
-  const StopSignals stop_signals;
+  run.before_checkpoint = [&] { recorder.Flush(); };
+  const StopSignals stop_signals("flatslam run");
   run.stop = &g_stop;
   const SlamRunResult result = RunSlam(*dataset, options, run);
   if (!quiet) std::fprintf(stderr, "\n");
   const double wall_s = result.wall_s;
   const Trajectory& trajectory = result.trajectory;
-  const Trajectory& keyframes = result.keyframes;
-  if (out_dir) {
-    csv->Close();
-    streamed->Close();
-    // The streamed poses as tracked give way to the refined ones (each file replaced atomically).
-    if (!trajectory.empty()) {
-      WriteTum(*out_dir / "trajectory.tum", trajectory);
-      WriteKitti(*out_dir / "trajectory.kitti", trajectory);
-      WriteTum(*out_dir / "keyframes.tum", keyframes);
-    }
-  }
+  recorder.Finish(result);
 
+  const TimeStats& track_ms = counts.track_ms;
+  const TimeStats& extract_ms = counts.extract_ms;
   const double mean_track = track_ms.Mean();
   const double mean_extract = extract_ms.Mean();
   std::printf("dataset       %s\n", dataset->name().c_str());
@@ -578,7 +412,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
                 resolved.orb.features, options.orb.features == 0 ? " (from the camera)" : "");
   }
   std::printf("frames        %zu tracked, %zu lost, %zu before initialization, %zu skipped (unreadable)\n",
-              trajectory.size(), lost, not_initialized, result.frames_skipped);
+              trajectory.size(), counts.lost, counts.not_initialized, result.frames_skipped);
   if (g_signal != 0)
     std::printf("interrupted   by %s after frame %zu of %zu: frames after it were not read\n",
                 g_signal == SIGINT ? "SIGINT" : "SIGTERM", result.next_frame == 0 ? 0 : result.next_frame - 1, frames);
@@ -586,7 +420,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::printf(
         "places        vocabulary %zu words (loaded in %.1f ms), %zu relocalizations, %zu new map segments, "
         "%zu loop closures\n",
-        vocabulary.word_count(), vocabulary_ms, relocalized, reinitialized, result.loop_closures.size());
+        vocabulary.word_count(), vocabulary_ms, counts.relocalized, counts.reinitialized, result.loop_closures.size());
     const auto gt = dataset->ground_truth();
     // Position of the ground truth nearest in time (within 50 ms), to tell true loops from false.
     auto true_position = [&](int64_t t_ns) -> std::optional<Eigen::Vector3d> {
@@ -607,7 +441,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
       std::printf("\n");
     }
   } else {
-    std::printf("places        no vocabulary: %zu new map segments after tracking loss\n", reinitialized);
+    std::printf("places        no vocabulary: %zu new map segments after tracking loss\n", counts.reinitialized);
   }
   if (!loaded_note.empty())
     std::printf("continued     %s%s\n", loaded_note.c_str(), options.localization_only ? " (localization only)" : "");
@@ -637,23 +471,29 @@ int RunRun(const std::vector<std::string>& original_argv) {
   }
   if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
-  if (auto gt = dataset->ground_truth(); gt && !trajectory.empty()) {
-    EvalOptions eval;
-    eval.alignment = Alignment::kSE3;
-    const EvalResult se3 = Evaluate(*gt, trajectory, eval);
-    eval.alignment = Alignment::kSim3;
-    const EvalResult sim3 = Evaluate(*gt, trajectory, eval);
-    // The path over the time the trajectory covers (an interrupted run covers a part).
-    double length = 0;
-    for (size_t i = 1; i < gt->size(); ++i)
-      if ((*gt)[i - 1].t_ns >= trajectory.front().t_ns && (*gt)[i].t_ns <= trajectory.back().t_ns)
-        length += ((*gt)[i].T_world_cam.translation() - (*gt)[i - 1].T_world_cam.translation()).norm();
+  // The run's row of the results table, as `flatslam batch` writes it for each sequence.
+  SequenceResult row = ResultOfRun(result, counts);
+  row.name = dataset->name();
+  row.dataset = args.positional()[0];
+  row.sensor = SensorName(dataset->calibration().sensor);
+  row.wall_s = wall_s;
+  row.peak_rss_mib = PeakRssMiB();
+  const std::optional<Trajectory> gt = dataset->ground_truth();
+  if (gt) ScoreAgainstGroundTruth(*gt, trajectory, &row);
+  if (row.ate_se3_m) {
     std::printf(
         "ATE           %.4f m RMSE after SE(3) (%zu poses, %.2f%% of the %.1f m path); Sim(3) %.4f m, scale %.4f\n",
-        se3.ate_m.rmse, se3.pairs.size(), 100.0 * se3.ate_m.rmse / std::max(length, 1e-9), length, sim3.ate_m.rmse,
-        sim3.alignment.scale);
-    std::printf("RPE           %.4f m / %.3f deg per frame (RMSE)\n", se3.rpe_frames.translation_m.rmse,
-                se3.rpe_frames.rotation_deg.rmse);
+        *row.ate_se3_m, trajectory.size(), 100.0 * *row.ate_se3_m / std::max(*row.path_m, 1e-9), *row.path_m,
+        *row.ate_sim3_m, *row.scale);
+    std::printf("RPE           %.4f m / %.3f deg per frame (RMSE)\n", *row.rpe_m, *row.rpe_deg);
+  }
+  std::string report_error;
+  if (out_dir) {
+    try {
+      WriteSequenceSummary(*out_dir, row, gt);
+    } catch (const std::exception& e) {
+      report_error = e.what();
+    }
   }
   if (!result.error.empty())
     std::printf("stopped       after frame %zu by an error (results cover the frames before): %s\n",
@@ -663,8 +503,14 @@ int RunRun(const std::vector<std::string>& original_argv) {
     std::printf("result        no frame was tracked: the map never initialized (see stats.csv)\n");
     return exit_code != 0 ? exit_code : 1;
   }
-  if (out_dir)
-    std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv}\n", out_dir->c_str());
+  if (out_dir) {
+    std::printf("wrote         %s/{trajectory.tum,trajectory.kitti,keyframes.tum,stats.csv%s}\n", out_dir->c_str(),
+                gt ? ",groundtruth.tum" : "");
+    if (report_error.empty())
+      std::printf("report        %s/report.html (and its row in results.csv)\n", out_dir->c_str());
+    else
+      std::printf("report        not written: %s\n", report_error.c_str());
+  }
   if (save_map) {
     if (!save_error.empty()) {
       std::printf("map snapshot  not saved: %s\n", save_error.c_str());

@@ -20,6 +20,7 @@ int RunInfo(const std::vector<std::string>& args);
 int RunRun(const std::vector<std::string>& args);
 int RunVocab(const std::vector<std::string>& args);
 int RunMap(const std::vector<std::string>& args);
+int RunBatch(const std::vector<std::string>& args);
 
 extern const char* const kSynthUsage;
 extern const char* const kEvalUsage;
@@ -27,5 +28,6 @@ extern const char* const kInfoUsage;
 extern const char* const kRunUsage;
 extern const char* const kVocabUsage;
 extern const char* const kMapUsage;
+extern const char* const kBatchUsage;
 
 }  // namespace flatslam::app

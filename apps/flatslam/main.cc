@@ -23,6 +23,8 @@ const Command kCommands[] = {
      flatslam::app::RunInfo},
     {"run", "SLAM over a dataset: trajectory, keyframes, per-frame stats, accuracy", flatslam::app::kRunUsage,
      flatslam::app::RunRun},
+    {"batch", "many sequences at once on every core: one results table, one report, shards", flatslam::app::kBatchUsage,
+     flatslam::app::RunBatch},
     {"eval", "ATE, RPE and KITTI metrics of an estimated trajectory against ground truth", flatslam::app::kEvalUsage,
      flatslam::app::RunEval},
     {"vocab", "train a bag-of-words vocabulary from images, or describe a vocabulary file", flatslam::app::kVocabUsage,

@@ -1,5 +1,6 @@
 #include "systems/slam_config.h"
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdint>
@@ -10,6 +11,7 @@
 #include <variant>
 
 #include "core/error.h"
+#include "io/orb_settings.h"
 
 namespace flatslam {
 namespace {
@@ -230,6 +232,22 @@ std::vector<std::string> DescribeSlamOptions(const SlamOptions& options, std::sp
     out.push_back(line.str());
   }
   return out;
+}
+
+void ApplySlamOptionSources(SlamOptions* options, const OrbSettings* settings, Sensor sensor, int features,
+                            const std::string& config, const std::vector<std::string>& set) {
+  if (settings)
+    for (const auto& [key, value] : SettingsSlamOptions(*settings, sensor))
+      SetSlamOption(options, key, value, settings->file.string());
+  if (features != 0) options->orb.features = features;
+  if (!config.empty()) LoadSlamConfig(config, options);
+  for (const std::string& settings_list : set) {
+    for (size_t pos = 0; pos <= settings_list.size();) {
+      const size_t comma = std::min(settings_list.find(',', pos), settings_list.size());
+      ApplySlamSetting(options, std::string_view(settings_list).substr(pos, comma - pos));
+      pos = comma + 1;
+    }
+  }
 }
 
 }  // namespace flatslam

@@ -15,6 +15,8 @@
 
 namespace flatslam {
 
+struct OrbSettings;  // io/orb_settings.h
+
 // Sets one option. Throws flatslam::Error naming the key when it is unknown or the value does not
 // parse as the option's type (integer, real or true/false). `where` prefixes the message (a file
 // and line, or "--set").
@@ -27,6 +29,13 @@ void ApplySlamSetting(SlamOptions* options, std::string_view setting);
 // Reads a config file: one "key = value" per line; blank lines and '#' comments are skipped.
 // Errors name the file and line. The options are checked (SlamOptions::Check) at the end.
 void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options);
+
+// Applies the option sources of a run in their order (later wins): an ORB-SLAM2/3 settings
+// file's ORB and depth options for `sensor` (may be null), `features` when non-zero (--features),
+// a config file (may be empty), then each "KEY=VALUE,..." of `set` (--set). Errors name the
+// source: the settings or config file and line, or --set.
+void ApplySlamOptionSources(SlamOptions* options, const OrbSettings* settings, Sensor sensor, int features,
+                            const std::string& config, const std::vector<std::string>& set);
 
 // Every key with its current value in `options`, as "key = value" lines (the config file format).
 // A key listed in `derived` (ResolvedOptions) is preceded by a "# derived: RULE" comment line.

@@ -101,6 +101,44 @@ TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
   EXPECT_EQ(binary.size() - data_at, vertices * 12);
 }
 
+// The number after `key` in text (the first occurrence), or -1.
+long long NumberAfter(const std::string& text, const std::string& key) {
+  const size_t at = text.find(key);
+  return at == std::string::npos ? -1 : std::stoll(text.substr(at + key.size()));
+}
+
+TEST_F(MapCli, ExportWritesAColmapModelThatColmapReadsWithTheMapsCounts) {
+  const fs::path model = dir_ / "colmap" / "room";  // created by the export
+  Result r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --colmap " + model.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const std::string wrote = r.output;
+  EXPECT_TRUE(Contains(wrote, "wrote " + model.string() + ": map 0, ")) << wrote;
+  for (const char* file : {"cameras.txt", "images.txt", "points3D.txt"}) EXPECT_TRUE(fs::exists(model / file)) << file;
+  const long long images = NumberAfter(wrote, "map 0, "), points = NumberAfter(wrote, "images, ");
+  const long long observations = NumberAfter(wrote, "points, ");
+  const long long unobserved = Contains(wrote, "without observations") ? NumberAfter(wrote, "px (") : 0;
+
+  // The same numbers as the snapshot: keyframes, observations, and map points with observations.
+  r = RunApp("map info " + (dir_ / "room.fsmap").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_GT(images, 1);
+  EXPECT_EQ(images, NumberAfter(r.output, "agents [0], ")) << wrote << r.output;
+  EXPECT_EQ(points + unobserved, NumberAfter(r.output, "keyframes, ")) << wrote << r.output;
+  EXPECT_EQ(observations, NumberAfter(r.output, "map points, ")) << wrote << r.output;
+
+  // A directory that cannot be made is an error naming it, after nothing was written.
+  r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --colmap " + (dir_ / "room.fsmap" / "m").string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_TRUE(Contains(r.output, (dir_ / "room.fsmap" / "m").string())) << r.output;
+
+  if (!fs::exists("/usr/bin/colmap")) GTEST_SKIP() << "/usr/bin/colmap not installed";
+  r = testing::RunCommand("/usr/bin/colmap model_analyzer --path " + model.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(NumberAfter(r.output, "Registered images: "), images) << r.output;
+  EXPECT_EQ(NumberAfter(r.output, "Points: "), points) << r.output;
+  EXPECT_EQ(NumberAfter(r.output, "Observations: "), observations) << r.output;
+}
+
 TEST_F(MapCli, BadFilesFailWithTheProblemNamed) {
   const std::string good = ReadBytes(dir_ / "room.fsmap");
   ASSERT_GT(good.size(), 1000u);
