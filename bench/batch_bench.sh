@@ -49,7 +49,12 @@ if [ "${3:-}" != "many-only" ]; then
     IFS='|' read -r name spec sensor <<<"$entry"
     # Monocular: Sim(3) ATE; others SE(3).
     col=$([ "$sensor" = mono ] && echo ate_sim3_m || echo ate_se3_m)
-    single=$(awk -F, -v c="$col" 'NR==1{for(i=1;i<=NF;i++) if($i==c) k=i} NR==2{print $k}' "$work/single/$name/results.csv")
+    # The single run's summary line: "ATE  X m RMSE after SE(3) (...); Sim(3) Y m, scale Z".
+    if [ "$sensor" = mono ]; then
+      single=$(awk '/^ATE/{for(i=1;i<=NF;i++) if($i=="Sim(3)") {print $(i+1); exit}}' "$work/single_$name.txt")
+    else
+      single=$(awk '/^ATE/{print $2}' "$work/single_$name.txt")
+    fi
     batch=$(awk -F, -v c="$col" -v s="$name" 'NR==1{for(i=1;i<=NF;i++) {if($i==c) k=i; if($i=="sequence") q=i}} NR>1 && $q==s {print $k}' "$work/batch/results.csv")
     printf "%-10s %10s %10s  (%s)\n" "$name" "$single" "$batch" "$col" >>"$work/ate.txt"
   done

@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <map>
+#include <mutex>
 #include <set>
 #include <thread>
 
@@ -142,32 +143,40 @@ std::string OverallLine(const BatchProgress& p) {
   return line;
 }
 
-// Progress on a terminal: the block of lines drawn last time is redrawn in place.
+// Progress on a terminal: the block of lines drawn last time is redrawn in place; a message
+// (a sequence finished, a warning) replaces the block and the next draw starts below it. Draw
+// and Message may come from different threads.
 class TerminalProgress {
  public:
   void Draw(const BatchProgress& p) {
     std::string text;
-    if (lines_ > 0) text += "\x1b[" + std::to_string(lines_) + "F";  // back to the block's first line
     size_t lines = 0;
     for (const SequenceProgress& s : p.sequences) {
       if (s.state != "running") continue;
       char line[256];
-      std::snprintf(line, sizeof(line), "  %-32.32s %6zu / %-6zu frames  %6.1f frames/s  %s", s.name.c_str(),
-                    s.frames_done, s.frames_total, s.fps, s.state.c_str());
-      text += std::string("\x1b[2K") + line + "\n";
+      const std::string total = s.frames_total > 0 ? std::to_string(s.frames_total) : "?";
+      std::snprintf(line, sizeof(line), "  %-32.32s %6zu / %-6s frames  %6.1f frames/s", s.name.c_str(), s.frames_done,
+                    total.c_str(), s.fps);
+      text += std::string(line) + "\n";
       ++lines;
     }
-    text += "\x1b[2K" + OverallLine(p) + "\n";
-    ++lines;
-    // Lines left over from a taller block are cleared.
-    for (size_t k = lines; k < lines_; ++k) text += "\x1b[2K\n";
-    if (lines_ > lines) text += "\x1b[" + std::to_string(lines_ - lines) + "F";
-    lines_ = lines;
-    std::fputs(text.c_str(), stderr);
+    text += OverallLine(p) + "\n";
+    const std::lock_guard<std::mutex> lock(mutex_);
+    std::fputs((BackToBlock() + text).c_str(), stderr);
+    lines_ = lines + 1;
+    std::fflush(stderr);
+  }
+  void Message(const std::string& line) {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    std::fputs((BackToBlock() + line + "\n").c_str(), stderr);
+    lines_ = 0;
     std::fflush(stderr);
   }
 
  private:
+  // Cursor up to the block's first line, the block cleared; empty when nothing is drawn.
+  std::string BackToBlock() const { return lines_ > 0 ? "\x1b[" + std::to_string(lines_) + "F\x1b[J" : std::string(); }
+  std::mutex mutex_;
   size_t lines_ = 0;
 };
 
@@ -286,14 +295,19 @@ int RunBatch(const std::vector<std::string>& argv) {
       std::fprintf(stderr, "%s\n", OverallLine(p).c_str());
     }
   };
-  batch.on_finished = [&](const SequenceResult& r) {
+  auto message = [&](const std::string& line) {
     if (quiet) return;
-    std::fprintf(stderr, "%s%s: %s, %zu frames, %zu lost%s%s\n", terminal ? "\x1b[2K" : "", r.name.c_str(),
-                 r.status.c_str(), r.frames, r.lost, r.error.empty() ? "" : ": ", r.error.c_str());
+    if (terminal)
+      drawn.Message(line);
+    else
+      std::fprintf(stderr, "%s\n", line.c_str());
   };
-  batch.on_warning = [&](const std::string& sequence, const std::string& message) {
-    if (!quiet)
-      std::fprintf(stderr, "%swarning: %s: %s\n", terminal ? "\x1b[2K" : "", sequence.c_str(), message.c_str());
+  batch.on_finished = [&](const SequenceResult& r) {
+    message(r.name + ": " + r.status + ", " + std::to_string(r.frames) + " frames, " + std::to_string(r.lost) +
+            " lost" + (r.error.empty() ? "" : ": " + r.error));
+  };
+  batch.on_warning = [&](const std::string& sequence, const std::string& text) {
+    message("warning: " + sequence + ": " + text);
   };
   const StopSignals stop_signals("flatslam batch");
   const auto start = std::chrono::steady_clock::now();
