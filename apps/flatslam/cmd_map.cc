@@ -26,7 +26,7 @@ const char* const kMapUsage =
     "usage: flatslam map info FILE\n"
     "       flatslam map verify FILE [--vocabulary-checksum N]\n"
     "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary] [--trajectory traj.tum]\n"
-    "                               [--colmap DIR]\n"
+    "                               [--colmap DIR [--min-track N]]\n"
     "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
     "                       [--local-weld] [--seed N]\n\n"
     "Map snapshots (.fsmap) hold one or more maps with their keyframes, map points and graph edges.\n"
@@ -43,6 +43,9 @@ const char* const kMapUsage =
     "                  observations (grey, its tracks). Image names are <timestamp ns>.png\n"
     "                  (agent<N>/<timestamp ns>.png for maps of several agents): labels, not files\n"
     "                  on disk. A snapshot of several maps gets DIR/<map id>/ per map\n"
+    "    --min-track N with --colmap: only points seen by N or more keyframes (default 1: every\n"
+    "                  observed point); 2 for COLMAP's bundle_adjuster, which refuses points seen\n"
+    "                  once (stereo and RGB-D maps hold points placed from one keyframe's depth)\n"
     "  merge    joins the maps of several snapshots (same calibration and vocabulary) where they\n"
     "           overlap: place recognition between keyframes, a verified SE(3) transform (Sim(3)\n"
     "           for monocular maps) that several keyframe pairs must agree on, duplicate points\n"
@@ -157,6 +160,10 @@ int Export(const std::string& file, const Args& args) {
     throw UsageError{"export needs --ply FILE, --trajectory FILE and/or --colmap DIR"};
   const std::string format = args.get_or("ply-format", "ascii");
   if (format != "ascii" && format != "binary") throw UsageError{"--ply-format is ascii or binary"};
+  const int64_t min_track_arg = args.get_int("min-track", 1);
+  if (min_track_arg < 1) throw UsageError{"--min-track must be at least 1"};
+  if (args.has("min-track") && !colmap) throw UsageError{"--min-track applies to --colmap"};
+  const size_t min_track = static_cast<size_t>(min_track_arg);
   const MapSnapshotView view = MapSnapshotView::Open(file);
   // A COLMAP model needs the whole map (keypoints, observations), not only what the view reads in
   // place. Loaded before anything is written, so a map that does not rebuild leaves no output.
@@ -178,11 +185,13 @@ int Export(const std::string& file, const Args& args) {
     std::printf("wrote %s: %zu keyframe poses\n", trajectory->c_str(), all.size());
   }
   if (colmap) {
-    for (const ColmapMapExport& e : WriteColmapModels(*loaded, *colmap)) {
+    for (const ColmapMapExport& e : WriteColmapModels(*loaded, *colmap, min_track)) {
       const ColmapExportCounts& c = e.counts;
       std::printf("wrote %s: map %u, %zu images, %zu points, %zu observations, mean reprojection error %.3f px",
                   e.dir.c_str(), e.map_id, c.images, c.points, c.observations, c.mean_reprojection_error_px);
-      if (c.points_unobserved > 0) std::printf(" (%zu map points without observations left out)", c.points_unobserved);
+      if (c.points_left_out > 0)
+        std::printf(" (%zu map points seen by fewer than %zu keyframes left out)", c.points_left_out,
+                    std::max<size_t>(min_track, 1));
       std::printf("\n");
     }
   }
@@ -347,7 +356,7 @@ int RunMap(const std::vector<std::string>& argv) {
   for (std::string& a : expanded)
     if (a == "-o") a = "--out";
   const Args args(expanded,
-                  {"ply", "ply-format", "trajectory", "colmap", "vocabulary-checksum", "out", "vocabulary",
+                  {"ply", "ply-format", "trajectory", "colmap", "min-track", "vocabulary-checksum", "out", "vocabulary",
                    "min-matches", "min-pairs", "seed"},
                   {"local-weld"});
   if (args.help()) {

@@ -80,7 +80,8 @@ const char* SensorLabel(Sensor sensor) {
 
 }  // namespace
 
-ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibration, const std::filesystem::path& dir) {
+ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibration, const std::filesystem::path& dir,
+                                    size_t min_track) {
   const PinholeCamera& camera = calibration.camera;
   FLATSLAM_CHECK(camera.valid(), dir.string(), ": cannot export a COLMAP model without a valid camera (", camera.width,
                  "x", camera.height, ", fx ", camera.fx, ", fy ", camera.fy, ")");
@@ -89,11 +90,15 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
   const auto keyframes = map.keyframes().values();
   const auto points = map.points().values();
 
+  const size_t shortest = std::max<size_t>(min_track, 1);
+  auto exported = [&](const MapPoint& p) { return p.observations.size() >= shortest; };
   ColmapExportCounts counts;
   counts.images = keyframes.size();
+  size_t all_observations = 0;
   for (const MapPoint& p : points) {
-    if (p.observations.empty()) {
-      ++counts.points_unobserved;
+    all_observations += p.observations.size();
+    if (!exported(p)) {
+      ++counts.points_left_out;
     } else {
       ++counts.points;
       counts.observations += p.observations.size();
@@ -104,8 +109,8 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
   size_t bound = 0;
   for (const KeyFrame& kf : keyframes)
     for (PointHandle p : kf.points) bound += map.points().contains(p) ? 1 : 0;
-  FLATSLAM_CHECK(bound == counts.observations, dir.string(), ": the map is inconsistent (", bound,
-                 " keypoints bound to points, ", counts.observations, " point observations)");
+  FLATSLAM_CHECK(bound == all_observations, dir.string(), ": the map is inconsistent (", bound,
+                 " keypoints bound to points, ", all_observations, " point observations)");
   const std::vector<std::string> names = ImageNames(map);  // may refuse the map: before any file
 
   WriteFileAtomically(dir / "cameras.txt", [&](std::FILE* out) {
@@ -137,9 +142,9 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
         const double u = kf.uv[k].x() + kPixelShift, v = kf.uv[k].y() + kPixelShift;
         const PointHandle p = kf.points[k];
         const MapPoint* point = p.is_null() ? nullptr : map.points().try_get(p);
-        // A keypoint bound to a point is one of that point's observations (Map invariant), so
-        // the point has observations and is exported under this id.
-        if (point != nullptr) {
+        // A keypoint bound to a point is one of that point's observations (Map invariant); the
+        // point is exported under this id unless its track is too short.
+        if (point != nullptr && exported(*point)) {
           std::fprintf(out, "%s%.9g %.9g %zu", k == 0 ? "" : " ", u, v, map.points().dense_index(p) + 1);
         } else {
           std::fprintf(out, "%s%.9g %.9g -1", k == 0 ? "" : " ", u, v);
@@ -158,7 +163,7 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
                  counts.points, counts.points == 0 ? 0.0 : static_cast<double>(counts.observations) / counts.points);
     for (size_t i = 0; i < points.size(); ++i) {
       const MapPoint& point = points[i];
-      if (point.observations.empty()) continue;
+      if (!exported(point)) continue;
       const double error = MeanReprojectionError(map, point, camera);
       error_sum += error;
       std::fprintf(out, "%zu %.17g %.17g %.17g 128 128 128 %.6g", i + 1, point.position.x(), point.position.y(),
@@ -172,14 +177,15 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
   return counts;
 }
 
-std::vector<ColmapMapExport> WriteColmapModels(const LoadedSnapshot& snapshot, const std::filesystem::path& dir) {
+std::vector<ColmapMapExport> WriteColmapModels(const LoadedSnapshot& snapshot, const std::filesystem::path& dir,
+                                               size_t min_track) {
   FLATSLAM_CHECK(!snapshot.maps.empty(), dir.string(), ": the snapshot holds no map to export");
   std::vector<ColmapMapExport> exports;
   for (const LoadedMap& m : snapshot.maps) {
     ColmapMapExport e;
     e.map_id = m.id;
     e.dir = snapshot.maps.size() == 1 ? dir : dir / std::to_string(m.id);
-    e.counts = WriteColmapModel(m.map, snapshot.metadata.calibration, e.dir);
+    e.counts = WriteColmapModel(m.map, snapshot.metadata.calibration, e.dir, min_track);
     exports.push_back(std::move(e));
   }
   return exports;

@@ -19,10 +19,10 @@ namespace flatslam {
 
 // What one export wrote; the numbers COLMAP's model_analyzer reports for the model.
 struct ColmapExportCounts {
-  size_t images = 0;             // keyframes ("Registered images")
-  size_t points = 0;             // map points with at least one observation ("Points")
-  size_t observations = 0;       // keypoints bound to an exported point = track entries ("Observations")
-  size_t points_unobserved = 0;  // map points without observations: nothing to triangulate them from, not written
+  size_t images = 0;           // keyframes ("Registered images")
+  size_t points = 0;           // map points with at least one observation ("Points")
+  size_t observations = 0;     // keypoints bound to an exported point = track entries ("Observations")
+  size_t points_left_out = 0;  // map points with fewer observations than the minimum track (at least 1)
   // Mean over the exported points of each point's mean reprojection error in pixels (the ERROR
   // column); observations behind their camera are left out of it.
   double mean_reprojection_error_px = 0;
@@ -46,7 +46,11 @@ struct ColmapExportCounts {
 // pixel at (0.5, 0.5), flatslam (like OpenCV) at (0, 0).
 // Throws flatslam::Error naming the path when dir or a file cannot be written, or when the
 // camera is not valid.
-ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibration, const std::filesystem::path& dir);
+// min_track: points seen by fewer keyframes are left out (their keypoints get POINT3D_ID -1);
+// at least 1. 2 suits COLMAP's bundle_adjuster, which refuses points seen once (a stereo map
+// has them: points placed from one keyframe's stereo depth).
+ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibration, const std::filesystem::path& dir,
+                                    size_t min_track = 1);
 
 // One map of a snapshot as exported by WriteColmapModels.
 struct ColmapMapExport {
@@ -59,6 +63,7 @@ struct ColmapMapExport {
 // one of several maps (a merge that left maps apart) into dir/<map id>/ each, since every map
 // has its own frame and its own point ids. Throws flatslam::Error as WriteColmapModel, and for a
 // snapshot that holds no map.
-std::vector<ColmapMapExport> WriteColmapModels(const LoadedSnapshot& snapshot, const std::filesystem::path& dir);
+std::vector<ColmapMapExport> WriteColmapModels(const LoadedSnapshot& snapshot, const std::filesystem::path& dir,
+                                               size_t min_track = 1);
 
 }  // namespace flatslam

@@ -173,7 +173,7 @@ void ExpectModelMatchesMap(const fs::path& dir, const Map& map, const Calibratio
   EXPECT_EQ(counts.images, map.keyframes().size());
   EXPECT_EQ(counts.points, with_observations);
   EXPECT_EQ(counts.observations, observations);
-  EXPECT_EQ(counts.points_unobserved, map.points().size() - with_observations);
+  EXPECT_EQ(counts.points_left_out, map.points().size() - with_observations);
   ASSERT_EQ(model.images.size(), map.keyframes().size());
   ASSERT_EQ(model.points.size(), with_observations);
 
@@ -249,12 +249,41 @@ TEST(ColmapExport, RandomMapRoundTripsThroughTheTextFiles) {
   ASSERT_EQ(map.Validate(), "");
   const Calibration calibration = TestCalibration();
   const ColmapExportCounts counts = WriteColmapModel(map, calibration, dir);
-  EXPECT_EQ(counts.points_unobserved, 1u);
+  EXPECT_EQ(counts.points_left_out, 1u);
   EXPECT_GT(counts.observations, counts.points);
   ExpectModelMatchesMap(dir, map, calibration, counts);
   // Two agents: names carry the agent, so equal clocks of two agents cannot collide.
   const ColmapModel model = ReadModel(dir);
   EXPECT_EQ(model.images.at(1).name, "agent0/12345.png");
+}
+
+TEST(ColmapExport, AMinimumTrackLeavesShortTracksOut) {
+  const fs::path dir = testing::FreshTempDir("colmap_min_track");
+  const Map map = testing::RandomMap({});
+  size_t long_tracks = 0, long_observations = 0;
+  for (const MapPoint& p : map.points().values()) {
+    if (p.observations.size() < 3) continue;
+    ++long_tracks;
+    long_observations += p.observations.size();
+  }
+  ASSERT_GT(long_tracks, 0u);
+  ASSERT_LT(long_tracks, map.points().size());  // the test needs short tracks to leave out
+  const ColmapExportCounts counts = WriteColmapModel(map, TestCalibration(), dir, 3);
+  EXPECT_EQ(counts.points, long_tracks);
+  EXPECT_EQ(counts.observations, long_observations);
+  EXPECT_EQ(counts.points_left_out, map.points().size() - long_tracks);
+  const ColmapModel model = ReadModel(dir);
+  ASSERT_EQ(model.points.size(), long_tracks);
+  // Every keypoint names an exported point or none; every exported point has 3 or more entries.
+  size_t named = 0;
+  for (const auto& [id, image] : model.images)
+    for (const ColmapPoint2D& p : image.points2d) {
+      if (p.point_id < 0) continue;
+      ++named;
+      EXPECT_TRUE(model.points.count(p.point_id)) << "image " << id << " names point " << p.point_id;
+    }
+  EXPECT_EQ(named, long_observations);
+  for (const auto& [id, point] : model.points) EXPECT_GE(point.track.size(), 3u) << id;
 }
 
 TEST(ColmapExport, NamesAreTimestampsAndRepeatsGetTheKeyFrameId) {
