@@ -155,8 +155,8 @@ class TerminalProgress {
       if (s.state != "running") continue;
       char line[256];
       const std::string total = s.frames_total > 0 ? std::to_string(s.frames_total) : "?";
-      std::snprintf(line, sizeof(line), "  %-32.32s %6zu / %-6s frames  %6.1f frames/s", s.name.c_str(), s.frames_done,
-                    total.c_str(), s.fps);
+      std::snprintf(line, sizeof(line), "  %-32.32s %6zu / %-6s frames  %6.1f frames/s  %s", s.name.c_str(),
+                    s.frames_done, total.c_str(), s.fps, s.tracking.c_str());
       text += std::string(line) + "\n";
       ++lines;
     }

@@ -25,7 +25,8 @@ namespace flatslam::app {
 const char* const kMapUsage =
     "usage: flatslam map info FILE\n"
     "       flatslam map verify FILE [--vocabulary-checksum N]\n"
-    "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary] [--trajectory traj.tum]\n"
+    "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary]\n"
+    "                               [--trajectory FILE [--format tum|kitti|euroc]]\n"
     "                               [--colmap DIR [--min-track N]]\n"
     "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
     "                       [--local-weld] [--seed N]\n\n"
@@ -35,8 +36,9 @@ const char* const kMapUsage =
     "  verify   checks everything: structure, every index, the content hash, that each map\n"
     "           rebuilds consistently; prints 'ok' and exits 0, else the problem and exits 1\n"
     "  export   map points as a PLY point cloud (all maps; ascii by default), the keyframe\n"
-    "           trajectory (T_world_cam, TUM format, sorted by time; with several maps the\n"
-    "           poses of each stay in that map's own frame) and/or a COLMAP model:\n"
+    "           trajectory (T_world_cam sorted by time, --format tum (default), kitti (with the\n"
+    "           times in FILE.times.txt) or euroc csv; with several maps the poses of each stay\n"
+    "           in that map's own frame) and/or a COLMAP model:\n"
     "    --colmap DIR  a COLMAP text model (cameras.txt, images.txt, points3D.txt; DIR is created):\n"
     "                  one PINHOLE camera (the left/colour camera), an image per keyframe (pose\n"
     "                  world-to-camera, its keypoints as POINTS2D), a 3D point per map point with\n"
@@ -160,6 +162,10 @@ int Export(const std::string& file, const Args& args) {
     throw UsageError{"export needs --ply FILE, --trajectory FILE and/or --colmap DIR"};
   const std::string format = args.get_or("ply-format", "ascii");
   if (format != "ascii" && format != "binary") throw UsageError{"--ply-format is ascii or binary"};
+  const std::string trajectory_format = args.get_or("format", "tum");
+  if (trajectory_format != "tum" && trajectory_format != "kitti" && trajectory_format != "euroc")
+    throw UsageError{"--format is tum, kitti or euroc"};
+  if (args.has("format") && !trajectory) throw UsageError{"--format applies to --trajectory"};
   const int64_t min_track_arg = args.get_int("min-track", 1);
   if (min_track_arg < 1) throw UsageError{"--min-track must be at least 1"};
   if (args.has("min-track") && !colmap) throw UsageError{"--min-track applies to --colmap"};
@@ -181,8 +187,15 @@ int Export(const std::string& file, const Args& args) {
       all.insert(all.end(), t.begin(), t.end());
     }
     std::stable_sort(all.begin(), all.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
-    WriteTum(*trajectory, all);
-    std::printf("wrote %s: %zu keyframe poses\n", trajectory->c_str(), all.size());
+    if (trajectory_format == "kitti") {
+      WriteKitti(*trajectory, all);
+      WriteKittiTimes(*trajectory + ".times.txt", all);
+    } else if (trajectory_format == "euroc") {
+      WriteEuroc(*trajectory, all);
+    } else {
+      WriteTum(*trajectory, all);
+    }
+    std::printf("wrote %s: %zu keyframe poses (%s)\n", trajectory->c_str(), all.size(), trajectory_format.c_str());
   }
   if (colmap) {
     for (const ColmapMapExport& e : WriteColmapModels(*loaded, *colmap, min_track)) {
@@ -356,8 +369,8 @@ int RunMap(const std::vector<std::string>& argv) {
   for (std::string& a : expanded)
     if (a == "-o") a = "--out";
   const Args args(expanded,
-                  {"ply", "ply-format", "trajectory", "colmap", "min-track", "vocabulary-checksum", "out", "vocabulary",
-                   "min-matches", "min-pairs", "seed"},
+                  {"ply", "ply-format", "trajectory", "format", "colmap", "min-track", "vocabulary-checksum", "out",
+                   "vocabulary", "min-matches", "min-pairs", "seed"},
                   {"local-weld"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);

@@ -37,6 +37,8 @@ double Seconds(Clock::duration d) {
 struct Slot {
   std::atomic<size_t> frames_done{0}, frames_total{0};
   std::atomic<bool> finished{false};
+  // The last frame's tracking state (TrackingState as an int; -1: skipped or none yet).
+  std::atomic<int> tracking{-1};
   std::string state = "queued";  // owned by the batch thread
   Clock::time_point started;
   std::atomic<double> peak_rss_mib{0};  // sampled by the batch thread while it runs
@@ -87,6 +89,9 @@ std::vector<SequenceResult> RunBatch(const std::vector<SequenceSpec>& specs, con
       q.state = s.state;
       q.frames_done = s.frames_done.load();
       q.frames_total = s.frames_total.load();
+      if (const int t = s.tracking.load(); s.state == "running")
+        q.tracking =
+            t < 0 ? (q.frames_done > 0 ? "skipped" : "opening") : TrackingStateName(static_cast<TrackingState>(t));
       if (s.state != "queued") {
         const double seconds = s.state == "running" ? Seconds(Clock::now() - s.started) : s.result.wall_s;
         q.fps = seconds > 0 ? static_cast<double>(q.frames_done) / seconds : 0;
@@ -123,7 +128,10 @@ std::vector<SequenceResult> RunBatch(const std::vector<SequenceSpec>& specs, con
       run.input = i < inputs.size() ? inputs[i] : i;
       run.stop = options.stop;
       run.on_opened = [&slot](size_t frames) { slot.frames_total = frames; };
-      run.on_frame = [&slot](const FrameReport&) { ++slot.frames_done; };
+      run.on_frame = [&slot](const FrameReport& r) {
+        slot.tracking = r.skipped ? -1 : static_cast<int>(r.state);
+        ++slot.frames_done;
+      };
       run.peak_rss_mib = [&slot] { return slot.peak_rss_mib.load(); };
       if (options.on_warning)
         run.on_warning = [&, name = specs[i].name](const std::string& message) {

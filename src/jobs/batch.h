@@ -21,7 +21,8 @@ class Vocabulary;
 
 struct SequenceProgress {
   std::string name;
-  std::string state;  // queued, running, or the finished status (ok, failed, interrupted)
+  std::string state;     // queued, running, or the finished status (ok, failed, interrupted)
+  std::string tracking;  // while running: the last frame's tracking state (tracking, lost, ...)
   size_t frames_done = 0, frames_total = 0;
   double fps = 0;  // frames done / seconds running
 };

@@ -620,14 +620,27 @@ ul.notes { color: #6b4e00; background: #fff8e6; padding: 6px 6px 6px 28px; margi
 .back { font-size: 12px; }
 )CSS";
 
-// Records script errors on the page itself, so that a headless browser can report them
-// (document.body.dataset.errors); runs first, before Chart.js is parsed.
+// Records script errors, rejected promises and console errors (Chart.js reports bad data there)
+// on the page itself, so that a headless browser can report them (document.body.dataset.errors);
+// runs first, before Chart.js is parsed.
 const char* kErrorScript = R"JS(
-window.onerror = function (message, source, line) {
-  var text = String(message) + (line ? ' (line ' + line + ')' : '');
+function flatslamRecordError(text) {
   var body = document.body;
   body.dataset.errors = body.dataset.errors ? body.dataset.errors + ' | ' + text : text;
+}
+window.onerror = function (message, source, line) {
+  flatslamRecordError(String(message) + (line ? ' (line ' + line + ')' : ''));
 };
+window.addEventListener('unhandledrejection', function (event) {
+  flatslamRecordError('unhandled rejection: ' + event.reason);
+});
+(function () {
+  var original = console.error;
+  console.error = function () {
+    flatslamRecordError('console.error: ' + Array.prototype.join.call(arguments, ' '));
+    original.apply(console, arguments);
+  };
+})();
 )JS";
 
 // Draws every plot of FLATSLAM_PLOTS, then sets document.body.dataset.charts to the number drawn;

@@ -370,10 +370,19 @@ Trajectory ReadTrajectory(const fs::path& path, const TrajectoryReadOptions& opt
   Fail(path.string(), ": unknown trajectory format");
 }
 
-std::string FormatTumLine(const TimedPose& pose) {
-  Eigen::Quaterniond q(pose.T_world_cam.linear());
+namespace {
+// The unit quaternion of a rotation with w >= 0: of the two equal ones, always the same, so that
+// files written from equal poses are equal.
+Eigen::Quaterniond CanonicalQuaternion(const Eigen::Matrix3d& rotation) {
+  Eigen::Quaterniond q(rotation);
   q.normalize();
-  if (q.w() < 0) q.coeffs() = -q.coeffs();  // one canonical sign, so output is deterministic
+  if (q.w() < 0) q.coeffs() = -q.coeffs();
+  return q;
+}
+}  // namespace
+
+std::string FormatTumLine(const TimedPose& pose) {
+  const Eigen::Quaterniond q = CanonicalQuaternion(pose.T_world_cam.linear());
   const Eigen::Vector3d t = pose.T_world_cam.translation();
   char line[256];
   std::snprintf(line, sizeof(line), "%s %.17g %.17g %.17g %.17g %.17g %.17g %.17g\n",
@@ -396,6 +405,19 @@ void WriteKitti(const fs::path& path, const Trajectory& trajectory) {
       const Eigen::Matrix<double, 3, 4> m = pose.T_world_cam.matrix().topRows<3>();
       for (int k = 0; k < 12; ++k) std::fprintf(file, k == 0 ? "%.17g" : " %.17g", m(k / 4, k % 4));
       std::fputc('\n', file);
+    }
+  });
+}
+
+void WriteEuroc(const fs::path& path, const Trajectory& trajectory) {
+  CheckWritable(path, trajectory);
+  WriteFileAtomically(path, [&](std::FILE* file) {
+    std::fputs("#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []\n", file);
+    for (const TimedPose& pose : trajectory) {
+      const Eigen::Quaterniond q = CanonicalQuaternion(pose.T_world_cam.linear());
+      const Eigen::Vector3d t = pose.T_world_cam.translation();
+      std::fprintf(file, "%lld,%.17g,%.17g,%.17g,%.17g,%.17g,%.17g,%.17g\n", static_cast<long long>(pose.t_ns), t.x(),
+                   t.y(), t.z(), q.w(), q.x(), q.y(), q.z());
     }
   });
 }

@@ -63,6 +63,8 @@ void WriteTum(const std::filesystem::path& path, const Trajectory& trajectory);
 // KITTI drops the timestamps (write them with WriteKittiTimes if needed).
 void WriteKitti(const std::filesystem::path& path, const Trajectory& trajectory);
 void WriteKittiTimes(const std::filesystem::path& path, const Trajectory& trajectory);
+// EuRoC csv: "#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z" then one pose a line (ReadEuroc's input).
+void WriteEuroc(const std::filesystem::path& path, const Trajectory& trajectory);
 // The first line of a TUM file written here, and one pose as a TUM line (with its newline), for
 // writers that append poses as they come (flatslam run's streamed trajectory).
 inline constexpr const char* kTumHeader = "# timestamp tx ty tz qx qy qz qw\n";

@@ -14,6 +14,7 @@
 #include <sys/wait.h>
 
 #include "cli.h"
+#include "trajectory/trajectory_io.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -92,6 +93,27 @@ TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
     ++poses;
   }
   EXPECT_GT(poses, 3u);
+
+  // The same keyframe trajectory as KITTI (with its times) and EuRoC csv.
+  const Trajectory from_tum = ReadTum(tum);
+  for (const char* format : {"kitti", "euroc"}) {
+    const fs::path file = dir_ / (std::string("traj.") + format);
+    r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --trajectory " + file.string() + " --format " +
+               format);
+    ASSERT_EQ(r.exit_code, 0) << r.output;
+    const Trajectory back = std::string(format) == "kitti"
+                                ? ReadKitti(file, ReadKittiTimes(file.string() + ".times.txt"))
+                                : ReadEuroc(file);
+    ASSERT_EQ(back.size(), from_tum.size()) << format;
+    for (size_t i = 0; i < back.size(); ++i) {
+      EXPECT_NEAR(static_cast<double>(back[i].t_ns), static_cast<double>(from_tum[i].t_ns), 1e3) << format << i;
+      EXPECT_LT((back[i].T_world_cam.matrix() - from_tum[i].T_world_cam.matrix()).cwiseAbs().maxCoeff(), 1e-9)
+          << format << " pose " << i;
+    }
+  }
+  r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --trajectory " + tum.string() + " --format csv");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_TRUE(Contains(r.output, "--format is tum, kitti or euroc")) << r.output;
 
   r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --ply " + bin.string() + " --ply-format binary");
   ASSERT_EQ(r.exit_code, 0) << r.output;

@@ -5,6 +5,7 @@
 #include "storage/colmap_export.h"
 
 #include <array>
+#include <cstdlib>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -234,11 +235,20 @@ void ExpectModelMatchesMap(const fs::path& dir, const Map& map, const Calibratio
 }
 
 void ExpectColmapAgrees(const fs::path& dir, const ColmapExportCounts& counts) {
-  const AnalyzerCounts colmap = RunModelAnalyzer(dir);
-  EXPECT_EQ(colmap.images, static_cast<long long>(counts.images)) << colmap.output;
-  EXPECT_EQ(colmap.registered, static_cast<long long>(counts.images)) << colmap.output;
-  EXPECT_EQ(colmap.points, static_cast<long long>(counts.points)) << colmap.output;
-  EXPECT_EQ(colmap.observations, static_cast<long long>(counts.observations)) << colmap.output;
+  // The text model as exported, and as COLMAP's model_converter rewrites it in its binary format.
+  const fs::path binary = dir.parent_path() / (dir.filename().string() + "_bin");
+  fs::create_directories(binary);
+  const std::string convert = std::string(kColmap) + " model_converter --input_path '" + dir.string() +
+                              "' --output_path '" + binary.string() + "' --output_type BIN > /dev/null 2>&1";
+  ASSERT_EQ(std::system(convert.c_str()), 0) << convert;
+  ASSERT_TRUE(fs::exists(binary / "points3D.bin"));
+  for (const fs::path& model : {dir, binary}) {
+    const AnalyzerCounts colmap = RunModelAnalyzer(model);
+    EXPECT_EQ(colmap.images, static_cast<long long>(counts.images)) << model << colmap.output;
+    EXPECT_EQ(colmap.registered, static_cast<long long>(counts.images)) << model << colmap.output;
+    EXPECT_EQ(colmap.points, static_cast<long long>(counts.points)) << model << colmap.output;
+    EXPECT_EQ(colmap.observations, static_cast<long long>(counts.observations)) << model << colmap.output;
+  }
 }
 
 TEST(ColmapExport, RandomMapRoundTripsThroughTheTextFiles) {

@@ -76,6 +76,14 @@ TEST(TrajectoryIo, TumRoundTripIsExact) {
   ExpectSamePoses(original, ReadTrajectory(path), true);
 }
 
+TEST(TrajectoryIo, EurocRoundTripIsExact) {
+  const Trajectory original = RandomTrajectory(300, 5);
+  const fs::path path = TempDir() / "round.csv";
+  WriteEuroc(path, original);
+  EXPECT_EQ(DetectTrajectoryFormat(path), TrajectoryFormat::kEuroc);
+  ExpectSamePoses(original, ReadTrajectory(path), true);
+}
+
 TEST(TrajectoryIo, KittiRoundTripIsExact) {
   const Trajectory original = RandomTrajectory(300, 11);
   const fs::path poses = TempDir() / "round_kitti.txt";
