@@ -14,8 +14,8 @@
 
 #include "io/image_io.h"
 #include "io/synthetic.h"
-#include "systems/orb_extractor.h"
-#include "systems/stereo_matcher.h"
+#include "frontend/orb_extractor.h"
+#include "frontend/stereo_matcher.h"
 
 namespace {
 

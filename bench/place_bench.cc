@@ -9,9 +9,9 @@
 #include <benchmark/benchmark.h>
 
 #include "io/dataset.h"
-#include "systems/keyframe_database.h"
-#include "systems/orb_extractor.h"
-#include "systems/vocabulary.h"
+#include "place/keyframe_database.h"
+#include "frontend/orb_extractor.h"
+#include "place/vocabulary.h"
 
 namespace {
 

@@ -12,8 +12,8 @@
 #include <vector>
 
 #include "io/dataset.h"
-#include "systems/orb_extractor.h"
-#include "systems/vocabulary.h"
+#include "frontend/orb_extractor.h"
+#include "place/vocabulary.h"
 
 namespace {
 

@@ -21,7 +21,7 @@
 #include "report/html_report.h"
 #include "report/results.h"
 #include "stop_signals.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 
 namespace flatslam::app {
 

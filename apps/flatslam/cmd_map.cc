@@ -15,9 +15,9 @@
 #include "core/error.h"
 #include "storage/colmap_export.h"
 #include "storage/snapshot.h"
-#include "systems/map_merge.h"
-#include "systems/slam.h"
-#include "systems/vocabulary.h"
+#include "merge/map_merge.h"
+#include "slam/slam.h"
+#include "place/vocabulary.h"
 #include "trajectory/trajectory_io.h"
 
 namespace flatslam::app {

@@ -25,8 +25,8 @@
 #include "jobs/sequence_run.h"
 #include "jobs/slam_runner.h"
 #include "storage/snapshot.h"
-#include "systems/slam_config.h"
-#include "systems/vocabulary.h"
+#include "slam/slam_config.h"
+#include "place/vocabulary.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
 

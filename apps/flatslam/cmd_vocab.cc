@@ -19,8 +19,8 @@
 #include "core/error.h"
 #include "io/dataset.h"
 #include "io/image_io.h"
-#include "systems/orb_extractor.h"
-#include "systems/vocabulary.h"
+#include "frontend/orb_extractor.h"
+#include "place/vocabulary.h"
 
 namespace flatslam::app {
 

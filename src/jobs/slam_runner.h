@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "io/dataset.h"
-#include "systems/slam.h"
+#include "slam/slam.h"
 
 namespace flatslam {
 

@@ -10,7 +10,7 @@
 #include <sys/wait.h>
 
 #include "io/synthetic.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "cli.h"
 #include "test_data.h"
 

@@ -7,7 +7,7 @@
 #include <fstream>
 
 #include "jobs/sequence_run.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "test_data.h"
 
 namespace flatslam {

@@ -8,7 +8,7 @@
 
 #include "jobs/slam_runner.h"
 #include "storage/snapshot.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "test_data.h"
 #include "trajectory/metrics.h"
 

@@ -8,7 +8,7 @@
 #include <gtest/gtest.h>
 
 #include "jobs/slam_runner.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"

@@ -11,7 +11,7 @@
 
 #include "io/dataset.h"
 #include "jobs/slam_runner.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"

@@ -9,7 +9,7 @@
 
 #include "core/error.h"
 #include "jobs/slam_runner.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "trajectory_score.h"
 
 namespace flatslam {

@@ -9,7 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "core/error.h"
-#include "systems/vocabulary.h"
+#include "place/vocabulary.h"
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"

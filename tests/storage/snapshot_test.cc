@@ -19,7 +19,7 @@
 #include "flatslam/schemas/map_generated.h"
 #include "jobs/slam_runner.h"
 #include "storage/random_map.h"
-#include "systems/map_merge.h"
+#include "merge/map_merge.h"
 #include "test_data.h"
 
 namespace flatslam {

@@ -1,0 +1,48 @@
+// A frame being tracked: its keypoints, a grid for radius queries, its map-point matches and pose.
+// Concurrency: owned by one pipeline item; the extract stage writes it, the track stage reads it.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <Eigen/Geometry>
+
+#include "ecs/bow.h"
+#include "ecs/map.h"
+#include "frontend/features.h"
+
+namespace flatslam {
+
+// Keypoint indices bucketed into square cells (compressed rows) for radius queries.
+class FeatureGrid {
+ public:
+  void Build(const std::vector<Eigen::Vector2f>& uv, int width, int height, float cell_px = 24.0f);
+  // Appends to out the keypoints within the square of half-size r around (u, v).
+  void Query(float u, float v, float r, const std::vector<Eigen::Vector2f>& uv, std::vector<uint32_t>* out) const;
+
+ private:
+  int cols_ = 0, rows_ = 0;
+  float inv_cell_ = 1;
+  std::vector<uint32_t> cell_start_;  // cols_*rows_ + 1 offsets into indices_
+  std::vector<uint32_t> indices_;
+};
+
+struct TrackedFrame {
+  size_t index = 0;
+  int64_t t_ns = 0;
+  Keypoints keypoints;
+  FeatureGrid grid;
+  std::vector<PointHandle> points;  // matched map point per keypoint (null = none)
+  std::vector<uint8_t> outlier;     // set by pose optimization
+  Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();
+  bool has_pose = false;
+  // Bag of words, filled when place recognition needs it (relocalization, new keyframes).
+  BowVector bow;
+  FeatureVector bow_features;
+
+  // Sizes points/outlier to the keypoints and builds the grid.
+  void Prepare(int width, int height);
+  [[nodiscard]] size_t size() const { return keypoints.size(); }
+};
+
+}  // namespace flatslam

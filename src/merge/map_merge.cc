@@ -1,0 +1,522 @@
+#include "merge/map_merge.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <random>
+#include <string>
+#include <unordered_map>
+#include <unordered_set>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "core/error.h"
+#include "core/requirements.h"
+#include "mapping/essential_graph.h"
+#include "place/keyframe_database.h"
+#include "place/place_verification.h"
+#include "slam/slam.h"
+#include "place/vocabulary.h"
+
+namespace flatslam {
+
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+double AngleDeg(const Eigen::Matrix3d& R) {
+  const double c = std::clamp((R.trace() - 1.0) / 2.0, -1.0, 1.0);
+  return std::acos(c) * 180.0 / M_PI;
+}
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0;
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+// The camera pose (rigid, T_cam_world) a pose S_cw implies, as a scale-1 similarity.
+Similarity3 PoseOf(const Similarity3& S_cw) {
+  return Similarity3::FromIsometry(S_cw.ToIsometry());
+}
+
+// Verifies one place-recognition candidate: bag-of-words matches, RANSAC, guided search.
+bool VerifyPair(const Map& into, const Map& from, KeyFrameHandle query, KeyFrameHandle candidate,
+                const MergeCamera& camera, const MapMergeOptions& options, std::mt19937_64& rng, MergePair* out) {
+  const KeyFrame& q = from.keyframe(query);
+  PlaceVerificationOptions verification;
+  verification.min_bow_matches = options.min_bow_matches;
+  verification.ransac.fix_scale = !camera.monocular;
+  verification.ransac.iterations = options.ransac_iterations;
+  verification.ransac.min_inliers = std::min(options.min_bow_matches, verification.ransac.min_inliers);
+  std::optional<PlaceMatch> match =
+      VerifyPlace(q, from, candidate, into, camera.geometry, options.matcher, verification, rng);
+  if (!match || match->matches < options.min_matches) return false;
+  const Similarity3 S_cw = match->S_cw;
+  out->matched = std::move(match->matched);
+  out->matches = match->matches;
+
+  out->from_keyframe = query;
+  out->into_keyframe = candidate;
+  out->S_into_from = S_cw.inverse() * Similarity3::FromIsometry(q.T_cam_world);
+  const Eigen::Vector3d center = S_cw.inverse().t;
+  std::vector<double> depths;
+  for (PointHandle p : out->matched)
+    if (!p.is_null()) depths.push_back((into.point(p).position - center).norm());
+  out->scene_depth = Median(std::move(depths));
+  return true;
+}
+
+// Do two pairs see the same transform (up to drift between them)?
+bool Agree(const MergePair& a, const MergePair& b, const Map& from, bool monocular, const MapMergeOptions& options) {
+  if (AngleDeg(a.S_into_from.R * b.S_into_from.R.transpose()) > options.max_rotation_disagreement_deg) return false;
+  if (monocular && std::abs(a.S_into_from.s / b.S_into_from.s - 1.0) > options.max_scale_disagreement) return false;
+  const Eigen::Vector3d ca = from.keyframe(a.from_keyframe).camera_center();
+  const Eigen::Vector3d cb = from.keyframe(b.from_keyframe).camera_center();
+  const double error =
+      std::max((a.S_into_from * ca - b.S_into_from * ca).norm(), (a.S_into_from * cb - b.S_into_from * cb).norm());
+  const double separation = (a.S_into_from * ca - a.S_into_from * cb).norm();
+  const double depth = 0.5 * (a.scene_depth + b.scene_depth);
+  return error <= options.max_position_disagreement * depth + options.drift_fraction * separation;
+}
+
+// Pairs of a group with distinct keyframes on both sides, strongest first.
+size_t IndependentPairs(const std::vector<MergePair>& pairs, const std::vector<size_t>& group) {
+  std::vector<size_t> order = group;
+  std::sort(order.begin(), order.end(), [&](size_t x, size_t y) { return pairs[x].matches > pairs[y].matches; });
+  std::unordered_set<KeyFrameHandle> used_from, used_into;
+  size_t count = 0;
+  for (size_t k : order) {
+    if (used_from.count(pairs[k].from_keyframe) || used_into.count(pairs[k].into_keyframe)) continue;
+    used_from.insert(pairs[k].from_keyframe);
+    used_into.insert(pairs[k].into_keyframe);
+    ++count;
+  }
+  return count;
+}
+
+}  // namespace
+
+MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const MapScales& scales,
+                                         double rgbd_virtual_baseline_m, double far_stereo_baselines) {
+  FLATSLAM_CHECK(calibration.sensor != Sensor::kRgbd || rgbd_virtual_baseline_m > 0,
+                 "map merge: RGB-D maps need their virtual stereo baseline (got ", rgbd_virtual_baseline_m, ")");
+  MergeCamera out;
+  out.geometry = CameraGeometry::FromCalibration(calibration, rgbd_virtual_baseline_m,
+                                                 ScalePyramid::Make(scales.levels, scales.scale_factor));
+  out.scales = scales;
+  out.monocular = calibration.sensor == Sensor::kMonocular;
+  out.stereo_depth =
+      StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m, far_stereo_baselines);
+  return out;
+}
+
+std::string MapMergeOptions::Problem() const {
+  Requirements r;
+  r.Nested("matcher", matcher.Problem());
+  r.Nested("bundle_adjustment", bundle_adjustment.Problem());
+  FLATSLAM_REQUIRE(r, candidates_per_keyframe > 0);
+  FLATSLAM_REQUIRE(r, min_bow_matches >= 3);
+  FLATSLAM_REQUIRE(r, min_matches >= 3);
+  FLATSLAM_REQUIRE(r, min_consistent_pairs >= 1);
+  FLATSLAM_REQUIRE(r, max_rotation_disagreement_deg > 0);
+  FLATSLAM_REQUIRE(r, max_position_disagreement > 0);
+  FLATSLAM_REQUIRE(r, drift_fraction >= 0);
+  FLATSLAM_REQUIRE(r, max_scale_disagreement > 0);
+  FLATSLAM_REQUIRE(r, ransac_iterations > 0);
+  FLATSLAM_REQUIRE(r, pose_graph_iterations >= 0);
+  return r.first();
+}
+
+void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary) {
+  for (KeyFrame& kf : map.keyframes().values()) {
+    kf.bow.clear();
+    kf.bow_features.clear();
+    vocabulary.Transform(kf.descriptor, &kf.bow, &kf.bow_features);
+  }
+}
+
+MapOverlap FindMapOverlap(const Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
+                          const MapMergeOptions& options) {
+  const std::string problem = options.Problem();
+  FLATSLAM_CHECK(problem.empty(), "invalid map merge options: ", problem, " does not hold");
+  MapOverlap overlap;
+  KeyFrameDatabase database(vocabulary.word_count());
+  for (size_t i = 0; i < into.keyframes().size(); ++i) {
+    const KeyFrame& kf = into.keyframes().values()[i];
+    if (!kf.bow.empty()) database.Add(into.keyframes().handles()[i], kf.bow);
+  }
+  std::vector<KeyFrameHandle> queries;
+  for (size_t i = 0; i < from.keyframes().size(); ++i)
+    if (!from.keyframes().values()[i].bow.empty()) queries.push_back(from.keyframes().handles()[i]);
+  std::sort(queries.begin(), queries.end(),
+            [&](KeyFrameHandle a, KeyFrameHandle b) { return from.keyframe(a).id < from.keyframe(b).id; });
+  overlap.queries = queries.size();
+  if (database.size() == 0 || queries.empty()) return overlap;
+
+  // Each query is verified on its own (reads only), with its own random stream.
+  std::vector<std::vector<MergePair>> found(queries.size());
+  std::vector<size_t> checked(queries.size(), 0);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, queries.size(), 4), [&](const tbb::blocked_range<size_t>& range) {
+    for (size_t k = range.begin(); k != range.end(); ++k) {
+      std::vector<PlaceCandidate> candidates =
+          database.DetectRelocalizationCandidates(into, from.keyframe(queries[k]).bow);
+      if (candidates.size() > options.candidates_per_keyframe) candidates.resize(options.candidates_per_keyframe);
+      std::mt19937_64 rng(options.seed * 0x9E3779B97F4A7C15ull + k);
+      for (const PlaceCandidate& c : candidates) {
+        ++checked[k];
+        MergePair pair;
+        if (VerifyPair(into, from, queries[k], c.keyframe, camera, options, rng, &pair))
+          found[k].push_back(std::move(pair));
+      }
+    }
+  });
+  for (size_t k = 0; k < queries.size(); ++k) {
+    overlap.candidates += checked[k];
+    for (MergePair& p : found[k]) overlap.verified.push_back(std::move(p));
+  }
+  const std::vector<MergePair>& verified = overlap.verified;
+  if (verified.empty()) return overlap;
+
+  // The largest group of pairs agreeing with one of them, counted in independent pairs.
+  size_t best_independent = 0;
+  int best_matches = 0;
+  for (size_t i = 0; i < verified.size(); ++i) {
+    std::vector<size_t> group = {i};
+    int matches = verified[i].matches;
+    for (size_t j = 0; j < verified.size(); ++j) {
+      if (j == i || !Agree(verified[i], verified[j], from, camera.monocular, options)) continue;
+      group.push_back(j);
+      matches += verified[j].matches;
+    }
+    const size_t independent = IndependentPairs(verified, group);
+    if (independent > best_independent || (independent == best_independent && matches > best_matches)) {
+      best_independent = independent;
+      best_matches = matches;
+      std::sort(group.begin(), group.end());
+      overlap.consistent = std::move(group);
+    }
+  }
+  overlap.independent_pairs = best_independent;
+  if (static_cast<int>(best_independent) < options.min_consistent_pairs) return overlap;
+
+  // One transform for the whole seam, fitted on the matched points of the agreeing pairs with
+  // two rounds of trimming (drift between the pairs shows as residual).
+  std::vector<Eigen::Vector3d> X_from, X_into;
+  std::unordered_set<uint64_t> seen;
+  for (size_t k : overlap.consistent) {
+    const MergePair& pair = verified[k];
+    const KeyFrame& q = from.keyframe(pair.from_keyframe);
+    for (uint32_t i = 0; i < pair.matched.size(); ++i) {
+      const PointHandle pi = pair.matched[i], pf = q.points[i];
+      if (pi.is_null() || !from.points().contains(pf)) continue;
+      if (!seen.insert(pf.packed() * 0x9E3779B97F4A7C15ull ^ pi.packed()).second) continue;
+      X_from.push_back(from.point(pf).position);
+      X_into.push_back(into.point(pi).position);
+    }
+  }
+  std::optional<Similarity3> S = AlignPoints(X_from, X_into, !camera.monocular);
+  if (!S) return overlap;
+  for (int round = 0; round < 2; ++round) {
+    std::vector<double> residual(X_from.size());
+    for (size_t k = 0; k < X_from.size(); ++k) residual[k] = (*S * X_from[k] - X_into[k]).norm();
+    const double gate = 3.0 * Median(residual) + 1e-9;
+    std::vector<Eigen::Vector3d> keep_from, keep_into;
+    for (size_t k = 0; k < X_from.size(); ++k) {
+      if (residual[k] > gate) continue;
+      keep_from.push_back(X_from[k]);
+      keep_into.push_back(X_into[k]);
+    }
+    const auto refit = AlignPoints(keep_from, keep_into, !camera.monocular);
+    if (!refit) break;
+    S = refit;
+    X_from.swap(keep_from);
+    X_into.swap(keep_into);
+  }
+  double sum2 = 0;
+  for (size_t k = 0; k < X_from.size(); ++k) sum2 += (*S * X_from[k] - X_into[k]).squaredNorm();
+  overlap.S_into_from = *S;
+  overlap.correspondences = X_from.size();
+  overlap.residual_rms = X_from.empty() ? 0 : std::sqrt(sum2 / X_from.size());
+  overlap.found = true;
+  return overlap;
+}
+
+KeyFrameHandle MapRemap::operator()(const Map& from, KeyFrameHandle h) const {
+  if (!from.keyframes().contains(h)) return KeyFrameHandle::null();
+  return keyframes[h.index()];
+}
+
+PointHandle MapRemap::operator()(const Map& from, PointHandle h) const {
+  if (!from.points().contains(h)) return PointHandle::null();
+  return points[h.index()];
+}
+
+MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
+  MapRemap remap;
+  remap.keyframes.assign(from.keyframes().slot_count(), KeyFrameHandle::null());
+  remap.points.assign(from.points().slot_count(), PointHandle::null());
+  const Similarity3 S_from_into = S_into_from.inverse();
+  const double s = S_into_from.s;
+
+  // Fresh handles first (keyframes in id order, so new ids keep from's order), then every
+  // handle-typed field rewritten through the tables.
+  std::vector<KeyFrameHandle> order(from.keyframes().handles().begin(), from.keyframes().handles().end());
+  std::sort(order.begin(), order.end(),
+            [&](KeyFrameHandle a, KeyFrameHandle b) { return from.keyframe(a).id < from.keyframe(b).id; });
+  std::unordered_map<uint64_t, uint64_t> new_id;
+  into.keyframes().reserve(into.keyframes().size() + order.size());
+  into.points().reserve(into.points().size() + from.points().size());
+  for (KeyFrameHandle h : order) {
+    const KeyFrame& source = from.keyframe(h);
+    KeyFrame copy;
+    copy.frame_index = source.frame_index;
+    copy.t_ns = source.t_ns;
+    copy.T_cam_world = (Similarity3::FromIsometry(source.T_cam_world) * S_from_into).ToIsometry();
+    copy.uv = source.uv;
+    copy.right_u = source.right_u;
+    copy.depth = source.depth;
+    if (s != 1.0)
+      for (float& d : copy.depth)
+        if (d > 0) d = static_cast<float>(d * s);
+    copy.angle = source.angle;
+    copy.octave = source.octave;
+    copy.descriptor = source.descriptor;
+    copy.points.assign(source.size(), PointHandle::null());
+    copy.bow = source.bow;
+    copy.bow_features = source.bow_features;
+    copy.agent = source.agent;
+    const KeyFrameHandle added = into.AddKeyFrame(std::move(copy));
+    remap.keyframes[h.index()] = added;
+    new_id[source.id] = into.keyframe(added).id;
+  }
+  const auto point_handles = from.points().handles();
+  const auto point_values = from.points().values();
+  for (size_t i = 0; i < point_values.size(); ++i) {
+    const MapPoint& source = point_values[i];
+    const PointHandle added = into.AddPoint(S_into_from * source.position, remap(from, source.reference));
+    remap.points[point_handles[i].index()] = added;
+    MapPoint& point = into.point(added);
+    point.descriptor = source.descriptor;
+    point.normal = S_into_from.R * source.normal;
+    point.min_distance = static_cast<float>(source.min_distance * s);
+    point.max_distance = static_cast<float>(source.max_distance * s);
+    point.visible = source.visible;
+    point.found = source.found;
+    const auto id = new_id.find(source.first_keyframe_id);
+    if (id != new_id.end()) point.first_keyframe_id = id->second;
+    point.observations.reserve(source.observations.size());
+    for (const Observation& o : source.observations) {
+      const KeyFrameHandle kf = remap(from, o.keyframe);
+      if (!kf.is_null()) point.observations.push_back({kf, o.keypoint});
+    }
+  }
+  for (KeyFrameHandle h : order) {
+    const KeyFrame& source = from.keyframe(h);
+    KeyFrame& kf = into.keyframe(remap.keyframes[h.index()]);
+    for (size_t k = 0; k < source.size(); ++k) kf.points[k] = remap(from, source.points[k]);
+    for (const auto& [other, weight] : source.covisible)
+      if (const KeyFrameHandle o = remap(from, other); !o.is_null()) kf.covisible.emplace_back(o, weight);
+    kf.parent = remap(from, source.parent);
+    for (KeyFrameHandle c : source.children)
+      if (const KeyFrameHandle o = remap(from, c); !o.is_null()) kf.children.push_back(o);
+    for (KeyFrameHandle l : source.loop_edges)
+      if (const KeyFrameHandle o = remap(from, l); !o.is_null()) kf.loop_edges.push_back(o);
+  }
+  return remap;
+}
+
+MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
+                      const MapMergeOptions& options) {
+  MergeReport report;
+  const auto start = std::chrono::steady_clock::now();
+  report.overlap = FindMapOverlap(into, from, vocabulary, camera, options);
+  report.place_ms = MsSince(start);
+  if (!report.overlap.found) {
+    report.merge_ms = MsSince(start);
+    return report;
+  }
+  const MapOverlap& overlap = report.overlap;
+  std::vector<const MergePair*> seam;
+  for (size_t k : overlap.consistent) seam.push_back(&overlap.verified[k]);
+  std::sort(seam.begin(), seam.end(), [](const MergePair* a, const MergePair* b) { return a->matches > b->matches; });
+
+  // 1. Append: every handle of from gets a fresh local handle.
+  std::unordered_set<KeyFrameHandle> original(into.keyframes().handles().begin(), into.keyframes().handles().end());
+  KeyFrameHandle anchor;  // into's oldest keyframe holds the frame
+  for (KeyFrameHandle h : original)
+    if (anchor.is_null() || into.keyframe(h).id < into.keyframe(anchor).id) anchor = h;
+  const MapRemap remap = AppendMap(into, from, overlap.S_into_from);
+  report.keyframes_added = from.keyframes().size();
+  report.points_added = from.points().size();
+  auto appended = [&](KeyFrameHandle h) { return !original.count(h); };
+
+  // 2. Join the spanning trees: from's tree is re-rooted at the strongest seam keyframe, which
+  // hangs below its match.
+  {
+    const KeyFrameHandle q = remap(from, seam.front()->from_keyframe), c = seam.front()->into_keyframe;
+    std::vector<KeyFrameHandle> path = {q};
+    while (!into.keyframe(path.back()).parent.is_null() && path.size() <= from.keyframes().size())
+      path.push_back(into.keyframe(path.back()).parent);
+    FLATSLAM_CHECK(into.keyframe(path.back()).parent.is_null(),
+                   "map merge: the spanning tree of the map merged in has a cycle");
+    for (size_t i = path.size() - 1; i >= 1; --i) {
+      KeyFrame& upper = into.keyframe(path[i]);
+      std::erase(upper.children, path[i - 1]);
+      upper.parent = path[i - 1];
+      into.keyframe(path[i - 1]).children.push_back(path[i]);
+    }
+    into.keyframe(q).parent = c;
+    into.keyframe(c).children.push_back(q);
+  }
+
+  // 3. Fuse: verified matches first, then the seam neighbourhoods searched both ways.
+  const size_t points_before = into.points().size();
+  std::vector<KeyFrameHandle> seam_into, seam_from;
+  std::unordered_set<KeyFrameHandle> seam_set;
+  for (const MergePair* pair : seam) {
+    const KeyFrameHandle q = remap(from, pair->from_keyframe);
+    into.BindMatchedPoints(q, pair->matched);
+    into.AddLoopEdge(pair->into_keyframe, q);
+    ++report.loop_edges;
+    auto add = [&](KeyFrameHandle h, std::vector<KeyFrameHandle>* side) {
+      if (into.keyframes().contains(h) && seam_set.insert(h).second) side->push_back(h);
+    };
+    add(pair->into_keyframe, &seam_into);
+    for (KeyFrameHandle n : into.BestCovisible(pair->into_keyframe, options.weld_neighbours)) add(n, &seam_into);
+    add(q, &seam_from);
+    for (KeyFrameHandle n : into.BestCovisible(q, options.weld_neighbours)) add(n, &seam_from);
+  }
+  auto points_of = [&](const std::vector<KeyFrameHandle>& keyframes) {
+    std::vector<PointHandle> out;
+    std::unordered_set<PointHandle> unique;
+    for (KeyFrameHandle h : keyframes)
+      for (PointHandle p : into.keyframe(h).points)
+        if (into.points().contains(p) && unique.insert(p).second) out.push_back(p);
+    return out;
+  };
+  {
+    const std::vector<PointHandle> into_points = points_of(seam_into), from_points = points_of(seam_from);
+    for (KeyFrameHandle h : seam_from) FusePoints(into, h, into_points, camera.geometry, options.matcher);
+    for (KeyFrameHandle h : seam_into) FusePoints(into, h, from_points, camera.geometry, options.matcher);
+  }
+  report.points_fused = points_before - into.points().size();
+
+  // 4. Covisibility across the seam: every keyframe that sees a seam point.
+  {
+    std::unordered_set<KeyFrameHandle> touched(seam_set);
+    for (PointHandle p : points_of(std::vector<KeyFrameHandle>(seam_set.begin(), seam_set.end())))
+      for (const Observation& o : into.point(p).observations) touched.insert(o.keyframe);
+    for (KeyFrameHandle h : touched) into.UpdateCovisibility(h);
+  }
+
+  // 5. Essential graph: spanning tree, loop edges and strong covisibility within each map measured
+  // as they are, and the seam pairs measured by their own transforms; into's oldest keyframe fixed.
+  EssentialGraph graph = EssentialGraph::OfMap(into);
+  for (uint32_t i = 0; i < graph.nodes.size(); ++i) graph.fixed[i] = graph.nodes[i] == anchor;
+  for (const MergePair* pair : seam) {
+    const uint32_t i = graph.index.at(pair->into_keyframe), j = graph.index.at(remap(from, pair->from_keyframe));
+    const Similarity3 S_q =
+        PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) * pair->S_into_from.inverse());
+    graph.edges.Add(i, j, graph.S[i] * S_q.inverse());
+  }
+  // Across the seam, only the pairs above.
+  graph.AddMapEdges(into, graph.S, 100,
+                    [&](uint32_t i, uint32_t j) { return appended(graph.nodes[i]) == appended(graph.nodes[j]); });
+  PoseGraphOptions graph_options;
+  graph_options.fix_scale = !camera.monocular;
+  graph_options.iterations = options.pose_graph_iterations;
+  if (options.pose_graph_iterations > 0) OptimizePoseGraph(graph.S, graph.fixed, graph.edges.edges(), graph_options);
+  graph.Apply(&into, [&](PointHandle, const MapPoint& point) {
+    if (into.keyframes().contains(point.reference) || point.observations.empty()) return point.reference;
+    return point.observations.front().keyframe;
+  });
+
+  // 6. Welding bundle adjustment: the seam keyframes and their neighbours free, every other
+  // keyframe that sees their points fixed.
+  {
+    std::vector<KeyFrameHandle> free;
+    std::unordered_set<KeyFrameHandle> window;
+    auto add = [&](KeyFrameHandle h) {
+      if (window.insert(h).second) free.push_back(h);
+    };
+    if (options.global_bundle_adjustment)
+      for (KeyFrameHandle h : into.keyframes().handles()) add(h);
+    for (const MergePair* pair : seam) {
+      for (KeyFrameHandle h : {pair->into_keyframe, remap(from, pair->from_keyframe)}) {
+        add(h);
+        for (KeyFrameHandle n : into.BestCovisible(h, options.weld_neighbours)) add(n);
+      }
+    }
+    report.welded_keyframes = window.size();
+    MapBundleAdjustment ba;
+    BuildMapBundleAdjustment(into, camera.geometry, camera.stereo_depth, free, anchor, 1, &ba);
+    if (!ba.problem.observations.empty()) {
+      BundleAdjustmentOptions ba_options = options.bundle_adjustment;
+      if (window.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
+        ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+      const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
+      if (result.success) report.weld_outliers += ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &into);
+    }
+    for (KeyFrameHandle h : window)
+      if (into.keyframes().contains(h)) into.UpdateCovisibility(h);
+  }
+  const std::vector<PointHandle> all_points(into.points().handles().begin(), into.points().handles().end());
+  for (PointHandle p : all_points) into.UpdatePointStats(p, camera.scales);
+  report.merged = true;
+  report.merge_ms = MsSince(start);
+  return report;
+}
+
+MultiMapMerge MergeMapsGreedy(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
+                              const MapMergeOptions& options) {
+  MultiMapMerge out;
+  struct Group {
+    Map map;
+    std::vector<size_t> members;
+    uint64_t version = 0;
+  };
+  std::vector<Group> groups;
+  for (size_t i = 0; i < maps.size(); ++i) {
+    ComputeKeyFrameBow(maps[i], vocabulary);
+    groups.push_back({std::move(maps[i]), {i}, 0});
+  }
+  // A pair of groups that failed is retried only when one of them has grown since.
+  std::unordered_set<std::string> failed;
+  auto key = [&](const Group& a, const Group& b) {
+    return std::to_string(a.members.front()) + ":" + std::to_string(a.version) + "/" +
+           std::to_string(b.members.front()) + ":" + std::to_string(b.version);
+  };
+  bool progress = true;
+  while (progress) {
+    progress = false;
+    for (size_t j = 1; j < groups.size() && !progress; ++j) {
+      for (size_t i = 0; i < j && !progress; ++i) {
+        if (failed.count(key(groups[i], groups[j]))) continue;
+        MergeAttempt attempt;
+        attempt.into = groups[i].members;
+        attempt.from = groups[j].members;
+        attempt.report = MergeMaps(groups[i].map, groups[j].map, vocabulary, camera, options);
+        if (attempt.report.merged) {
+          groups[i].members.insert(groups[i].members.end(), groups[j].members.begin(), groups[j].members.end());
+          ++groups[i].version;
+          groups.erase(groups.begin() + static_cast<std::ptrdiff_t>(j));
+          progress = true;
+        } else {
+          failed.insert(key(groups[i], groups[j]));
+        }
+        out.attempts.push_back(std::move(attempt));
+      }
+    }
+  }
+  for (Group& g : groups) {
+    out.maps.push_back(std::move(g.map));
+    out.members.push_back(std::move(g.members));
+  }
+  return out;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,146 @@
+// Map merging: place recognition between maps built by different agents or sessions, a
+// verified Sim(3)/SE(3) alignment, and a merge that appends one map into another through a
+// handle remap, fuses duplicate points across the seam, and welds the seam (essential graph,
+// then a bundle adjustment around it). Maps that share no verified place are left apart.
+// Concurrency: each call owns the maps it is given; place recognition runs queries on TBB
+// workers (reads only), everything that writes a map is serial.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "ecs/map.h"
+#include "io/types.h"
+#include "optimization/bundle_adjustment.h"
+#include "mapping/map_bundle_adjustment.h"
+#include "matching/matcher.h"
+#include "geometry/similarity.h"
+
+namespace flatslam {
+
+class Vocabulary;
+
+// The camera the maps were built with (one calibration shared by every map merged).
+struct MergeCamera {
+  CameraGeometry geometry;
+  MapScales scales;
+  bool monocular = false;        // Sim(3) alignment; otherwise SE(3) with scale fixed to 1
+  StereoDepthRule stereo_depth;  // which stereo observations the weld keeps as stereo
+
+  // From a snapshot's calibration and scales; RGB-D keyframes carry a virtual right image at
+  // rgbd_virtual_baseline_m (the value the maps were built with; SnapshotMetadata records it).
+  // Stereo deeper than far_stereo_baselines x baseline is optimized as monocular, as in SLAM
+  // (SlamOptions::far_stereo_baselines; snapshots do not record it, so the default unless told).
+  [[nodiscard]] static MergeCamera FromCalibration(const Calibration& calibration, const MapScales& scales,
+                                                   double rgbd_virtual_baseline_m,
+                                                   double far_stereo_baselines = kFarStereoBaselines);
+};
+
+struct MapMergeOptions {
+  MatcherOptions matcher;
+  size_t candidates_per_keyframe = 3;  // place-recognition candidates verified per query keyframe
+  int min_bow_matches = 20;            // bag-of-words matches needed before RANSAC
+  int min_matches = 40;                // map points matched after the guided Sim(3)/SE(3) search
+  int min_consistent_pairs = 3;        // independent keyframe pairs (no keyframe used twice) agreeing
+  double max_rotation_disagreement_deg = 5;
+  // Two pair transforms agree when they place each other's keyframes within this fraction of the
+  // scene depth seen by the pairs, plus drift_fraction of the distance between the pairs.
+  double max_position_disagreement = 0.15;
+  double drift_fraction = 0.05;
+  double max_scale_disagreement = 0.1;  // monocular: |s_i / s_j - 1|
+  int ransac_iterations = 300;
+  size_t weld_neighbours = 10;  // covisible keyframes freed with each seam keyframe in the weld
+  // The weld frees every keyframe (into's oldest held): with seams in several places this also
+  // takes out drift between them. Off: only the seam neighbourhoods move in the weld.
+  bool global_bundle_adjustment = true;
+  int pose_graph_iterations = 20;
+  BundleAdjustmentOptions bundle_adjustment;
+  uint64_t seed = 1;  // RANSAC sampling (each query keyframe gets its own stream)
+
+  // The first requirement a field breaks, as its condition's text (empty: valid).
+  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] bool Check() const { return Problem().empty(); }
+};
+
+// Bag of words of every keyframe, from its descriptors (snapshots do not store them).
+void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary);
+
+// A keyframe of the `from` map and a keyframe of the `into` map that see the same place.
+struct MergePair {
+  KeyFrameHandle from_keyframe, into_keyframe;
+  Similarity3 S_into_from;           // world of from -> world of into, as this pair sees it
+  std::vector<PointHandle> matched;  // per keypoint of from_keyframe: the into-map point, or null
+  int matches = 0;
+  double scene_depth = 0;  // median depth of the matched into points, into units
+};
+
+struct MapOverlap {
+  bool found = false;
+  size_t queries = 0;               // from keyframes with a bag of words
+  size_t candidates = 0;            // place-recognition candidates verified geometrically
+  std::vector<MergePair> verified;  // every pair that passed the geometric check
+  std::vector<size_t> consistent;   // indices into verified: the largest agreeing group
+  size_t independent_pairs = 0;     // of the consistent group, pairs with distinct keyframes
+  Similarity3 S_into_from;          // fitted on every correspondence of the consistent group
+  size_t correspondences = 0;       // point pairs used for that fit
+  double residual_rms = 0;          // of those point pairs after the fit, into units
+};
+
+// Finds where `from` overlaps `into`: every from keyframe queries a keyframe database of into;
+// candidates are verified by bag-of-words matching, RANSAC of the Sim(3)/SE(3) and a guided
+// search that must reach min_matches; the verified pairs must agree on one transform, at least
+// min_consistent_pairs of them with distinct keyframes. Bags of words must be computed.
+[[nodiscard]] MapOverlap FindMapOverlap(const Map& into, const Map& from, const Vocabulary& vocabulary,
+                                        const MergeCamera& camera, const MapMergeOptions& options);
+
+// Where each entity of the source map went: indexed by the source handle's slot index.
+struct MapRemap {
+  std::vector<KeyFrameHandle> keyframes;
+  std::vector<PointHandle> points;
+
+  [[nodiscard]] KeyFrameHandle operator()(const Map& from, KeyFrameHandle h) const;
+  [[nodiscard]] PointHandle operator()(const Map& from, PointHandle h) const;
+};
+
+// Copies every keyframe and point of `from` into `into`, transformed by S_into_from (poses keep
+// their rigidity; with a scale, positions, depths and distance ranges scale). Every handle-typed
+// field (keypoint points, observations, covisibility, spanning tree, loop edges, references) is
+// rewritten to the fresh handles. Keyframes get new ids after into's, in from's id order.
+MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from);
+
+struct MergeReport {
+  MapOverlap overlap;
+  bool merged = false;
+  size_t keyframes_added = 0, points_added = 0;
+  size_t points_fused = 0;      // duplicate points merged across the seam
+  size_t loop_edges = 0;        // added between matched keyframes
+  size_t welded_keyframes = 0;  // free in the seam bundle adjustment
+  size_t weld_outliers = 0;     // observations dropped by it
+  double place_ms = 0, merge_ms = 0;
+};
+
+// Merges `from` into `into` when they overlap (into's frame is kept); leaves `into` untouched
+// otherwise. `from` is never modified. Both maps need bags of words (ComputeKeyFrameBow).
+[[nodiscard]] MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
+                                    const MapMergeOptions& options);
+
+struct MergeAttempt {
+  std::vector<size_t> into, from;  // input maps already in each side (into keeps its frame)
+  MergeReport report;
+};
+
+struct MultiMapMerge {
+  std::vector<Map> maps;                     // one per group of overlapping inputs
+  std::vector<std::vector<size_t>> members;  // input maps of each output map, first = its frame
+  std::vector<MergeAttempt> attempts;        // in the order they were made
+};
+
+// Greedy merge of several maps: each input joins the first group it overlaps (input 0 founds
+// the first group), inputs that overlap nothing found new groups, and the remaining inputs are
+// retried whenever a group grew. Inputs keep their own frames when nothing overlaps them.
+[[nodiscard]] MultiMapMerge MergeMapsGreedy(std::vector<Map> maps, const Vocabulary& vocabulary,
+                                            const MergeCamera& camera, const MapMergeOptions& options);
+
+}  // namespace flatslam

@@ -1,0 +1,288 @@
+#include "optimization/bundle_adjustment.h"
+
+#include <array>
+#include <limits>
+#include <memory>
+#include <optional>
+
+#include <ceres/ceres.h>
+
+#include "core/error.h"
+#include "core/requirements.h"
+#include "optimization/bundle_adjustment_lm.h"
+#include "optimization/pose_optimizer.h"
+
+namespace flatslam {
+namespace {
+
+// Below this camera-frame depth a projection is treated as invalid.
+constexpr double kMinDepth = 1e-6;
+
+using PoseBlock = std::array<double, detail::kPoseParameterSize>;
+
+// Reprojection residual of a point block in a pose block; stereo adds the right-image u.
+template <int kResiduals>
+class BaCost final : public ceres::SizedCostFunction<kResiduals, detail::kPoseParameterSize, 3> {
+ public:
+  BaCost(const PinholeCamera& camera, double bf, const BundleAdjustmentObservation& obs)
+      : fx_(camera.fx),
+        fy_(camera.fy),
+        cx_(camera.cx),
+        cy_(camera.cy),
+        bf_(bf),
+        uv_(obs.uv),
+        right_u_(obs.right_u),
+        sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))) {}
+
+  bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
+    const Eigen::Map<const Eigen::Quaterniond> q(parameters[0]);
+    const Eigen::Map<const Eigen::Vector3d> t(parameters[0] + 4);
+    const Eigen::Map<const Eigen::Vector3d> X(parameters[1]);
+    const Eigen::Vector3d xc = q * X + t;
+    if (xc.z() <= kMinDepth) return false;  // the step crossed the image plane: reject it
+    const double inv_z = 1.0 / xc.z();
+    const double u = fx_ * xc.x() * inv_z + cx_;
+    const double v = fy_ * xc.y() * inv_z + cy_;
+    Eigen::Map<Eigen::Matrix<double, kResiduals, 1>> r(residuals);
+    r(0) = sqrt_info_ * (uv_.x() - u);
+    r(1) = sqrt_info_ * (uv_.y() - v);
+    if constexpr (kResiduals == 3) r(2) = sqrt_info_ * (right_u_ - (u - bf_ * inv_z));
+    if (!jacobians || (!jacobians[0] && !jacobians[1])) return true;
+    // Whitened, negated d(projection)/d(x_cam).
+    Eigen::Matrix<double, kResiduals, 3> Jp;
+    const double inv_z2 = inv_z * inv_z;
+    Jp.row(0) << fx_ * inv_z, 0, -fx_ * xc.x() * inv_z2;
+    Jp.row(1) << 0, fy_ * inv_z, -fy_ * xc.y() * inv_z2;
+    if constexpr (kResiduals == 3) Jp.row(2) << fx_ * inv_z, 0, -fx_ * xc.x() * inv_z2 + bf_ * inv_z2;
+    Jp *= -sqrt_info_;
+    if (jacobians[0]) {
+      // Left perturbation: d x_cam / d delta = [-[x_cam]x, I].
+      Eigen::Matrix3d skew;
+      skew << 0, -xc.z(), xc.y(), xc.z(), 0, -xc.x(), -xc.y(), xc.x(), 0;
+      Eigen::Map<Eigen::Matrix<double, kResiduals, 7, Eigen::RowMajor>> J(jacobians[0]);
+      J.template leftCols<3>() = -Jp * skew;
+      J.template middleCols<3>(3) = Jp;
+      J.col(6).setZero();
+    }
+    if (jacobians[1]) {
+      Eigen::Map<Eigen::Matrix<double, kResiduals, 3, Eigen::RowMajor>> J(jacobians[1]);
+      J = Jp * q.toRotationMatrix();
+    }
+    return true;
+  }
+
+ private:
+  double fx_, fy_, cx_, cy_, bf_;
+  Eigen::Vector2d uv_;
+  double right_u_;
+  double sqrt_info_;
+};
+
+// Left-image pixel error and unwhitened chi2 of one observation; nullopt behind the camera.
+struct ObservationError {
+  double pixel2 = 0;  // squared left-image error
+  double chi2 = 0;    // (left + right) squared error * inv_sigma2
+};
+
+std::optional<ObservationError> EvaluateObservation(const PinholeCamera& camera, double bf,
+                                                    const Eigen::Isometry3d& T_cam_world, const Eigen::Vector3d& X,
+                                                    const BundleAdjustmentObservation& obs) {
+  const Eigen::Vector3d xc = T_cam_world * X;
+  if (xc.z() <= kMinDepth) return std::nullopt;
+  const double inv_z = 1.0 / xc.z();
+  const double u = camera.fx * xc.x() * inv_z + camera.cx;
+  const double v = camera.fy * xc.y() * inv_z + camera.cy;
+  ObservationError e;
+  e.pixel2 = (obs.uv - Eigen::Vector2d(u, v)).squaredNorm();
+  double e2 = e.pixel2;
+  if (obs.right_u >= 0) {
+    const double er = obs.right_u - (u - bf * inv_z);
+    e2 += er * er;
+  }
+  e.chi2 = e2 * obs.inv_sigma2;
+  return e;
+}
+
+// Runs one Ceres pass over the active observations; returns the summary's usability.
+bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
+                    const std::vector<uint8_t>& active, bool robust, int iterations, bool dense,
+                    std::vector<Eigen::Isometry3d>* isometries, std::vector<Eigen::Vector3d>* points,
+                    int* iterations_done, bool* stopped, detail::SchurWorkspace* /*unused*/) {
+  std::vector<PoseBlock> blocks(isometries->size());
+  for (size_t k = 0; k < blocks.size(); ++k) detail::PoseToParameters((*isometries)[k], blocks[k].data());
+  std::vector<PoseBlock>* poses = &blocks;
+  const double bf = input.camera.fx * input.baseline_m;
+  ceres::Problem::Options problem_options;
+  problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  problem_options.manifold_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  problem_options.disable_all_safety_checks = true;
+  ceres::Problem problem(problem_options);
+  const std::unique_ptr<ceres::Manifold> manifold = detail::MakePoseManifold();
+  ceres::HuberLoss loss_mono(options.huber_mono);
+  ceres::HuberLoss loss_stereo(options.huber_stereo);
+
+  const size_t num_poses = poses->size();
+  std::vector<uint8_t> pose_added(num_poses, 0), point_added(points->size(), 0);
+  auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+  int residuals = 0;
+  for (size_t i = 0; i < input.observations.size(); ++i) {
+    if (!active[i]) continue;
+    const BundleAdjustmentObservation& obs = input.observations[i];
+    double* pose = (*poses)[obs.pose_index].data();
+    double* point = (*points)[obs.point_index].data();
+    if (!pose_added[obs.pose_index]) {
+      pose_added[obs.pose_index] = 1;
+      problem.AddParameterBlock(pose, detail::kPoseParameterSize, manifold.get());
+      if (input.poses[obs.pose_index].fixed) problem.SetParameterBlockConstant(pose);
+      ordering->AddElementToGroup(pose, 1);
+    }
+    if (!point_added[obs.point_index]) {
+      point_added[obs.point_index] = 1;
+      problem.AddParameterBlock(point, 3);
+      ordering->AddElementToGroup(point, 0);  // points are eliminated first (Schur complement)
+    }
+    if (obs.right_u >= 0)
+      problem.AddResidualBlock(new BaCost<3>(input.camera, bf, obs), robust ? &loss_stereo : nullptr, pose, point);
+    else
+      problem.AddResidualBlock(new BaCost<2>(input.camera, bf, obs), robust ? &loss_mono : nullptr, pose, point);
+    ++residuals;
+  }
+  if (residuals == 0) return true;
+
+  ceres::Solver::Options solver_options;
+  solver_options.linear_solver_type = dense ? ceres::DENSE_SCHUR : ceres::SPARSE_SCHUR;
+  solver_options.linear_solver_ordering = ordering;
+  solver_options.max_num_iterations = iterations;
+  solver_options.num_threads = options.num_threads;
+  solver_options.logging_type = ceres::SILENT;
+  solver_options.minimizer_progress_to_stdout = false;
+  struct StopEarly final : ceres::IterationCallback {
+    const std::function<bool()>* stop;
+    explicit StopEarly(const std::function<bool()>* s) : stop(s) {}
+    ceres::CallbackReturnType operator()(const ceres::IterationSummary&) override {
+      return (*stop)() ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
+    }
+  } stop_early(&options.stop_early);
+  if (options.stop_early) solver_options.callbacks.push_back(&stop_early);
+  ceres::Solver::Summary summary;
+  ceres::Solve(solver_options, &problem, &summary);
+  if (options.stop_early && options.stop_early()) *stopped = true;
+  *iterations_done += static_cast<int>(summary.iterations.size());
+  // Ceres leaves the parameters at the last accepted iterate even when it reports failure.
+  for (size_t k = 0; k < blocks.size(); ++k)
+    if (!input.poses[k].fixed) (*isometries)[k] = detail::ParametersToPose(blocks[k].data());
+  return summary.IsSolutionUsable();
+}
+
+}  // namespace
+
+std::string BundleAdjustmentOptions::Problem() const {
+  Requirements r;
+  FLATSLAM_REQUIRE(r, first_pass_iterations >= 1);
+  FLATSLAM_REQUIRE(r, second_pass_iterations >= 0);
+  FLATSLAM_REQUIRE(r, chi2_mono > 0);
+  FLATSLAM_REQUIRE(r, chi2_stereo > 0);
+  FLATSLAM_REQUIRE(r, huber_mono > 0);
+  FLATSLAM_REQUIRE(r, huber_stereo > 0);
+  FLATSLAM_REQUIRE(r, dense_schur_max_poses >= 0);
+  FLATSLAM_REQUIRE(r, schur_lm_max_poses >= 0);
+  FLATSLAM_REQUIRE(r, num_threads >= 1);
+  return r.first();
+}
+
+BundleAdjustmentWorkspace::BundleAdjustmentWorkspace() : schur_(detail::MakeSchurWorkspace()) {}
+
+BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, const BundleAdjustmentOptions& options,
+                                             BundleAdjustmentWorkspace* workspace) {
+  FLATSLAM_CHECK(options.Check(), "LocalBundleAdjustment: invalid BundleAdjustmentOptions");
+  FLATSLAM_CHECK(problem.camera.fx > 0 && problem.camera.fy > 0, "LocalBundleAdjustment: camera has no focal length");
+  const size_t num_obs = problem.observations.size();
+  for (size_t i = 0; i < num_obs; ++i) {
+    const BundleAdjustmentObservation& obs = problem.observations[i];
+    FLATSLAM_CHECK(obs.pose_index < problem.poses.size(), "LocalBundleAdjustment: observation ", i, " has pose_index ",
+                   obs.pose_index, " of ", problem.poses.size());
+    FLATSLAM_CHECK(obs.point_index < problem.points.size(), "LocalBundleAdjustment: observation ", i,
+                   " has point_index ", obs.point_index, " of ", problem.points.size());
+    FLATSLAM_CHECK(obs.inv_sigma2 > 0, "LocalBundleAdjustment: observation ", i, " has inv_sigma2 <= 0");
+    FLATSLAM_CHECK(obs.right_u < 0 || problem.baseline_m > 0, "LocalBundleAdjustment: stereo observation ", i,
+                   " but baseline_m = ", problem.baseline_m);
+  }
+
+  std::vector<Eigen::Isometry3d> poses(problem.poses.size());
+  size_t free_poses = 0;
+  for (size_t k = 0; k < poses.size(); ++k) {
+    poses[k] = problem.poses[k].T_cam_world;
+    free_poses += !problem.poses[k].fixed;
+  }
+  std::vector<Eigen::Vector3d> points = problem.points;
+  const bool dense = options.linear_solver == BundleAdjustmentOptions::LinearSolver::kDenseSchur ||
+                     (options.linear_solver == BundleAdjustmentOptions::LinearSolver::kAuto &&
+                      free_poses <= static_cast<size_t>(options.dense_schur_max_poses));
+  const bool ceres = options.solver == BundleAdjustmentOptions::Solver::kCeres ||
+                     free_poses > static_cast<size_t>(options.schur_lm_max_poses);
+  const auto solve_pass = ceres ? SolvePassCeres : detail::SolvePassSchurLm;
+  const double bf = problem.camera.fx * problem.baseline_m;
+
+  BundleAdjustmentResult result;
+  result.outlier.assign(num_obs, false);
+
+  // Observations behind their camera at the start cannot be evaluated: they begin as outliers.
+  std::vector<uint8_t> active(num_obs, 0);
+  double sum2 = 0;
+  size_t counted = 0;
+  for (size_t i = 0; i < num_obs; ++i) {
+    const BundleAdjustmentObservation& obs = problem.observations[i];
+    const auto e = EvaluateObservation(problem.camera, bf, poses[obs.pose_index], points[obs.point_index], obs);
+    if (!e) continue;
+    active[i] = 1;
+    sum2 += e->pixel2;
+    ++counted;
+  }
+  result.initial_rmse_px = counted ? std::sqrt(sum2 / (2.0 * counted)) : 0;
+
+  // Classifies every observation against the chi2 gate at the current estimate.
+  auto classify = [&]() {
+    for (size_t i = 0; i < num_obs; ++i) {
+      const BundleAdjustmentObservation& obs = problem.observations[i];
+      const auto e = EvaluateObservation(problem.camera, bf, poses[obs.pose_index], points[obs.point_index], obs);
+      const double gate = obs.right_u >= 0 ? options.chi2_stereo : options.chi2_mono;
+      active[i] = e && e->chi2 <= gate;
+    }
+  };
+
+  detail::SchurWorkspace* schur = workspace ? workspace->schur() : nullptr;
+  bool usable = solve_pass(problem, options, active, /*robust=*/true, options.first_pass_iterations, dense, &poses,
+                           &points, &result.iterations, &result.stopped_early, schur);
+  if (usable && options.second_pass_iterations > 0 && !result.stopped_early) {
+    classify();
+    usable = solve_pass(problem, options, active, options.robust_second_pass, options.second_pass_iterations, dense,
+                        &poses, &points, &result.iterations, &result.stopped_early, schur);
+  }
+  classify();
+
+  for (size_t k = 0; k < poses.size(); ++k)
+    if (!problem.poses[k].fixed) problem.poses[k].T_cam_world = poses[k];
+  problem.points = points;
+
+  double sum_norm = 0;
+  sum2 = 0;
+  counted = 0;
+  for (size_t i = 0; i < num_obs; ++i) {
+    result.outlier[i] = !active[i];
+    if (!active[i]) {
+      ++result.num_outliers;
+      continue;
+    }
+    const BundleAdjustmentObservation& obs = problem.observations[i];
+    const auto e = EvaluateObservation(problem.camera, bf, poses[obs.pose_index], points[obs.point_index], obs);
+    sum2 += e->pixel2;
+    sum_norm += std::sqrt(e->pixel2);
+    ++counted;
+  }
+  result.final_rmse_px = counted ? std::sqrt(sum2 / (2.0 * counted)) : 0;
+  result.final_mean_error_px = counted ? sum_norm / counted : 0;
+  result.success = usable;
+  return result;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,456 @@
+// The hand-written bundle adjustment solver: Levenberg-Marquardt on the reduced camera system.
+// Points are eliminated per point (3x3 blocks), the pose system is solved densely when small and
+// with a sparse LDLT otherwise. Structure is analysed once per pass; an iteration is a pass over
+// the observations plus one factorization, with no per-iteration allocation.
+#include "optimization/bundle_adjustment_lm.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <unordered_map>
+
+#include <Eigen/Cholesky>
+#include <Eigen/SparseCholesky>
+
+namespace flatslam::detail {
+
+struct PoseState {
+  Eigen::Matrix3d R;
+  Eigen::Vector3d t;
+};
+
+namespace {
+
+constexpr double kMinDepth = 1e-6;
+constexpr double kMinDiagonal = 1e-6;  // lower clamp of the LM scaling diagonal (as Ceres)
+constexpr double kMaxDiagonal = 1e32;
+
+using Mat6 = Eigen::Matrix<double, 6, 6>;
+using Mat63 = Eigen::Matrix<double, 6, 3>;
+using Vec6 = Eigen::Matrix<double, 6, 1>;
+
+Eigen::Matrix3d ExpSo3(const Eigen::Vector3d& w) {
+  const double theta = w.norm();
+  if (theta < 1e-12) {
+    Eigen::Matrix3d W;
+    W << 0, -w.z(), w.y(), w.z(), 0, -w.x(), -w.y(), w.x(), 0;
+    return Eigen::Matrix3d::Identity() + W;
+  }
+  return Eigen::AngleAxisd(theta, w / theta).toRotationMatrix();
+}
+
+// Huber on the squared whitened error s: rho(s) and its derivative rho'(s) (the IRLS weight).
+inline void Huber(double s, double delta, bool robust, double* rho, double* weight) {
+  if (!robust || s <= delta * delta) {
+    *rho = s;
+    *weight = 1.0;
+    return;
+  }
+  const double e = std::sqrt(s);
+  *rho = 2.0 * delta * e - delta * delta;
+  *weight = delta / e;
+}
+
+}  // namespace
+
+// Buffers of one solve, kept between solves so that their capacity is reused.
+struct SchurWorkspace {
+  std::vector<int> free_id, point_id;
+  std::vector<uint32_t> free_poses, points;  // free pose -> problem pose, point id -> problem point
+  std::vector<uint32_t> obs_start, obs;      // observations by point (CSR over point ids)
+  std::vector<uint32_t> fill;
+  std::vector<uint32_t> block_rows, block_cols, pair_blocks;
+  std::unordered_map<uint64_t, uint32_t> block_of;
+  std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks, U;
+  std::vector<Mat63, Eigen::aligned_allocator<Mat63>> W;
+  std::vector<Eigen::Matrix3d> V, V_inv;
+  std::vector<Eigen::Vector3d> b_point, delta_point;
+  std::vector<Vec6, Eigen::aligned_allocator<Vec6>> b_pose, delta_pose, g;
+  std::vector<PoseState> state, trial_poses;
+  std::vector<Eigen::Vector3d> trial_points;
+};
+
+namespace {
+
+class Solver {
+ public:
+  Solver(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
+         const std::vector<uint8_t>& active, bool robust, bool dense, SchurWorkspace* w)
+      : in_(input), options_(options), robust_(robust), dense_(dense), bf_(input.camera.fx * input.baseline_m), w_(*w) {
+    w_.free_poses.clear();
+    w_.points.clear();
+    w_.block_rows.clear();
+    w_.block_cols.clear();
+    w_.pair_blocks.clear();
+    // Free poses and points that take part, observations grouped by point.
+    w_.free_id.assign(input.poses.size(), -1);
+    w_.point_id.assign(input.points.size(), -1);
+    for (size_t i = 0; i < input.observations.size(); ++i) {
+      if (!active[i]) continue;
+      const BundleAdjustmentObservation& o = input.observations[i];
+      if (w_.point_id[o.point_index] < 0) {
+        w_.point_id[o.point_index] = static_cast<int>(w_.points.size());
+        w_.points.push_back(o.point_index);
+      }
+      if (!input.poses[o.pose_index].fixed && w_.free_id[o.pose_index] < 0) {
+        w_.free_id[o.pose_index] = static_cast<int>(w_.free_poses.size());
+        w_.free_poses.push_back(o.pose_index);
+      }
+    }
+    w_.obs_start.assign(w_.points.size() + 1, 0);
+    for (size_t i = 0; i < input.observations.size(); ++i)
+      if (active[i]) ++w_.obs_start[w_.point_id[input.observations[i].point_index] + 1];
+    for (size_t j = 0; j < w_.points.size(); ++j) w_.obs_start[j + 1] += w_.obs_start[j];
+    w_.obs.resize(w_.obs_start.back());
+    {
+      std::vector<uint32_t>& fill = w_.fill;
+      fill.assign(w_.obs_start.begin(), w_.obs_start.end() - 1);
+      for (size_t i = 0; i < input.observations.size(); ++i)
+        if (active[i]) w_.obs[fill[w_.point_id[input.observations[i].point_index]]++] = static_cast<uint32_t>(i);
+    }
+    // Blocks of the reduced camera system: the diagonal, then every pair of free poses that
+    // share a point, in the order the elimination visits them.
+    const size_t nf = w_.free_poses.size();
+    std::unordered_map<uint64_t, uint32_t>& block_of = w_.block_of;
+    block_of.clear();
+    auto block = [&](uint32_t a, uint32_t b) {
+      const uint64_t key = (static_cast<uint64_t>(a) << 32) | b;
+      const auto [it, inserted] = block_of.try_emplace(key, static_cast<uint32_t>(w_.block_rows.size()));
+      if (inserted) {
+        w_.block_rows.push_back(a);
+        w_.block_cols.push_back(b);
+      }
+      return it->second;
+    };
+    for (uint32_t f = 0; f < nf; ++f) block(f, f);
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const int fa = w_.free_id[input.observations[w_.obs[a]].pose_index];
+        if (fa < 0) continue;
+        for (uint32_t b = a + 1; b < w_.obs_start[j + 1]; ++b) {
+          const int fb = w_.free_id[input.observations[w_.obs[b]].pose_index];
+          if (fb < 0 || fb == fa) continue;
+          w_.pair_blocks.push_back(block(std::min(fa, fb), std::max(fa, fb)));
+        }
+      }
+    }
+    w_.blocks.resize(w_.block_rows.size());
+    w_.W.resize(w_.obs.size());
+    w_.V.resize(w_.points.size());
+    w_.b_point.resize(w_.points.size());
+    w_.U.resize(nf);
+    w_.b_pose.resize(nf);
+    w_.delta_pose.resize(nf);
+    w_.delta_point.resize(w_.points.size());
+  }
+
+  // Runs up to `iterations` LM iterations on poses/points; returns false on numerical failure.
+  bool Run(std::vector<PoseState>* poses, std::vector<Eigen::Vector3d>* points, int iterations, int* iterations_done,
+           bool* stopped) {
+    if (w_.obs.empty()) return true;
+    double cost = 0;
+    if (!Cost(*poses, *points, &cost)) return false;
+    double radius = 1e4;  // trust region radius; the damping is 1 / radius (Ceres' defaults)
+    double nu = 2;
+    std::vector<PoseState>& trial_poses = w_.trial_poses;
+    std::vector<Eigen::Vector3d>& trial_points = w_.trial_points;
+    trial_poses = *poses;
+    trial_points = *points;
+    for (int it = 0; it < iterations; ++it) {
+      ++*iterations_done;
+      Linearize(*poses, *points);
+      const double lambda = 1.0 / radius;
+      bool solved = Solve(lambda);
+      double trial_cost = std::numeric_limits<double>::infinity();
+      if (solved) {
+        for (size_t f = 0; f < w_.free_poses.size(); ++f) {
+          const uint32_t k = w_.free_poses[f];
+          const Eigen::Matrix3d dR = ExpSo3(w_.delta_pose[f].head<3>());
+          trial_poses[k].R = dR * (*poses)[k].R;
+          trial_poses[k].t = dR * (*poses)[k].t + w_.delta_pose[f].tail<3>();
+        }
+        for (size_t j = 0; j < w_.points.size(); ++j)
+          trial_points[w_.points[j]] = (*points)[w_.points[j]] + w_.delta_point[j];
+        solved = Cost(trial_poses, trial_points, &trial_cost);
+      }
+      // Gain ratio against the decrease the damped linear model predicts.
+      const double predicted = solved ? PredictedDecrease(lambda) : 0;
+      const double gain = predicted > 0 ? (cost - trial_cost) / predicted : -1;
+      if (solved && gain > 0 && std::isfinite(trial_cost)) {
+        const double relative_decrease = (cost - trial_cost) / std::max(cost, 1e-300);
+        for (size_t f = 0; f < w_.free_poses.size(); ++f) (*poses)[w_.free_poses[f]] = trial_poses[w_.free_poses[f]];
+        for (size_t j = 0; j < w_.points.size(); ++j) (*points)[w_.points[j]] = trial_points[w_.points[j]];
+        cost = trial_cost;
+        radius /= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * gain - 1.0, 3));
+        radius = std::min(radius, 1e16);
+        nu = 2;
+        if (relative_decrease < 1e-6) break;  // converged (Ceres' function tolerance)
+      } else {
+        radius /= nu;
+        nu *= 2;
+        if (radius < 1e-32) break;
+      }
+      if (options_.stop_early && options_.stop_early()) {
+        *stopped = true;
+        break;
+      }
+    }
+    return true;
+  }
+
+ private:
+  // Projection of point X in pose k: camera point, residual (whitened by the octave) and its
+  // derivative w.r.t. the camera point. False behind the camera.
+  template <int N>
+  bool Residual(const PoseState& pose, const Eigen::Vector3d& X, const BundleAdjustmentObservation& o,
+                Eigen::Vector3d* xc, Eigen::Matrix<double, N, 1>* r, Eigen::Matrix<double, N, 3>* J) const {
+    *xc = pose.R * X + pose.t;
+    if (xc->z() <= kMinDepth) return false;
+    const double inv_z = 1.0 / xc->z();
+    const PinholeCamera& c = in_.camera;
+    const double u = c.fx * xc->x() * inv_z + c.cx;
+    const double v = c.fy * xc->y() * inv_z + c.cy;
+    (*r)(0) = o.uv.x() - u;
+    (*r)(1) = o.uv.y() - v;
+    if constexpr (N == 3) (*r)(2) = o.right_u - (u - bf_ * inv_z);
+    if (J) {
+      const double inv_z2 = inv_z * inv_z;
+      J->row(0) << c.fx * inv_z, 0, -c.fx * xc->x() * inv_z2;
+      J->row(1) << 0, c.fy * inv_z, -c.fy * xc->y() * inv_z2;
+      if constexpr (N == 3) J->row(2) << c.fx * inv_z, 0, -c.fx * xc->x() * inv_z2 + bf_ * inv_z2;
+    }
+    return true;
+  }
+
+  [[nodiscard]] double Delta(const BundleAdjustmentObservation& o) const {
+    return o.right_u >= 0 ? options_.huber_stereo : options_.huber_mono;
+  }
+
+  // Half the robust cost, as Ceres reports it; false when a point falls behind a camera.
+  bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points, double* cost) const {
+    double sum = 0;
+    for (uint32_t i : w_.obs) {
+      const BundleAdjustmentObservation& o = in_.observations[i];
+      Eigen::Vector3d xc;
+      double s = 0;
+      if (o.right_u >= 0) {
+        Eigen::Vector3d r;
+        if (!Residual<3>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr)) return false;
+        s = r.squaredNorm() * o.inv_sigma2;
+      } else {
+        Eigen::Vector2d r;
+        if (!Residual<2>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr)) return false;
+        s = r.squaredNorm() * o.inv_sigma2;
+      }
+      double rho = 0, weight = 0;
+      Huber(s, Delta(o), robust_, &rho, &weight);
+      sum += rho;
+    }
+    *cost = 0.5 * sum;
+    return std::isfinite(*cost);
+  }
+
+  // Accumulates one observation's normal-equation blocks.
+  template <int N>
+  void Accumulate(const PoseState& pose, const Eigen::Vector3d& X, const BundleAdjustmentObservation& o, int free,
+                  Eigen::Matrix3d* V, Eigen::Vector3d* bl, Mat63* W) {
+    Eigen::Vector3d xc;
+    Eigen::Matrix<double, N, 1> r;
+    Eigen::Matrix<double, N, 3> J;
+    if (!Residual<N>(pose, X, o, &xc, &r, &J)) {
+      W->setZero();
+      return;
+    }
+    double rho = 0, weight = 0;
+    Huber(r.squaredNorm() * o.inv_sigma2, Delta(o), robust_, &rho, &weight);
+    const double w = weight * o.inv_sigma2;
+    const Eigen::Matrix<double, N, 3> Jl = J * pose.R;
+    *V += w * Jl.transpose() * Jl;
+    *bl += w * Jl.transpose() * r;
+    if (free < 0) return;
+    // Left perturbation of T_cam_world: d xc / d [w, v] = [-[xc]x, I].
+    Eigen::Matrix<double, N, 6> Jp;
+    Jp.template rightCols<3>() = J;
+    Jp.col(0) = J.col(1) * -xc.z() + J.col(2) * xc.y();
+    Jp.col(1) = J.col(0) * xc.z() - J.col(2) * xc.x();
+    Jp.col(2) = J.col(1) * xc.x() - J.col(0) * xc.y();
+    w_.U[free].noalias() += w * Jp.transpose() * Jp;
+    w_.b_pose[free].noalias() += w * Jp.transpose() * r;
+    W->noalias() = w * Jp.transpose() * Jl;
+  }
+
+  void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
+    for (size_t f = 0; f < w_.free_poses.size(); ++f) {
+      w_.U[f].setZero();
+      w_.b_pose[f].setZero();
+    }
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
+      Eigen::Vector3d bl = Eigen::Vector3d::Zero();
+      const Eigen::Vector3d& X = points[w_.points[j]];
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
+        const int free = w_.free_id[o.pose_index];
+        if (o.right_u >= 0)
+          Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+        else
+          Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+      }
+      w_.V[j] = V;
+      w_.b_point[j] = bl;
+    }
+  }
+
+  // Damped Schur complement, its solution and the back-substitution; false if not positive definite.
+  bool Solve(double lambda) {
+    const size_t nf = w_.free_poses.size();
+    for (Mat6& b : w_.blocks) b.setZero();
+    std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = w_.g;
+    g.assign(w_.b_pose.begin(), w_.b_pose.end());
+    for (size_t f = 0; f < nf; ++f) {
+      Mat6 damped = w_.U[f];
+      for (int d = 0; d < 6; ++d) damped(d, d) += lambda * std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal);
+      w_.blocks[f] = damped;
+    }
+    w_.V_inv.resize(w_.points.size());
+    size_t pair = 0;
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      Eigen::Matrix3d V = w_.V[j];
+      for (int d = 0; d < 3; ++d) V(d, d) += lambda * std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal);
+      const Eigen::LDLT<Eigen::Matrix3d> ldlt(V);
+      if (ldlt.info() != Eigen::Success || !ldlt.isPositive() || ldlt.vectorD().minCoeff() <= 0) return false;
+      w_.V_inv[j] = ldlt.solve(Eigen::Matrix3d::Identity());
+      const Eigen::Vector3d Vb = w_.V_inv[j] * w_.b_point[j];
+      const uint32_t begin = w_.obs_start[j], end = w_.obs_start[j + 1];
+      for (uint32_t a = begin; a < end; ++a) {
+        const int fa = w_.free_id[in_.observations[w_.obs[a]].pose_index];
+        if (fa < 0) continue;
+        const Mat63 Y = w_.W[a] * w_.V_inv[j];
+        g[fa].noalias() -= w_.W[a] * Vb;
+        w_.blocks[fa].noalias() -= Y * w_.W[a].transpose();
+        for (uint32_t b = a + 1; b < end; ++b) {
+          const int fb = w_.free_id[in_.observations[w_.obs[b]].pose_index];
+          if (fb < 0) continue;
+          if (fb == fa) {  // two observations in one keyframe: both cross terms on its diagonal
+            w_.blocks[fa].noalias() -= Y * w_.W[b].transpose() + w_.W[b] * Y.transpose();
+            continue;
+          }
+          // The block is stored once, as (min, max).
+          if (fa < fb)
+            w_.blocks[w_.pair_blocks[pair]].noalias() -= Y * w_.W[b].transpose();
+          else
+            w_.blocks[w_.pair_blocks[pair]].noalias() -= w_.W[b] * Y.transpose();
+          ++pair;
+        }
+      }
+    }
+    Eigen::VectorXd rhs(6 * nf), x;
+    for (size_t f = 0; f < nf; ++f) rhs.segment<6>(6 * f) = g[f];
+    if (nf > 0) {
+      if (dense_) {
+        Eigen::MatrixXd S = Eigen::MatrixXd::Zero(6 * nf, 6 * nf);
+        for (size_t k = 0; k < w_.blocks.size(); ++k)
+          S.block<6, 6>(6 * w_.block_rows[k], 6 * w_.block_cols[k]) = w_.blocks[k];
+        const Eigen::LLT<Eigen::MatrixXd, Eigen::Upper> llt(S);
+        if (llt.info() != Eigen::Success) return false;
+        x = llt.solve(rhs);
+      } else {
+        std::vector<Eigen::Triplet<double>> triplets;
+        triplets.reserve(w_.blocks.size() * 36);
+        for (size_t k = 0; k < w_.blocks.size(); ++k) {
+          const bool diagonal = w_.block_rows[k] == w_.block_cols[k];
+          for (int r = 0; r < 6; ++r)
+            for (int c = diagonal ? r : 0; c < 6; ++c)
+              triplets.emplace_back(6 * w_.block_rows[k] + r, 6 * w_.block_cols[k] + c, w_.blocks[k](r, c));
+        }
+        Eigen::SparseMatrix<double> S(6 * nf, 6 * nf);
+        S.setFromTriplets(triplets.begin(), triplets.end());
+        if (!sparse_analysed_) {
+          sparse_.analyzePattern(S);
+          sparse_analysed_ = true;
+        }
+        sparse_.factorize(S);
+        if (sparse_.info() != Eigen::Success) return false;
+        x = sparse_.solve(rhs);
+      }
+      if (!x.allFinite()) return false;
+    }
+    for (size_t f = 0; f < nf; ++f) w_.delta_pose[f] = x.segment<6>(6 * f);
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      Eigen::Vector3d b = w_.b_point[j];
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const int fa = w_.free_id[in_.observations[w_.obs[a]].pose_index];
+        if (fa >= 0) b.noalias() -= w_.W[a].transpose() * w_.delta_pose[fa];
+      }
+      w_.delta_point[j] = w_.V_inv[j] * b;
+    }
+    gradient_dot_delta_ = 0;
+    damping_term_ = 0;
+    for (size_t f = 0; f < nf; ++f) {
+      gradient_dot_delta_ += w_.b_pose[f].dot(w_.delta_pose[f]);
+      for (int d = 0; d < 6; ++d)
+        damping_term_ +=
+            std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_pose[f](d) * w_.delta_pose[f](d);
+    }
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      gradient_dot_delta_ += w_.b_point[j].dot(w_.delta_point[j]);
+      for (int d = 0; d < 3; ++d)
+        damping_term_ +=
+            std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal) * w_.delta_point[j](d) * w_.delta_point[j](d);
+    }
+    return true;
+  }
+
+  // Decrease of the quadratic model for the step just solved: (g.d + lambda d'Dd) / 2, as the
+  // damped normal equations make d'Hd = g.d - lambda d'Dd.
+  [[nodiscard]] double PredictedDecrease(double lambda) const {
+    return 0.5 * (gradient_dot_delta_ + lambda * damping_term_);
+  }
+
+  const BundleAdjustmentProblem& in_;
+  const BundleAdjustmentOptions& options_;
+  const bool robust_, dense_;
+  const double bf_;
+  SchurWorkspace& w_;
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Upper> sparse_;
+  bool sparse_analysed_ = false;
+  double gradient_dot_delta_ = 0, damping_term_ = 0;
+};
+
+}  // namespace
+
+SchurWorkspacePtr MakeSchurWorkspace() {
+  return SchurWorkspacePtr(new SchurWorkspace);
+}
+void SchurWorkspaceDeleter::operator()(SchurWorkspace* w) const {
+  delete w;
+}
+
+bool SolvePassSchurLm(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
+                      const std::vector<uint8_t>& active, bool robust, int iterations, bool dense,
+                      std::vector<Eigen::Isometry3d>* poses, std::vector<Eigen::Vector3d>* points, int* iterations_done,
+                      bool* stopped, SchurWorkspace* workspace) {
+  SchurWorkspacePtr local;
+  if (!workspace) {
+    local = MakeSchurWorkspace();
+    workspace = local.get();
+  }
+  std::vector<PoseState>& state = workspace->state;
+  state.resize(poses->size());
+  for (size_t k = 0; k < poses->size(); ++k) {
+    state[k].R = (*poses)[k].linear();
+    state[k].t = (*poses)[k].translation();
+  }
+  Solver solver(input, options, active, robust, dense, workspace);
+  const bool ok = solver.Run(&state, points, iterations, iterations_done, stopped);
+  for (size_t k = 0; k < poses->size(); ++k) {
+    if (input.poses[k].fixed) continue;
+    // Re-orthonormalize: many small rotation updates drift off SO(3) in the last bits.
+    const Eigen::Quaterniond q(state[k].R);
+    (*poses)[k].linear() = q.normalized().toRotationMatrix();
+    (*poses)[k].translation() = state[k].t;
+  }
+  return ok;
+}
+
+}  // namespace flatslam::detail

@@ -1,0 +1,27 @@
+// Internal to bundle_adjustment.cc: the hand-written Levenberg-Marquardt solver on the reduced
+// camera system (see BundleAdjustmentOptions::Solver::kSchurLm).
+// Concurrency: stateless; one call owns its buffers and runs on the calling thread.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "optimization/bundle_adjustment.h"
+
+namespace flatslam::detail {
+
+using SchurWorkspacePtr = std::unique_ptr<SchurWorkspace, SchurWorkspaceDeleter>;
+[[nodiscard]] SchurWorkspacePtr MakeSchurWorkspace();
+
+// One pass over the active observations: up to `iterations` LM iterations (each counted in
+// *iterations_done), Huber-robust when `robust`. Fixed poses are read, never written. The pose
+// system is solved densely when `dense`, else by sparse LDLT. *stopped is set when
+// options.stop_early ended the pass. False on numerical failure (the state is the last accepted).
+// `workspace` (may be null) keeps buffers between calls.
+bool SolvePassSchurLm(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
+                      const std::vector<uint8_t>& active, bool robust, int iterations, bool dense,
+                      std::vector<Eigen::Isometry3d>* poses, std::vector<Eigen::Vector3d>* points, int* iterations_done,
+                      bool* stopped, SchurWorkspace* workspace);
+
+}  // namespace flatslam::detail

@@ -1,0 +1,257 @@
+// Map merging: the handle remap of AppendMap, two town agents merged into one frame with each
+// agent's keyframe ATE (one alignment for the merged map) within 1.5x of its own, and maps of
+// unrelated places left apart and untouched.
+#include "merge/map_merge.h"
+
+#include <algorithm>
+#include <cstdio>
+#include <string>
+#include <unordered_set>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "io/dataset.h"
+#include "jobs/slam_runner.h"
+#include "frontend/orb_extractor.h"
+#include "place/vocabulary.h"
+#include "trajectory/metrics.h"
+
+namespace flatslam {
+namespace {
+
+const Vocabulary& DefaultVocabulary() {
+  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
+  return vocabulary;
+}
+
+struct AgentRun {
+  Map map;
+  Trajectory gt;
+  Calibration calibration;
+  double own_ate_m = 0;  // keyframes of its own map against its ground truth, own alignment
+  double own_scale = 1;  // of that alignment (monocular maps have an arbitrary scale)
+};
+
+Trajectory KeyFrameTrajectory(const Map& map, uint32_t agent) {
+  Trajectory out;
+  for (const KeyFrame& kf : map.keyframes().values())
+    if (kf.agent == agent) out.push_back({kf.t_ns, kf.T_cam_world.inverse()});
+  std::sort(out.begin(), out.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
+  return out;
+}
+
+AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment = Alignment::kSE3) {
+  const auto dataset = OpenDataset(spec);
+  SlamOptions options;
+  options.vocabulary = &DefaultVocabulary();
+  options.agent = agent;
+  SlamRunOptions run;
+  AgentRun out;
+  run.on_finished = [&](const Slam& slam) { out.map = slam.map(); };
+  (void)RunSlam(*dataset, options, run);
+  out.gt = *dataset->ground_truth();
+  out.calibration = dataset->calibration();
+  EvalOptions eval;
+  eval.alignment = alignment;
+  const EvalResult own = Evaluate(out.gt, KeyFrameTrajectory(out.map, agent), eval);
+  out.own_ate_m = own.ate_m.rmse;
+  out.own_scale = own.alignment.scale;
+  return out;
+}
+
+// Keyframe ATE of each agent of `maps` (taken as one frame) after ONE alignment of all agents'
+// keyframes onto their ground truths. Agent k is the k-th run.
+std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vector<const AgentRun*>& agents,
+                             Alignment kind = Alignment::kSE3) {
+  std::vector<Eigen::Vector3d> gt_positions, est_positions;
+  std::vector<std::vector<Eigen::Isometry3d>> gt(agents.size()), est(agents.size());
+  for (uint32_t k = 0; k < agents.size(); ++k) {
+    Trajectory trajectory;
+    for (const Map* map : maps) {
+      const Trajectory part = KeyFrameTrajectory(*map, k);
+      trajectory.insert(trajectory.end(), part.begin(), part.end());
+    }
+    std::sort(trajectory.begin(), trajectory.end(),
+              [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
+    for (const IndexPair& p : AssociateByTime(agents[k]->gt, trajectory)) {
+      gt[k].push_back(agents[k]->gt[p.gt_index].T_world_cam);
+      est[k].push_back(trajectory[p.est_index].T_world_cam);
+      gt_positions.push_back(gt[k].back().translation());
+      est_positions.push_back(est[k].back().translation());
+    }
+  }
+  const AlignmentResult alignment = AlignUmeyama(gt_positions, est_positions, kind);
+  std::vector<double> ate;
+  for (size_t k = 0; k < agents.size(); ++k) {
+    for (Eigen::Isometry3d& T : est[k]) T = alignment.Apply(T);
+    ate.push_back(ComputeAte(gt[k], est[k]).rmse);
+  }
+  return ate;
+}
+
+MergeCamera CameraOf(const AgentRun& run) {
+  return MergeCamera::FromCalibration(run.calibration, MapScales{OrbOptions{}.scale_factor, OrbOptions{}.levels},
+                                      SlamOptions{}.rgbd_virtual_baseline_m);
+}
+
+// Agent 0 drives the bottom road (+x), the right side and most of the top road (-x); agent 1
+// starts at the far end of its loop and drives the shared parts of both roads in the same
+// directions, so the maps overlap in two places 40 m apart. 10 frames/s keeps the runs short.
+std::string Town(int agent) {
+  return "synth:town:agent=" + std::to_string(agent) +
+         ",width=480,height=360,fps=10,duration=" + (agent == 0 ? "36" : "55");
+}
+
+TEST(MapMerge, AppendMapRemapsEveryHandle) {
+  const AgentRun room = RunAgent("synth:room:duration=5,width=480,height=360", 0);
+  ASSERT_GT(room.map.keyframes().size(), 3u);
+  Map into = room.map;
+  const Map& from = room.map;
+  Similarity3 S;
+  S.R = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  S.t = Eigen::Vector3d(4, -2, 7);
+  S.s = 2.0;
+  uint64_t max_id = 0;
+  for (const KeyFrame& kf : into.keyframes().values()) max_id = std::max(max_id, kf.id);
+  const MapRemap remap = AppendMap(into, from, S);
+  EXPECT_EQ(into.Validate(), "");
+  EXPECT_EQ(into.keyframes().size(), 2 * from.keyframes().size());
+  EXPECT_EQ(into.points().size(), 2 * from.points().size());
+  std::unordered_set<KeyFrameHandle> fresh;
+  for (size_t i = 0; i < from.keyframes().size(); ++i) {
+    const KeyFrameHandle h = from.keyframes().handles()[i];
+    const KeyFrameHandle n = remap(from, h);
+    ASSERT_TRUE(into.keyframes().contains(n));
+    EXPECT_NE(n, h);
+    EXPECT_TRUE(fresh.insert(n).second);
+    const KeyFrame& a = from.keyframe(h);
+    const KeyFrame& b = into.keyframe(n);
+    EXPECT_GT(b.id, max_id);
+    EXPECT_EQ(b.agent, a.agent);
+    EXPECT_EQ(b.t_ns, a.t_ns);
+    EXPECT_LT((b.camera_center() - S * a.camera_center()).norm(), 1e-9);
+    EXPECT_LT((b.T_cam_world.linear() - a.T_cam_world.linear() * S.R.transpose()).norm(), 1e-9);
+    for (size_t k = 0; k < a.size(); ++k) EXPECT_EQ(b.points[k], remap(from, a.points[k]));
+    EXPECT_EQ(b.parent, remap(from, a.parent));
+    ASSERT_EQ(b.covisible.size(), a.covisible.size());
+    for (size_t k = 0; k < a.covisible.size(); ++k) {
+      EXPECT_EQ(b.covisible[k].first, remap(from, a.covisible[k].first));
+      EXPECT_EQ(b.covisible[k].second, a.covisible[k].second);
+    }
+  }
+  for (size_t i = 0; i < from.points().size(); ++i) {
+    const PointHandle h = from.points().handles()[i];
+    const MapPoint& a = from.point(h);
+    const MapPoint& b = into.point(remap(from, h));
+    EXPECT_LT((b.position - S * a.position).norm(), 1e-9);
+    EXPECT_NEAR(b.max_distance, 2 * a.max_distance, 1e-4 * a.max_distance);
+    ASSERT_EQ(b.observations.size(), a.observations.size());
+    for (size_t k = 0; k < a.observations.size(); ++k) {
+      EXPECT_EQ(b.observations[k].keyframe, remap(from, a.observations[k].keyframe));
+      EXPECT_EQ(b.observations[k].keypoint, a.observations[k].keypoint);
+    }
+  }
+  // The entities that were there before are untouched.
+  for (size_t i = 0; i < from.points().size(); ++i)
+    EXPECT_EQ(into.point(from.points().handles()[i]).position, from.points().values()[i].position);
+}
+
+TEST(MapMerge, TwoTownAgentsShareOneFrame) {
+  const AgentRun a0 = RunAgent(Town(0), 0);
+  const AgentRun a1 = RunAgent(Town(1), 1);
+  ASSERT_GT(a0.map.keyframes().size(), 20u);
+  ASSERT_GT(a1.map.keyframes().size(), 20u);
+  const std::vector<double> apart = JointAte({&a0.map, &a1.map}, {&a0, &a1});
+
+  const Map input1 = a1.map;
+  const MultiMapMerge merged = MergeMapsGreedy({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
+  ASSERT_EQ(merged.attempts.size(), 1u);
+  const MergeReport& report = merged.attempts[0].report;
+  const MapOverlap& overlap = report.overlap;
+  std::printf(
+      "queries %zu, candidates %zu, verified %zu, agreeing %zu (%zu independent), %zu point pairs rms %.3f m, "
+      "fused %zu, welded %zu, place %.0f ms, merge %.0f ms\n",
+      overlap.queries, overlap.candidates, overlap.verified.size(), overlap.consistent.size(),
+      overlap.independent_pairs, overlap.correspondences, overlap.residual_rms, report.points_fused,
+      report.welded_keyframes, report.place_ms, report.merge_ms);
+  ASSERT_TRUE(report.merged);
+  ASSERT_EQ(merged.maps.size(), 1u);
+  EXPECT_EQ(merged.members[0], (std::vector<size_t>{0, 1}));
+  const Map& map = merged.maps[0];
+  EXPECT_EQ(map.Validate(), "");
+  EXPECT_EQ(map.keyframes().size(), a0.map.keyframes().size() + a1.map.keyframes().size());
+  EXPECT_GT(report.points_fused, 100u);
+  EXPECT_LT(map.points().size(), a0.map.points().size() + a1.map.points().size());
+  EXPECT_GE(overlap.independent_pairs, 3u);
+  // Every seam pair is a true place: both keyframes' true camera centres are close.
+  for (size_t k : overlap.consistent) {
+    const MergePair& pair = overlap.verified[k];
+    auto true_center = [](const AgentRun& run, const Map& m, KeyFrameHandle h) {
+      const int64_t t = m.keyframe(h).t_ns;
+      const auto it = std::min_element(run.gt.begin(), run.gt.end(), [&](const TimedPose& a, const TimedPose& b) {
+        return std::abs(a.t_ns - t) < std::abs(b.t_ns - t);
+      });
+      return Eigen::Vector3d(it->T_world_cam.translation());
+    };
+    EXPECT_LT((true_center(a0, a0.map, pair.into_keyframe) - true_center(a1, input1, pair.from_keyframe)).norm(), 15.0);
+  }
+
+  const std::vector<double> ate = JointAte({&map}, {&a0, &a1});
+  std::printf(
+      "keyframe ATE: agent 0 own %.3f m, merged %.3f m; agent 1 own %.3f m, merged %.3f m; "
+      "unmerged maps in one frame %.1f / %.1f m\n",
+      a0.own_ate_m, ate[0], a1.own_ate_m, ate[1], apart[0], apart[1]);
+  EXPECT_GT(std::max(apart[0], apart[1]), 10.0);  // before the merge the frames differ
+  EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
+  EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);
+}
+
+// Two monocular runs of the room with different noise: the maps have different arbitrary scales,
+// so the merge needs Sim(3); the estimated scale is the ratio of the two maps' true scales.
+TEST(MapMerge, MonocularMapsMergeWithScale) {
+  const std::string spec = "synth:room:sensor=mono,duration=12,width=480,height=360,seed=";
+  const AgentRun a0 = RunAgent(spec + "1", 0, Alignment::kSim3);
+  const AgentRun a1 = RunAgent(spec + "2", 1, Alignment::kSim3);
+  const MultiMapMerge merged = MergeMapsGreedy({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
+  ASSERT_EQ(merged.maps.size(), 1u);
+  const MergeReport& report = merged.attempts.at(0).report;
+  EXPECT_EQ(merged.maps[0].Validate(), "");
+  // gt = own_scale_k * map_k, so map_0 = (own_scale_1 / own_scale_0) * map_1.
+  const double expected_scale = a1.own_scale / a0.own_scale;
+  const std::vector<double> ate = JointAte({&merged.maps[0]}, {&a0, &a1}, Alignment::kSim3);
+  std::printf(
+      "scale %.4f (expected %.4f); keyframe Sim(3) ATE: agent 0 own %.4f, merged %.4f; agent 1 own %.4f, "
+      "merged %.4f\n",
+      report.overlap.S_into_from.s, expected_scale, a0.own_ate_m, ate[0], a1.own_ate_m, ate[1]);
+  EXPECT_NEAR(report.overlap.S_into_from.s / expected_scale, 1.0, 0.05);
+  EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
+  EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);
+}
+
+TEST(MapMerge, UnrelatedMapsStaySeparate) {
+  const AgentRun room = RunAgent("synth:room:duration=6,width=480,height=360", 0);
+  const AgentRun street = RunAgent("synth:street:duration=6,width=480,height=360", 1);
+  MapMergeOptions options;
+  const MultiMapMerge merged = MergeMapsGreedy({room.map, street.map}, DefaultVocabulary(), CameraOf(room), options);
+  ASSERT_EQ(merged.maps.size(), 2u);
+  ASSERT_EQ(merged.attempts.size(), 1u);
+  EXPECT_FALSE(merged.attempts[0].report.merged);
+  EXPECT_LT(merged.attempts[0].report.overlap.independent_pairs, static_cast<size_t>(options.min_consistent_pairs));
+  EXPECT_EQ(merged.members[0], std::vector<size_t>{0});
+  EXPECT_EQ(merged.members[1], std::vector<size_t>{1});
+  // Each map is kept as it was, in its own frame.
+  const AgentRun* inputs[2] = {&room, &street};
+  for (size_t m = 0; m < 2; ++m) {
+    const Map& in = inputs[m]->map;
+    const Map& out = merged.maps[m];
+    EXPECT_EQ(out.Validate(), "");
+    ASSERT_EQ(out.keyframes().size(), in.keyframes().size());
+    ASSERT_EQ(out.points().size(), in.points().size());
+    for (size_t i = 0; i < in.keyframes().size(); ++i)
+      EXPECT_EQ(out.keyframes().values()[i].T_cam_world.matrix(), in.keyframes().values()[i].T_cam_world.matrix());
+  }
+}
+
+}  // namespace
+}  // namespace flatslam

@@ -1,0 +1,194 @@
+#include "slam/slam_config.h"
+
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+#include "geometry/geometry_fixtures.h"
+#include "merge/map_merge.h"
+
+namespace flatslam {
+namespace {
+
+std::filesystem::path WriteFile(const std::string& name, const std::string& text) {
+  const auto path = std::filesystem::temp_directory_path() / ("flatslam_config_test_" + name);
+  std::ofstream(path) << text;
+  return path;
+}
+
+std::string ErrorOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(SlamConfig, SetsEveryKindOfOptionByName) {
+  SlamOptions o;
+  SetSlamOption(&o, "orb.features", "2500");
+  SetSlamOption(&o, " stereo.outlier_factor ", " 1.5 ");
+  SetSlamOption(&o, "close_depth_baselines", "30");
+  SetSlamOption(&o, "matcher.check_orientation", "false");
+  SetSlamOption(&o, "local_keyframes", "12");
+  SetSlamOption(&o, "seed", "18446744073709551615");
+  SetSlamOption(&o, "bundle_adjustment.solver", "ceres");
+  EXPECT_EQ(o.orb.features, 2500);
+  EXPECT_FLOAT_EQ(o.stereo.outlier_factor, 1.5f);
+  EXPECT_DOUBLE_EQ(o.close_depth_baselines, 30);
+  EXPECT_FALSE(o.matcher.check_orientation);
+  EXPECT_EQ(o.local_keyframes, 12u);
+  EXPECT_EQ(o.seed, 18446744073709551615ull);
+  EXPECT_EQ(o.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kCeres);
+  ApplySlamSetting(&o, "bundle_adjustment.solver=schur_lm");
+  EXPECT_EQ(o.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kSchurLm);
+}
+
+TEST(SlamConfig, ErrorsNameTheKeyAndWhatWasExpected) {
+  SlamOptions o;
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "orb.featurez", "1"); }).find("unknown option 'orb.featurez'"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "orb.features", "12x"); }).find("orb.features needs an integer, got '12x'"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "local_keyframes", "-3"); }).find("non-negative integer"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "loop_closing", "maybe"); }).find("true or false"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "pose.chi2_mono", "nan"); }).find("a real number"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "orb.features"); }).find("expected KEY=VALUE"), std::string::npos);
+  // A value that parses but breaks an option's range is refused, naming the requirement it breaks.
+  EXPECT_NE(
+      ErrorOf([&] { ApplySlamSetting(&o, "orb.features=-5"); }).find("out of range (orb: features >= 1 does not hold)"),
+      std::string::npos);
+  EXPECT_EQ(o.orb.features, -5);  // the caller's options are not used after a throw
+}
+
+// Every options struct names the first field it finds out of range; nested ones by their prefix.
+TEST(SlamConfig, OptionProblemsNameTheField) {
+  SlamOptions o;
+  EXPECT_EQ(o.Problem(), "");
+  o.orb.features = 0;  // derived from the camera: valid
+  EXPECT_EQ(o.Problem(), "");
+  o.stereo.sad_half_window = 40;
+  EXPECT_EQ(o.Problem(), "stereo: sad_half_window >= 1 && sad_half_window <= 15");
+  o.stereo = StereoOptions{};
+  o.bundle_adjustment.num_threads = 0;
+  EXPECT_EQ(o.Problem(), "bundle_adjustment: num_threads >= 1");
+  o.bundle_adjustment = BundleAdjustmentOptions{};
+  o.min_loop_matches = 2;
+  EXPECT_EQ(o.Problem(), "min_loop_matches >= 3");
+  EXPECT_FALSE(o.Check());
+  o.matcher.nn_ratio = 1.5f;  // the first broken requirement is reported
+  EXPECT_EQ(o.Problem(), "matcher: nn_ratio > 0 && nn_ratio <= 1");
+  Calibration calibration;
+  calibration.camera = testing::TestCamera();
+  EXPECT_NE(ErrorOf([&] {
+              Slam slam(calibration, o);
+            }).find("invalid SLAM options: matcher: nn_ratio > 0 && nn_ratio <= 1 does not hold"),
+            std::string::npos);
+  MapMergeOptions merge;
+  merge.min_consistent_pairs = 0;
+  EXPECT_EQ(merge.Problem(), "min_consistent_pairs >= 1");
+}
+
+TEST(SlamConfig, FileErrorsNameTheFileAndLine) {
+  const auto path = WriteFile("bad.conf", "# tuned for KITTI\norb.features = 2000\n\nmatcher.nn_ratio 0.7\n");
+  SlamOptions o;
+  const std::string error = ErrorOf([&] { LoadSlamConfig(path, &o); });
+  EXPECT_NE(error.find(path.string() + ":4"), std::string::npos) << error;
+  EXPECT_NE(error.find("expected 'key = value'"), std::string::npos) << error;
+  const auto unknown = WriteFile("unknown.conf", "orb.features = 2000\nno_such_option = 1\n");
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig(unknown, &o); }).find(unknown.string() + ":2: unknown option"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig("/nonexistent/flatslam.conf", &o); }).find("cannot read config file"),
+            std::string::npos);
+  const auto range = WriteFile("range.conf", "redundant_keyframe_ratio = 1.5\n");
+  EXPECT_NE(ErrorOf([&] { LoadSlamConfig(range, &o); })
+                .find(range.string() + ": a value is out of range (redundant_keyframe_ratio > 0 && "
+                                       "redundant_keyframe_ratio <= 1 does not hold)"),
+            std::string::npos);
+  std::filesystem::remove(path);
+  std::filesystem::remove(unknown);
+  std::filesystem::remove(range);
+}
+
+// What --list-options prints reads back as the same options.
+TEST(SlamConfig, DescriptionRoundTripsThroughAConfigFile) {
+  SlamOptions changed;
+  changed.orb.features = 1234;
+  changed.stereo.outlier_factor = 1.75f;
+  changed.pose.huber_mono = 2.5;
+  changed.far_stereo_baselines = 0;
+  changed.bundle_adjustment.solver = BundleAdjustmentOptions::Solver::kCeres;
+  std::string text;
+  for (const std::string& line : DescribeSlamOptions(changed)) text += line + "\n";
+  const auto path = WriteFile("roundtrip.conf", text);
+  SlamOptions loaded;
+  LoadSlamConfig(path, &loaded);
+  EXPECT_EQ(DescribeSlamOptions(loaded), DescribeSlamOptions(changed));
+  EXPECT_EQ(loaded.orb.features, 1234);
+  EXPECT_FLOAT_EQ(loaded.stereo.outlier_factor, 1.75f);
+  EXPECT_DOUBLE_EQ(loaded.pose.huber_mono, 2.5);
+  EXPECT_EQ(loaded.far_stereo_baselines, 0);
+  EXPECT_EQ(loaded.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kCeres);
+  std::filesystem::remove(path);
+}
+
+Calibration CameraOf(int width, int height, double fx, double rate_hz, Sensor sensor, double baseline_m = 0) {
+  Calibration c;
+  c.sensor = sensor;
+  c.camera = PinholeCamera{fx, fx, (width - 1) * 0.5, (height - 1) * 0.5, width, height};
+  c.frame_rate_hz = rate_hz;
+  c.baseline_m = baseline_m;
+  return c;
+}
+
+// Defaults left to the camera: a TUM-like 640x480 at 30 Hz, a KITTI-like 1241x376 at 10 Hz and
+// a EuRoC-like 752x480 at 20 Hz each get the documented value.
+TEST(SlamOptions, FeatureBudgetFollowsTheCamera) {
+  const SlamOptions defaults;
+  EXPECT_EQ(defaults.orb.features, 0);
+  EXPECT_TRUE(defaults.Check());
+  // 307,200 px / 300 = 1024 -> 1000.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(640, 480, 525, 30, Sensor::kRgbd)).orb.features, 1000);
+  // 466,616 px / 300 = 1555, x sqrt(2) at 10 Hz = 2200 -> 2000.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(1241, 376, 718.9, 10, Sensor::kStereo, 0.537)).orb.features, 2000);
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular)).orb.features, 2000);
+  // 360,960 px / 300 = 1203 -> 1200.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(752, 480, 458.6, 20, Sensor::kStereo, 0.11)).orb.features, 1200);
+  // Tiny and huge images stay within [500, 8000]; an unknown rate counts as 20 Hz.
+  EXPECT_EQ(DerivedFeatureBudget(PinholeCamera{100, 100, 80, 60, 160, 120}, 0), 500);
+  EXPECT_EQ(DerivedFeatureBudget(PinholeCamera{3000, 3000, 2000, 1500, 4000, 3000}, 5), 8000);
+  // An explicit budget is kept.
+  SlamOptions explicit_budget;
+  explicit_budget.orb.features = 1500;
+  EXPECT_EQ(ResolvedOptions(explicit_budget, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular)).orb.features, 1500);
+}
+
+// --list-options: each value chosen from the camera comes with its rule, and the whole listing
+// still reads back as a config file.
+TEST(SlamOptions, DerivedValuesAreExplained) {
+  std::vector<DerivedOption> derived;
+  const SlamOptions resolved =
+      ResolvedOptions(SlamOptions{}, CameraOf(1241, 376, 718.9, 10, Sensor::kStereo, 0.537), &derived);
+  const std::vector<std::string> lines = DescribeSlamOptions(resolved, derived);
+  const auto features = std::find(lines.begin(), lines.end(), "orb.features = 2000");
+  ASSERT_NE(features, lines.end());
+  ASSERT_NE(features, lines.begin());
+  EXPECT_EQ(std::prev(features)->rfind("# derived: one feature per 300 px^2 of 1241x376", 0), 0u)
+      << *std::prev(features);
+  std::string text;
+  for (const std::string& line : lines) text += line + "\n";
+  const auto path = WriteFile("derived.conf", text);
+  SlamOptions loaded;
+  LoadSlamConfig(path, &loaded);
+  EXPECT_EQ(loaded.orb.features, 2000);
+  std::filesystem::remove(path);
+}
+
+}  // namespace
+}  // namespace flatslam
