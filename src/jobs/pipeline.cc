@@ -2,8 +2,11 @@
 
 #include <algorithm>
 #include <exception>
+#include <functional>
 #include <mutex>
 #include <tuple>
+#include <utility>
+#include <vector>
 
 #include <tbb/flow_graph.h>
 #include <tbb/task_group.h>
@@ -80,12 +83,30 @@ struct RunState {
   }
 };
 
+// Jobs posted by the body running on this thread, handed to their queues when it returns (see
+// RunIsolated); null outside a body.
+thread_local std::vector<std::function<void()>>* t_deferred_posts = nullptr;
+
 // Runs a stage body, the source or a job in a task-group context of its own. After a failure
 // the graph is cancelled; without this, a body already running would see its nested parallel
 // algorithms (extraction's parallel_invoke, the renderer's parallel_for) return with part of
 // their work skipped and go on with it half done (a strict run crashed that way in extraction).
+// Jobs the body posts reach their queue only when it returns: while it runs, its thread waits in
+// the task group and may take any task spawned meanwhile; a job spawned there could run nested
+// inside the body, and the stage (the serial track stage, say) would wait for the job to end.
+// On a loaded machine that happened on most runs: no frame was tracked while mapping ran.
 template <class F>
 void RunIsolated(F&& body) {
+  std::vector<std::function<void()>> deferred;
+  std::vector<std::function<void()>>* const outer = std::exchange(t_deferred_posts, &deferred);
+  struct Flush {
+    std::vector<std::function<void()>>& posts;
+    std::vector<std::function<void()>>* outer;
+    ~Flush() {
+      t_deferred_posts = outer;
+      for (auto& post : posts) post();  // each job is run or, after a failure, skipped and counted off
+    }
+  } flush{deferred, outer};
   tbb::task_group_context context(tbb::task_group_context::isolated);
   tbb::task_group group(context);
   group.run_and_wait(std::forward<F>(body));
@@ -147,7 +168,11 @@ void QueueCore::Submit(std::unique_ptr<Payload> job) {
   }
   auto message = std::make_shared<JobEnvelope>();
   message->job = std::move(job);
-  binding->node->try_put(message);  // a queueing node always accepts
+  // A queueing node always accepts. Inside a pipeline body the put waits for the body to end.
+  if (t_deferred_posts != nullptr)
+    t_deferred_posts->push_back([node = binding->node, message] { node->try_put(message); });
+  else
+    binding->node->try_put(message);
 }
 
 Core::Core(PipelineOptions options) : options_(options) {}
