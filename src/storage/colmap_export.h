@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "ecs/map.h"
-#include "io/types.h"
+#include "io/calibration.h"
 #include "storage/snapshot.h"
 
 namespace flatslam {

@@ -15,7 +15,7 @@
 #include <Eigen/Core>
 
 #include "ecs/map.h"
-#include "io/types.h"
+#include "io/calibration.h"
 #include "trajectory/trajectory.h"
 
 namespace flatslam {

@@ -1,0 +1,42 @@
+// The sensor and camera a dataset was recorded with, without any image type: what map snapshots
+// and exports store (src/storage) needs no OpenCV header.
+// Concurrency: plain values.
+#pragma once
+
+#include <string>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+namespace flatslam {
+
+enum class Sensor { kMonocular, kStereo, kRgbd };
+
+[[nodiscard]] const char* SensorName(Sensor sensor);
+// Parses "mono"/"monocular", "stereo", "rgbd"; throws flatslam::Error otherwise.
+[[nodiscard]] Sensor ParseSensor(const std::string& name);
+
+// Pinhole camera of rectified, undistorted images. Pixel (u, v) = (fx x/z + cx, fy y/z + cy).
+struct PinholeCamera {
+  double fx = 0, fy = 0, cx = 0, cy = 0;
+  int width = 0, height = 0;
+
+  [[nodiscard]] Eigen::Matrix3d K() const {
+    Eigen::Matrix3d k;
+    k << fx, 0, cx, 0, fy, cy, 0, 0, 1;
+    return k;
+  }
+  [[nodiscard]] bool valid() const { return fx > 0 && fy > 0 && width > 0 && height > 0; }
+};
+
+// What a reader delivers: images are already undistorted and, for stereo, rectified.
+struct Calibration {
+  Sensor sensor = Sensor::kMonocular;
+  PinholeCamera camera;      // left / RGB camera (depth is registered to it)
+  double baseline_m = 0;     // stereo: distance between the rectified optical centres
+  double frame_rate_hz = 0;  // nominal rate, 0 when unknown
+  // Pose of the (rectified) left camera in the body frame whose ground truth is given.
+  Eigen::Isometry3d T_body_cam = Eigen::Isometry3d::Identity();
+};
+
+}  // namespace flatslam
