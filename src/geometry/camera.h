@@ -36,8 +36,9 @@ struct CameraGeometry {
   // Pixel of a camera-frame point; false when it is behind the camera or outside the image.
   [[nodiscard]] bool Project(const Eigen::Vector3d& Xc, double* u, double* v) const {
     if (Xc.z() <= 0) return false;
-    *u = camera.fx * Xc.x() / Xc.z() + camera.cx;
-    *v = camera.fy * Xc.y() / Xc.z() + camera.cy;
+    const Eigen::Vector2d uv = camera.Project(Xc);
+    *u = uv.x();
+    *v = uv.y();
     return InImage(*u, *v);
   }
 };

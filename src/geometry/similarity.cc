@@ -54,8 +54,8 @@ namespace {
 
 bool Reprojects(const PinholeCamera& cam, const Eigen::Vector3d& Xc, const Eigen::Vector2d& uv, double gate) {
   if (Xc.z() <= 0) return false;
-  const double u = cam.fx * Xc.x() / Xc.z() + cam.cx, v = cam.fy * Xc.y() / Xc.z() + cam.cy;
-  return (u - uv.x()) * (u - uv.x()) + (v - uv.y()) * (v - uv.y()) < gate;
+  const Eigen::Vector2d e = cam.Project(Xc) - uv;
+  return e.x() * e.x() + e.y() * e.y() < gate;
 }
 
 int CountInliers(const PinholeCamera& cam, std::span<const PointCorrespondence> m, const Similarity3& S_21, double chi2,

@@ -27,6 +27,10 @@ struct PinholeCamera {
     return k;
   }
   [[nodiscard]] bool valid() const { return fx > 0 && fy > 0 && width > 0 && height > 0; }
+  // Pixel of a camera-frame point in front of the camera (z > 0; not checked).
+  [[nodiscard]] Eigen::Vector2d Project(const Eigen::Vector3d& Xc) const {
+    return {fx * Xc.x() / Xc.z() + cx, fy * Xc.y() / Xc.z() + cy};
+  }
 };
 
 // What a reader delivers: images are already undistorted and, for stereo, rectified.

@@ -315,7 +315,8 @@ double BoundingCoverage(const SceneMover& mover, double scale,
                         const std::vector<std::pair<Eigen::Isometry3d, double>>& views, const PinholeCamera& cam) {
   double u_min = std::numeric_limits<double>::infinity(), u_max = -u_min, v_min = u_min, v_max = -u_min;
   auto extend = [&](const Eigen::Vector3d& p) {
-    const double u = cam.fx * p.x() / p.z() + cam.cx, v = cam.fy * p.y() / p.z() + cam.cy;
+    const Eigen::Vector2d uv = cam.Project(p);
+    const double u = uv.x(), v = uv.y();
     u_min = std::min(u_min, u);
     u_max = std::max(u_max, u);
     v_min = std::min(v_min, v);

@@ -151,11 +151,8 @@ bool EpipolarSegment(const Eigen::Vector3d& ray1, double near, double far, const
   if (from.z() < kMinZ && to.z() < kMinZ) return false;
   if (from.z() < kMinZ) from = a + (b - a) * ((kMinZ - a.z()) / (b.z() - a.z()));
   if (to.z() < kMinZ) to = a + (b - a) * ((kMinZ - a.z()) / (b.z() - a.z()));
-  auto pixel = [&](const Eigen::Vector3d& X) {
-    return Eigen::Vector2d(g.camera.fx * X.x() / X.z() + g.camera.cx, g.camera.fy * X.y() / X.z() + g.camera.cy);
-  };
-  *p = pixel(from);
-  *q = pixel(to);
+  *p = g.camera.Project(from);
+  *q = g.camera.Project(to);
   // Clip to the image (Liang-Barsky on the segment p + s (q - p)).
   double s0 = 0, s1 = 1;
   const Eigen::Vector2d d = *q - *p;

@@ -10,6 +10,7 @@
 
 #include "core/atomic_write.h"
 #include "core/error.h"
+#include "trajectory/trajectory_io.h"
 
 namespace flatslam {
 namespace {
@@ -58,8 +59,7 @@ double MeanReprojectionError(const Map& map, const MapPoint& point, const Pinhol
     const KeyFrame& kf = map.keyframe(o.keyframe);
     const Eigen::Vector3d x = kf.T_cam_world * point.position;
     if (!(x.z() > 0)) continue;
-    const Eigen::Vector2d projected(camera.fx * x.x() / x.z() + camera.cx, camera.fy * x.y() / x.z() + camera.cy);
-    sum += (projected - kf.uv[o.keypoint].cast<double>()).norm();
+    sum += (camera.Project(x) - kf.uv[o.keypoint].cast<double>()).norm();
     ++count;
   }
   return count == 0 ? 0.0 : sum / static_cast<double>(count);
@@ -132,9 +132,7 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
                  counts.images, counts.images == 0 ? 0.0 : static_cast<double>(counts.observations) / counts.images);
     for (size_t i = 0; i < keyframes.size(); ++i) {
       const KeyFrame& kf = keyframes[i];
-      Eigen::Quaterniond q(kf.T_cam_world.linear());
-      q.normalize();
-      if (q.w() < 0) q.coeffs() = -q.coeffs();  // one of the two equal quaternions, for stable files
+      const Eigen::Quaterniond q = CanonicalQuaternion(kf.T_cam_world.linear());
       const Eigen::Vector3d& t = kf.T_cam_world.translation();
       std::fprintf(out, "%zu %.17g %.17g %.17g %.17g %.17g %.17g %.17g %d %s\n", i + 1, q.w(), q.x(), q.y(), q.z(),
                    t.x(), t.y(), t.z(), kCameraId, names[i].c_str());
@@ -144,11 +142,9 @@ ColmapExportCounts WriteColmapModel(const Map& map, const Calibration& calibrati
         const MapPoint* point = p.is_null() ? nullptr : map.points().try_get(p);
         // A keypoint bound to a point is one of that point's observations (Map invariant); the
         // point is exported under this id unless its track is too short.
-        if (point != nullptr && exported(*point)) {
-          std::fprintf(out, "%s%.9g %.9g %zu", k == 0 ? "" : " ", u, v, map.points().dense_index(p) + 1);
-        } else {
-          std::fprintf(out, "%s%.9g %.9g -1", k == 0 ? "" : " ", u, v);
-        }
+        const long long id =
+            point != nullptr && exported(*point) ? static_cast<long long>(map.points().dense_index(p)) + 1 : -1;
+        std::fprintf(out, "%s%.9g %.9g %lld", k == 0 ? "" : " ", u, v, id);
       }
       std::fputc('\n', out);
     }

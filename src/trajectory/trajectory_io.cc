@@ -370,16 +370,12 @@ Trajectory ReadTrajectory(const fs::path& path, const TrajectoryReadOptions& opt
   Fail(path.string(), ": unknown trajectory format");
 }
 
-namespace {
-// The unit quaternion of a rotation with w >= 0: of the two equal ones, always the same, so that
-// files written from equal poses are equal.
 Eigen::Quaterniond CanonicalQuaternion(const Eigen::Matrix3d& rotation) {
   Eigen::Quaterniond q(rotation);
   q.normalize();
   if (q.w() < 0) q.coeffs() = -q.coeffs();
   return q;
 }
-}  // namespace
 
 std::string FormatTumLine(const TimedPose& pose) {
   const Eigen::Quaterniond q = CanonicalQuaternion(pose.T_world_cam.linear());

@@ -6,6 +6,8 @@
 #include <filesystem>
 #include <optional>
 #include <string>
+
+#include <Eigen/Geometry>
 #include <string_view>
 #include <vector>
 
@@ -65,6 +67,9 @@ void WriteKitti(const std::filesystem::path& path, const Trajectory& trajectory)
 void WriteKittiTimes(const std::filesystem::path& path, const Trajectory& trajectory);
 // EuRoC csv: "#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z" then one pose a line (ReadEuroc's input).
 void WriteEuroc(const std::filesystem::path& path, const Trajectory& trajectory);
+// The unit quaternion of a rotation with w >= 0: of the two equal ones always the same, so that
+// files written from equal poses are equal (TUM, EuRoC, COLMAP exports).
+[[nodiscard]] Eigen::Quaterniond CanonicalQuaternion(const Eigen::Matrix3d& rotation);
 // The first line of a TUM file written here, and one pose as a TUM line (with its newline), for
 // writers that append poses as they come (flatslam run's streamed trajectory).
 inline constexpr const char* kTumHeader = "# timestamp tx ty tz qx qy qz qw\n";
