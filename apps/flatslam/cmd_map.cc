@@ -16,7 +16,7 @@
 #include "storage/colmap_export.h"
 #include "storage/snapshot.h"
 #include "merge/map_merge.h"
-#include "slam/slam.h"
+#include "slam/session.h"
 #include "place/vocabulary.h"
 #include "trajectory/trajectory_io.h"
 

@@ -25,7 +25,7 @@
 #include "jobs/sequence_run.h"
 #include "jobs/slam_runner.h"
 #include "storage/snapshot.h"
-#include "slam/slam_config.h"
+#include "config/slam_config.h"
 #include "place/vocabulary.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
@@ -329,7 +329,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (auto m = args.get("save-map")) {
     save_map = *m;
     check_directory("--save-map", *save_map);
-    run.on_finished = [&](const Slam& slam) {
+    run.on_finished = [&](const SlamSession& slam) {
       const auto start = std::chrono::steady_clock::now();
       try {
         const SnapshotMapRef ref{0, &slam.map()};
@@ -349,7 +349,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
     run.checkpoint_every_s = args.get_double("checkpoint-every", 60);
     if (!(run.checkpoint_every_s > 0)) throw UsageError{"--checkpoint-every must be a positive number of seconds"};
     const std::vector<std::string> arguments = ResumableArguments(argv);
-    run.on_checkpoint = [&, arguments, inject = fault == "checkpoint"](const Slam::State& state, size_t next_frame) {
+    run.on_checkpoint = [&, arguments, inject = fault == "checkpoint"](const SlamSession::State& state, size_t next_frame) {
       if (inject) Fail("injected failure in checkpoint write");
       SnapshotMetadata with_session = metadata;
       SnapshotSession session;

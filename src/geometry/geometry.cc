@@ -14,6 +14,7 @@
 #include <opencv2/core/eigen.hpp>
 
 #include "core/error.h"
+#include "geometry/camera.h"
 #include "optimization/bundle_adjustment.h"
 
 namespace flatslam {
@@ -596,6 +597,23 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   result.parallax_deg = rec->parallax_deg;
   result.homography_ratio = ratio;
   return result;
+}
+
+StereoDepthRule StereoDepthRule::ForRig(bool stereo, double baseline_m, double far_stereo_baselines) {
+  StereoDepthRule rule;
+  if (stereo && far_stereo_baselines > 0 && baseline_m > 0) rule.fixed_far_m = far_stereo_baselines * baseline_m;
+  return rule;
+}
+
+double StereoDepthRule::FarDepth(std::span<const float> depth) const {
+  if (!(fixed_far_m < std::numeric_limits<double>::infinity())) return fixed_far_m;
+  thread_local std::vector<float> measured;
+  measured.clear();
+  for (float d : depth)
+    if (d > 0) measured.push_back(d);
+  if (measured.empty()) return fixed_far_m;
+  std::nth_element(measured.begin(), measured.begin() + measured.size() / 2, measured.end());
+  return std::max<double>(fixed_far_m, measured[measured.size() / 2]);
 }
 
 }  // namespace flatslam

@@ -71,7 +71,7 @@ struct OrbSettings {
   double frame_rate_hz = 0;     // Camera.fps; 0 = the dataset's
   bool rgb = false;             // Camera.RGB: colour images are RGB (true) or BGR (false)
   double depth_map_factor = 0;  // raw depth units per metre; 0 = the dataset's
-  // SLAM options by name (slam/slam_config.h): orb.features, orb.scale_factor, orb.levels,
+  // SLAM options by name (config/slam_config.h): orb.features, orb.scale_factor, orb.levels,
   // orb.fast_threshold, orb.min_fast_threshold, close_depth_baselines; in file order.
   std::vector<std::pair<std::string, std::string>> slam_options;
 

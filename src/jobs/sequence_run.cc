@@ -15,7 +15,7 @@
 #include "io/dataset.h"
 #include "io/orb_settings.h"
 #include "report/html_report.h"
-#include "slam/slam_config.h"
+#include "config/slam_config.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
 

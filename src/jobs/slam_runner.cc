@@ -43,7 +43,7 @@ struct MappingJob {
 }  // namespace
 
 SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
-  Slam slam(dataset.calibration(), options);
+  SlamSession slam(dataset.calibration(), options);
   if (run.on_warning) slam.SetWarningSink(run.on_warning);
   // Global bundle adjustment runs beside the frames on its own thread (declared after slam:
   // destroyed, so waited for, first). Deterministic runs keep it inline, in mapping.
@@ -95,7 +95,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // taken by a job on the mapping queue (or, with mapping inline, by the checkpoint job), not by
   // the track stage: tracking waits only if it needs the map lock while the copy runs (measured
   // in the frames' track_ms).
-  Slam::State checkpoint_state;
+  SlamSession::State checkpoint_state;
   // Held by the track stage from Track to on_frame, and by a checkpoint's copy: a checkpoint never
   // covers a frame whose report has not been handed out.
   std::mutex between_frames;

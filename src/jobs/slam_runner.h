@@ -12,14 +12,14 @@
 #include <vector>
 
 #include "io/dataset.h"
-#include "slam/slam.h"
+#include "slam/session.h"
 
 namespace flatslam {
 
 struct SlamRunOptions {
   size_t max_frames = 0;       // 0 = every frame of the dataset; else frames [first_frame, max_frames)
   size_t first_frame = 0;      // frames before it are not read (a session continuing a saved map)
-  Map* initial_map = nullptr;  // moved into the SLAM system before the first frame (Slam::AdoptMap)
+  Map* initial_map = nullptr;  // moved into the SLAM system before the first frame (SlamSession::AdoptMap)
   // With initial_map: the trajectory of the session it continues (a resumed checkpoint); the
   // result's trajectory starts with these frames.
   std::vector<AnchoredFramePose> initial_frames;
@@ -40,7 +40,7 @@ struct SlamRunOptions {
   bool keep_reports = true;
   // Called once after every stage has drained, before RunSlam returns (e.g. to save the map);
   // may be empty.
-  std::function<void(const Slam&)> on_finished;
+  std::function<void(const SlamSession&)> on_finished;
 
   // A frame whose images cannot be read or do not fit the calibration (missing, unreadable,
   // truncated, wrong size or pixel type, a depth image unlike its colour image) is skipped like a
@@ -57,12 +57,12 @@ struct SlamRunOptions {
   // writes), one line each; any thread. Unset: stderr.
   std::function<void(const std::string&)> on_warning;
   // Checkpoints: every checkpoint_every_s seconds (0 = never) the track stage copies the session
-  // between two frames (Slam::CaptureState) and a background job hands the copy to on_checkpoint
+  // between two frames (SlamSession::CaptureState) and a background job hands the copy to on_checkpoint
   // with the first frame not yet tracked; the next copy is taken only once that one is written.
   // When the run ends (interrupted or not) a last one is written on the calling thread. A throw
   // from on_checkpoint becomes a warning; the session goes on.
   double checkpoint_every_s = 0;
-  std::function<void(const Slam::State& state, size_t next_frame)> on_checkpoint;
+  std::function<void(const SlamSession::State& state, size_t next_frame)> on_checkpoint;
   // When a stage or background job throws (strict mode's unreadable frame, a failed mapping step),
   // the run ends there: by default RunSlam rethrows; with keep_results_on_error it returns the
   // result over the frames tracked, with the message in SlamRunResult::error, so a caller can
@@ -94,7 +94,7 @@ struct SlamRunResult {
   std::vector<double> frame_ms_during_checkpoints;
 };
 
-// Runs SLAM; the Slam object is created from the dataset's calibration and options.
+// Runs SLAM; the session is created from the dataset's calibration and options.
 [[nodiscard]] SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run);
 
 }  // namespace flatslam

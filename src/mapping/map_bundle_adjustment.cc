@@ -5,23 +5,6 @@
 
 namespace flatslam {
 
-StereoDepthRule StereoDepthRule::ForRig(bool stereo, double baseline_m, double far_stereo_baselines) {
-  StereoDepthRule rule;
-  if (stereo && far_stereo_baselines > 0 && baseline_m > 0) rule.fixed_far_m = far_stereo_baselines * baseline_m;
-  return rule;
-}
-
-double StereoDepthRule::FarDepth(std::span<const float> depth) const {
-  if (!(fixed_far_m < std::numeric_limits<double>::infinity())) return fixed_far_m;
-  thread_local std::vector<float> measured;
-  measured.clear();
-  for (float d : depth)
-    if (d > 0) measured.push_back(d);
-  if (measured.empty()) return fixed_far_m;
-  std::nth_element(measured.begin(), measured.begin() + measured.size() / 2, measured.end());
-  return std::max<double>(fixed_far_m, measured[measured.size() / 2]);
-}
-
 void BuildMapBundleAdjustment(const Map& map, const CameraGeometry& geometry, const StereoDepthRule& stereo,
                               std::span<const KeyFrameHandle> free, KeyFrameHandle anchor, size_t min_observations,
                               MapBundleAdjustment* out) {

@@ -17,27 +17,6 @@
 
 namespace flatslam {
 
-// ORB-SLAM2's close-depth threshold for KITTI and EuRoC, in baselines: the default stereo cut.
-inline constexpr double kFarStereoBaselines = 35;
-
-// How stereo observations enter optimization. A stereo keypoint deeper than FarDepth() counts
-// as monocular: its disparity is a few pixels, where a tenth of a pixel of rectification error is
-// a percent of depth. The cut is fixed_far_m, but never nearer than the frame's median measured
-// depth, so that where most texture is far (a motorway) the scale does not rest on a few road
-// points. RGB-D and monocular keep every observation as it is (fixed_far_m infinite).
-struct StereoDepthRule {
-  double fixed_far_m = std::numeric_limits<double>::infinity();
-
-  // far_stereo_baselines x baseline for a stereo rig (0 baselines: no cut); infinite otherwise.
-  [[nodiscard]] static StereoDepthRule ForRig(bool stereo, double baseline_m, double far_stereo_baselines);
-  // The cut for one frame or keyframe, from its keypoint depths (<= 0: none measured).
-  [[nodiscard]] double FarDepth(std::span<const float> depth) const;
-  // The right-image coordinate an optimization uses for a keypoint: none beyond far_depth.
-  [[nodiscard]] static double RightU(float right_u, float depth, double far_depth) {
-    return depth > far_depth ? -1 : right_u;
-  }
-};
-
 // A problem with the map handles of its poses and points (same order as problem.poses/points).
 struct MapBundleAdjustment {
   BundleAdjustmentProblem problem;

@@ -16,7 +16,7 @@
 #include "mapping/essential_graph.h"
 #include "place/keyframe_database.h"
 #include "place/place_verification.h"
-#include "slam/slam.h"
+#include "slam/session.h"
 #include "place/vocabulary.h"
 
 namespace flatslam {

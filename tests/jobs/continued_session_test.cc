@@ -69,7 +69,7 @@ TEST(ContinuedSession, SectionsOf200FramesMatchTheUninterruptedRun) {
       loaded = std::move(snapshot.maps[0].map);
       run.initial_map = &*loaded;
     }
-    run.on_finished = [&](const Slam& slam) {
+    run.on_finished = [&](const SlamSession& slam) {
       const SnapshotMapRef ref{0, &slam.map()};
       SaveMapSnapshot(path, {&ref, 1}, metadata);
     };
@@ -114,7 +114,7 @@ TEST(ContinuedSession, LocalizationOnlyLeavesTheMapUnchanged) {
   std::vector<uint8_t> before;
   SnapshotMetadata metadata;
   metadata.calibration = dataset->calibration();
-  first.on_finished = [&](const Slam& slam) {
+  first.on_finished = [&](const SlamSession& slam) {
     const SnapshotMapRef ref{0, &slam.map()};
     before = SerializeMapSnapshot({&ref, 1}, metadata);
   };
@@ -129,7 +129,7 @@ TEST(ContinuedSession, LocalizationOnlyLeavesTheMapUnchanged) {
   run.max_frames = 300;
   run.initial_map = &map;
   std::vector<uint8_t> after;
-  run.on_finished = [&](const Slam& slam) {
+  run.on_finished = [&](const SlamSession& slam) {
     const SnapshotMapRef ref{0, &slam.map()};
     after = SerializeMapSnapshot({&ref, 1}, metadata);
   };

@@ -122,7 +122,7 @@ TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
   size_t flushed_before = 0, reported = 0;
   run.on_frame = [&](const FrameReport&) { ++reported; };
   run.before_checkpoint = [&] { flushed_before = reported; };
-  run.on_checkpoint = [&](const Slam::State& state, size_t next_frame) {
+  run.on_checkpoint = [&](const SlamSession::State& state, size_t next_frame) {
     EXPECT_EQ(next_frame, state.next_frame);
     // Every frame the checkpoint covers was reported before it was taken.
     EXPECT_LE(next_frame, flushed_before);
@@ -176,8 +176,8 @@ TEST(SessionRun, AContinuedSessionIsAsAccurateAsTheWholeRun) {
     first.max_frames = k;
     Map map;
     std::vector<AnchoredFramePose> frames;
-    first.on_finished = [&](const Slam& slam) {
-      Slam::State state;
+    first.on_finished = [&](const SlamSession& slam) {
+      SlamSession::State state;
       slam.CaptureState(&state);
       state.AnchoredToMap(&frames);
       map = state.map;

@@ -48,7 +48,7 @@ AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment =
   options.agent = agent;
   SlamRunOptions run;
   AgentRun out;
-  run.on_finished = [&](const Slam& slam) { out.map = slam.map(); };
+  run.on_finished = [&](const SlamSession& slam) { out.map = slam.map(); };
   (void)RunSlam(*dataset, options, run);
   out.gt = *dataset->ground_truth();
   out.calibration = dataset->calibration();

@@ -148,7 +148,7 @@ TEST(MapSnapshot, SlamMapRoundTripsExactly) {
   Map original;
   SnapshotMetadata metadata;
   metadata.calibration = dataset->calibration();
-  run.on_finished = [&](const Slam& slam) {
+  run.on_finished = [&](const SlamSession& slam) {
     original = slam.map();
     const SnapshotMapRef ref{0, &slam.map()};
     SaveMapSnapshot(dir / "room.fsmap", {&ref, 1}, metadata);

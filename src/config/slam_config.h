@@ -11,7 +11,7 @@
 #include <string_view>
 #include <vector>
 
-#include "slam/slam.h"
+#include "config/options.h"
 
 namespace flatslam {
 

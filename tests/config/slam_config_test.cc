@@ -1,4 +1,4 @@
-#include "slam/slam_config.h"
+#include "config/slam_config.h"
 
 #include <algorithm>
 #include <filesystem>
@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "geometry/geometry_fixtures.h"
 #include "merge/map_merge.h"
+#include "slam/session.h"
 
 namespace flatslam {
 namespace {
@@ -87,7 +88,7 @@ TEST(SlamConfig, OptionProblemsNameTheField) {
   Calibration calibration;
   calibration.camera = testing::TestCamera();
   EXPECT_NE(ErrorOf([&] {
-              Slam slam(calibration, o);
+              SlamSession slam(calibration, o);
             }).find("invalid SLAM options: matcher: nn_ratio > 0 && nn_ratio <= 1 does not hold"),
             std::string::npos);
   MapMergeOptions merge;

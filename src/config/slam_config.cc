@@ -1,4 +1,4 @@
-#include "slam/slam_config.h"
+#include "config/slam_config.h"
 
 #include <algorithm>
 #include <charconv>

@@ -1,0 +1,114 @@
+#include "config/options.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+
+#include "config/context.h"
+#include "core/error.h"
+#include "core/requirements.h"
+
+namespace flatslam {
+
+std::string SlamOptions::Problem() const {
+  OrbOptions orb_checked = orb;
+  if (orb_checked.features == 0) orb_checked.features = 1;  // 0 = derived from the camera
+  Requirements r;
+  r.Nested("orb", orb_checked.Problem());
+  r.Nested("stereo", stereo.Problem());
+  r.Nested("matcher", matcher.Problem());
+  r.Nested("pose", pose.Problem());
+  r.Nested("bundle_adjustment", bundle_adjustment.Problem());
+  FLATSLAM_REQUIRE(r, rgbd_virtual_baseline_m > 0);
+  FLATSLAM_REQUIRE(r, close_depth_baselines > 0);
+  FLATSLAM_REQUIRE(r, far_stereo_baselines >= 0);
+  FLATSLAM_REQUIRE(r, min_init_points > 0);
+  FLATSLAM_REQUIRE(r, min_motion_inliers > 0);
+  FLATSLAM_REQUIRE(r, min_local_map_inliers > 0);
+  FLATSLAM_REQUIRE(r, motion_search_radius > 0);
+  FLATSLAM_REQUIRE(r, max_frames_between_keyframes >= 0);
+  FLATSLAM_REQUIRE(r, min_frames_between_keyframes >= -1);
+  FLATSLAM_REQUIRE(r, local_keyframes > 0);
+  FLATSLAM_REQUIRE(r, min_parallax_deg >= 0 && min_parallax_deg < 90);
+  FLATSLAM_REQUIRE(r, redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1);
+  FLATSLAM_REQUIRE(r, revisit_radius >= 0);
+  FLATSLAM_REQUIRE(r, relocalization_frames >= 0);
+  FLATSLAM_REQUIRE(r, loop_consistency >= 1);
+  FLATSLAM_REQUIRE(r, min_loop_matches >= 3);
+  return r.first();
+}
+
+int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz) {
+  // One feature per 300 px^2 keeps the keypoints per FAST cell the same at every resolution (the
+  // density of ORB-SLAM's budgets for 640x480 and 752x480 cameras: 1000 and 1200). Below 20 Hz the
+  // scene moves further between frames and fewer keypoints survive from one frame to the next:
+  // the budget grows with sqrt(20 / rate), halfway (in log terms) between no growth and growth
+  // with the image motion per frame.
+  const double rate = frame_rate_hz > 0 ? frame_rate_hz : 20.0;
+  const double raw = static_cast<double>(camera.width) * camera.height / 300.0 * std::sqrt(std::max(1.0, 20.0 / rate));
+  // Nearest value of the 1-1.2-1.5-2-2.5-3-4-5-6-8 series (in log terms), so that cameras of
+  // nearly the same size share a budget.
+  static constexpr double kSeries[] = {1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10};
+  const double decade = std::pow(10.0, std::floor(std::log10(std::max(raw, 1.0))));
+  double best = decade;
+  for (double m : kSeries)
+    if (std::abs(std::log(m * decade / raw)) < std::abs(std::log(best / raw))) best = m * decade;
+  return static_cast<int>(std::clamp(std::lround(best), 500L, 8000L));
+}
+
+SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration,
+                            std::vector<DerivedOption>* derived) {
+  SlamOptions o = options;
+  const bool mono = calibration.sensor == Sensor::kMonocular;
+  const PinholeCamera& cam = calibration.camera;
+  auto note = [&](const char* key, std::string rule) {
+    if (derived) derived->push_back({key, std::move(rule)});
+  };
+  char text[256];
+  const double rate = calibration.frame_rate_hz;
+  if (o.orb.features == 0) {
+    o.orb.features = DerivedFeatureBudget(cam, rate);
+    std::snprintf(text, sizeof(text),
+                  "one feature per 300 px^2 of %dx%d, x sqrt(20 Hz / %.3g Hz) below 20 Hz, rounded to the "
+                  "1-1.2-1.5-2-2.5-3-4-5-6-8 series",
+                  cam.width, cam.height, rate > 0 ? rate : 20.0);
+    note("orb.features", text);
+  }
+  if (o.max_frames_between_keyframes == 0) {
+    o.max_frames_between_keyframes = rate > 0 ? static_cast<int>(std::lround(rate)) : 10;
+    note("max_frames_between_keyframes",
+         rate > 0 ? "one second of frames at the camera's frame rate" : "10 frames: the frame rate is unknown");
+  }
+  if (mono) {
+    o.motion_search_radius = o.mono_search_radius;
+    note("motion_search_radius", "monocular: mono_search_radius (no depth to predict the right image)");
+  }
+  if (o.min_frames_between_keyframes < 0) {
+    o.min_frames_between_keyframes = mono ? 2 : 0;
+    note("min_frames_between_keyframes", mono ? "monocular: 2, forward motion thins tracked points every frame"
+                                              : "with depth: 0, an idle local mapping takes any keyframe");
+  }
+  if (o.min_parallax_deg == 0) {
+    o.min_parallax_deg = mono ? 2.0 : 1.146;
+    note("min_parallax_deg", mono ? "monocular: 2 degrees, depth within about 4% at a pixel of noise"
+                                  : "with depth: 1.146 degrees; close points take the measured depth");
+  }
+  return o;
+}
+
+SystemContext::SystemContext(const Calibration& calibration_in, const SlamOptions& resolved,
+                             const ScalePyramid& pyramid)
+    : calibration(calibration_in), options(resolved) {
+  const std::string problem = options.Problem();
+  FLATSLAM_CHECK(problem.empty(), "invalid SLAM options: ", problem, " does not hold");
+  FLATSLAM_CHECK(calibration.camera.valid(), "invalid camera calibration");
+  FLATSLAM_CHECK(calibration.sensor != Sensor::kStereo || calibration.baseline_m > 0,
+                 "stereo calibration without a baseline");
+  geometry = CameraGeometry::FromCalibration(calibration, options.rgbd_virtual_baseline_m, pyramid);
+  map_scales.scale_factor = geometry.pyramid.scale_factor;
+  map_scales.levels = geometry.pyramid.levels;
+  stereo_depth = StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m,
+                                         options.far_stereo_baselines);
+}
+
+}  // namespace flatslam

@@ -1,0 +1,330 @@
+#include "slam/session.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+
+#include <tbb/parallel_invoke.h>
+
+#include "core/error.h"
+#include "frontend/stereo_matcher.h"
+#include "place/vocabulary.h"
+
+namespace flatslam {
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
+SlamSession::SlamSession(const Calibration& calibration, const SlamOptions& options)
+    : extractor_(ResolvedOptions(options, calibration).orb),
+      context_(calibration, ResolvedOptions(options, calibration), extractor_.scales()),
+      tracker_(options.seed),
+      database_(options.vocabulary ? options.vocabulary->word_count() : 0),
+      loops_(options.seed + 1) {
+  if (context_.options.localization_only) tracker_.allow_new_segments = false;
+}
+
+void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
+  const Calibration& calibration = context_.calibration;
+  const PinholeCamera& cam = calibration.camera;
+  FLATSLAM_CHECK(frame.left.cols == cam.width && frame.left.rows == cam.height, "frame ", frame.index, " is ",
+                 frame.left.cols, "x", frame.left.rows, ", calibration says ", cam.width, "x", cam.height);
+  out->index = frame.index;
+  out->t_ns = frame.t_ns;
+  // Pooled pyramids: their levels are not reallocated per frame.
+  const auto left_pyramid = pyramids_.Acquire();
+  if (calibration.sensor == Sensor::kStereo) {
+    FLATSLAM_CHECK(!frame.right.empty(), "frame ", frame.index, " has no right image");
+    Keypoints right;
+    const auto right_pyramid = pyramids_.Acquire();
+    tbb::parallel_invoke([&] { extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get()); },
+                         [&] { extractor_.Extract(frame.right, &right, right_pyramid.get()); });
+    MatchStereo(right, *left_pyramid, *right_pyramid, extractor_.scales(), cam.fx, calibration.baseline_m,
+                context_.options.stereo, &out->keypoints);
+    right_pyramid->levels[0].release();  // level 0 shares the input image: do not keep it alive
+  } else {
+    FLATSLAM_CHECK(calibration.sensor == Sensor::kMonocular || !frame.depth.empty(), "frame ", frame.index,
+                   " has no depth image");
+    extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get());
+    if (calibration.sensor == Sensor::kRgbd)
+      DepthFromImage(frame.depth, cam.fx, context_.options.rgbd_virtual_baseline_m, &out->keypoints);
+  }
+  left_pyramid->levels[0].release();
+  out->Prepare(cam.width, cam.height);
+}
+
+FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe) {
+  const auto start = std::chrono::steady_clock::now();
+  new_keyframe->reset();
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  next_frame_ = frame.index + 1;
+  if (tracker_.state != TrackingState::kNotInitialized && map_corrected_ && tracker_.last_frame &&
+      !frame_poses_.empty()) {
+    // A loop correction or global BA moved the map: the last frame follows its reference keyframe.
+    tracker_.last_frame->T_cam_world = ResolveFramePose(map_, mapping_.culled, frame_poses_.back());
+    map_corrected_ = false;
+  }
+  // Tracking reads the map; the mapping system then writes what it found.
+  TrackResult result = TrackFrame(map_, database_, context_, tracker_, frame, pending_keyframes_);
+  if (result.keyframe_wanted) keyframe_wanted_ = *result.keyframe_wanted;
+  const InsertedTwoView inserted = ApplyTrackResult(frame, result);
+  if (const std::optional<AnchoredFramePose> pose =
+          FinishFrame(map_, tracker_, std::move(frame), result, inserted, new_keyframe))
+    frame_poses_.push_back(*pose);
+  FrameReport& report = result.report;
+  report.keyframe = new_keyframe->has_value();
+  report.map_keyframes = map_.keyframes().size();
+  report.map_points = map_.points().size();
+  if (report.keyframe) ++pending_keyframes_;
+  report.track_ms = MsSince(start);
+  return report;
+}
+
+InsertedTwoView SlamSession::ApplyTrackResult(TrackedFrame& frame, TrackResult& result) {
+  ApplySightings(map_, result.visible, result.found);
+  InsertedTwoView inserted;
+  switch (result.insert) {
+    case TrackResult::Insert::kNone:
+      break;
+    case TrackResult::Insert::kKeyFrame:
+    case TrackResult::Insert::kFirstKeyFrame:
+      inserted.first = InsertKeyFrame(map_, mapping_, context_, frame,
+                                      /*all_depth_points=*/result.insert == TrackResult::Insert::kFirstKeyFrame);
+      break;
+    case TrackResult::Insert::kTwoView:
+      inserted = InsertTwoViewMap(map_, mapping_, context_, *result.two_view, frame);
+      break;
+  }
+  return inserted;
+}
+
+void SlamSession::MapKeyFrame(KeyFrameHandle keyframe) {
+  std::pair<double, double> depth_range;
+  uint64_t epoch = 0;
+  size_t frame_index = 0;
+  struct Done {
+    std::atomic<int>& pending;
+    ~Done() { --pending; }
+  } done{pending_keyframes_};
+  MappingTimes& times = mapping_.times;
+  auto stage_start = std::chrono::steady_clock::now();
+  auto lap = [&stage_start](double* total) {
+    const auto now = std::chrono::steady_clock::now();
+    *total += std::chrono::duration<double, std::milli>(now - stage_start).count();
+    stage_start = now;
+  };
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (!PrepareKeyFrame(map_, mapping_, context_, keyframe, &depth_range)) return;
+    frame_index = map_.keyframe(keyframe).frame_index;
+    epoch = map_epoch_;
+  }
+  ++times.keyframes;
+  lap(&times.prepare_ms);
+  // The words come first: monocular triangulation searches keypoints under the same node.
+  KeyFrame& copy = mapping_.snapshot[0];
+  if (context_.options.vocabulary)
+    context_.options.vocabulary->Transform(copy.descriptor, &copy.bow, &copy.bow_features);
+  const std::vector<NewPoint> candidates = FindNewPoints(mapping_, context_, depth_range);
+  BowVector bow = std::move(copy.bow);
+  FeatureVector bow_features = std::move(copy.bow_features);
+  lap(&times.triangulate_ms);
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (!map_.keyframes().contains(keyframe)) return;
+    map_.keyframe(keyframe).bow = std::move(bow);
+    map_.keyframe(keyframe).bow_features = std::move(bow_features);
+    // Points triangulated before the map moved are in its old frame: dropped.
+    AddNewPointsAndFuse(map_, mapping_, context_, keyframe, candidates, /*add_points=*/epoch == map_epoch_);
+  }
+  lap(&times.fuse_ms);
+  {
+    // Solved on a copy, without the lock: tracking goes on meanwhile. A keyframe waiting behind
+    // this one ends the adjustment early: the next keyframe's adjustment covers the same
+    // neighbourhood.
+    bool built = false;
+    {
+      std::lock_guard<std::mutex> lock(map_mutex_);
+      epoch = map_epoch_;
+      built = BuildLocalBundleAdjustment(map_, mapping_, context_, keyframe, tracker_.first_keyframe);
+    }
+    if (built) {
+      const BundleAdjustmentResult result =
+          SolveLocalBundleAdjustment(mapping_, context_, [this] { return pending_keyframes_ > 1 || keyframe_wanted_; });
+      std::lock_guard<std::mutex> lock(map_mutex_);
+      // The map moved meanwhile: this solution is in its old frame.
+      if (result.success && epoch == map_epoch_) ApplyLocalBundleAdjustment(map_, mapping_, context_, result);
+    }
+  }
+  lap(&times.local_ba_ms);
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    const KeyFrameHandle keep[] = {tracker_.first_keyframe, tracker_.reference_keyframe};
+    CullKeyFrames(map_, mapping_, context_, keyframe, keep,
+                  [this](KeyFrameHandle h, const KeyFrame& kf) { database_.Erase(h, kf.bow); });
+  }
+  lap(&times.cull_ms);
+  // A failed loop correction costs that loop, not the session: it becomes a warning and the next
+  // keyframes are searched as usual.
+  try {
+    DetectAndCloseLoop(keyframe);
+  } catch (const std::exception& e) {
+    loops_.consistent_groups.clear();
+    Warn("loop closing failed at the keyframe of frame " + std::to_string(frame_index) +
+         ", the session goes on without this loop: " + e.what());
+  }
+  lap(&times.place_ms);
+}
+
+void SlamSession::DetectAndCloseLoop(KeyFrameHandle current) {
+  if (!context_.options.vocabulary) return;
+  size_t loops = 0;
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    const std::optional<LoopMatch> match =
+        DetectLoop(map_, database_, loops_, context_, current, context_.options.loop_closing && !global_ba_running_);
+    if (!match) return;
+    if (context_.options.inject_fault == InjectedFault::kLoopClosing) Fail("injected failure in loop correction");
+    CorrectLoop(map_, loops_, context_, current, *match);
+    map_corrected_ = true;
+    ++map_epoch_;
+    if (!context_.options.global_bundle_adjustment || abandon_background_) return;
+    global_ba_running_ = true;
+    loops = loops_.closures.size();
+  }
+  // Started after the map lock is released: the adjustment takes it for its own steps (inline,
+  // on this thread, when no background lane is set).
+  auto task = [this, loops] {
+    try {
+      GlobalBundleAdjustment(loops);
+    } catch (const std::exception& e) {
+      global_ba_running_ = false;
+      // A failure here costs the refinement, not the session: it becomes a warning.
+      Warn(std::string("global bundle adjustment failed, the map keeps its loop correction: ") + e.what());
+    }
+  };
+  if (background_)
+    background_(std::move(task));
+  else
+    task();
+}
+
+void SlamSession::GlobalBundleAdjustment(size_t loops) {
+  struct Clear {
+    std::atomic<bool>& flag;
+    ~Clear() { flag = false; }
+  } clear{global_ba_running_};
+  if (context_.options.inject_fault == InjectedFault::kGlobalBundleAdjustment)
+    Fail("injected failure in global bundle adjustment");
+  MapBundleAdjustment ba;
+  {
+    std::lock_guard<std::mutex> lock(map_mutex_);
+    if (!BuildGlobalBundleAdjustment(map_, context_, tracker_.first_keyframe, &ba)) return;
+  }
+  const BundleAdjustmentResult result =
+      SolveGlobalBundleAdjustment(ba, context_, [this] { return abandon_background_.load(); });
+  if (!result.success || abandon_background_) return;
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  if (loops_.closures.size() != loops) return;  // a newer loop moved the map: this solution is stale
+  ApplyGlobalBundleAdjustment(map_, context_, ba, result);
+  map_corrected_ = true;
+  ++map_epoch_;
+}
+
+void SlamSession::ForceLost() {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  tracker_.force_lost = true;
+}
+
+void SlamSession::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
+  FLATSLAM_CHECK(context_.options.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  FLATSLAM_CHECK(tracker_.state == TrackingState::kNotInitialized && map_.keyframes().empty(),
+                 "a map can only be adopted before the first frame");
+  FLATSLAM_CHECK(!map.keyframes().empty(), "the map to continue has no keyframes");
+  map_ = std::move(map);
+  const auto handles = map_.keyframes().handles();
+  const std::vector<KeyFrameHandle> kfs(handles.begin(), handles.end());
+  KeyFrameHandle& first = tracker_.first_keyframe;
+  for (KeyFrameHandle h : kfs) {
+    KeyFrame& kf = map_.keyframe(h);
+    context_.options.vocabulary->Transform(kf.descriptor, &kf.bow, &kf.bow_features);
+    database_.Add(h, kf.bow);
+    // A spanning-tree root anchors the map's frame (bundle adjustment holds it fixed).
+    if (first.is_null() || (kf.parent.is_null() && !map_.keyframe(first).parent.is_null())) first = h;
+  }
+  for (AnchoredFramePose pose : frames) {
+    if (!map_.keyframes().contains(pose.reference)) pose.reference = KeyFrameHandle::null();
+    frame_poses_.push_back(pose);
+  }
+  // Points the continued session still had on probation (made by its last three keyframes) stay
+  // on probation here, so that recent-point culling drops the bad ones as it would have.
+  uint64_t newest = 0;
+  for (const KeyFrame& kf : map_.keyframes().values()) {
+    newest = std::max(newest, kf.id);
+    tracker_.last_keyframe_frame = std::max(tracker_.last_keyframe_frame, kf.frame_index);
+  }
+  for (PointHandle p : map_.points().handles())
+    if (map_.point(p).first_keyframe_id + 3 > newest) mapping_.recent_points.push_back(p);
+  tracker_.segment_keyframes = map_.keyframes().size();
+  tracker_.state = TrackingState::kLost;
+  tracker_.allow_new_segments = false;
+}
+
+void SlamSession::CaptureState(State* out) const {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  out->map.AssignForSnapshot(map_);
+  frame_poses_.TakeView(&out->frames);
+  out->culled = mapping_.culled;
+  out->next_frame = next_frame_;
+}
+
+void SlamSession::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {
+  out->resize(frames.size());
+  for (size_t i = 0; i < frames.size(); ++i) {
+    AnchoredFramePose a = frames[i];
+    Eigen::Isometry3d T_cam_ref = a.T_cam_ref.isometry();
+    if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref))
+      a.T_cam_ref = CompactPose(T_cam_ref);
+    else
+      a.reference = KeyFrameHandle::null();
+    (*out)[i] = a;
+  }
+}
+
+void SlamSession::Warn(const std::string& message) const {
+  if (warning_sink_)
+    warning_sink_(message);
+  else
+    std::fprintf(stderr, "warning: %s\n", message.c_str());
+}
+
+Trajectory SlamSession::FrameTrajectory() const {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  Trajectory out;
+  out.reserve(frame_poses_.size());
+  for (size_t i = 0; i < frame_poses_.size(); ++i) {
+    const AnchoredFramePose& f = frame_poses_[i];
+    TimedPose p;
+    p.t_ns = f.t_ns;
+    p.T_world_cam = ResolveFramePose(map_, mapping_.culled, f).inverse();
+    out.push_back(p);
+  }
+  return out;
+}
+
+Trajectory SlamSession::KeyFrameTrajectory() const {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  std::vector<const KeyFrame*> kfs;
+  for (const KeyFrame& kf : map_.keyframes().values()) kfs.push_back(&kf);
+  std::sort(kfs.begin(), kfs.end(), [](const KeyFrame* a, const KeyFrame* b) { return a->t_ns < b->t_ns; });
+  Trajectory out;
+  for (const KeyFrame* kf : kfs) out.push_back({kf->t_ns, kf->T_cam_world.inverse()});
+  return out;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,145 @@
+// A SLAM session: one map and the systems over it, for monocular, stereo and RGB-D input.
+// Feature extraction (frontend) runs on many frames at once; tracking (tracking/tracker.h) reads
+// the map frame by frame; local mapping (mapping/local_mapping.h) writes what tracking found and
+// refines the map per keyframe; loop closing (place/loop_closing.h) indexes keyframes, corrects
+// loops and hands global bundle adjustment to background work. Nothing is static: several
+// sessions live side by side in one process.
+// Concurrency: Extract() is const and runs on many frames at once; Track() is called from one
+// serial node (frames in order); MapKeyFrame() from one mapping node; background work from the
+// owner's background lane (SetBackground). Each step states the map access it needs: the map
+// lock is held exclusively by steps that write the map and by tracking (which must see a map no
+// writer changes mid-frame); the triangulation search and the bundle adjustment solves run on
+// copies without it, so tracking goes on meanwhile.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <mutex>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "config/context.h"
+#include "config/options.h"
+#include "core/object_pool.h"
+#include "ecs/chunk_log.h"
+#include "ecs/map.h"
+#include "frontend/frame.h"
+#include "frontend/orb_extractor.h"
+#include "io/types.h"
+#include "mapping/local_mapping.h"
+#include "place/keyframe_database.h"
+#include "place/loop_closing.h"
+#include "tracking/tracker.h"
+
+namespace flatslam {
+
+class SlamSession {
+ public:
+  // Throws flatslam::Error on invalid options or calibration.
+  SlamSession(const Calibration& calibration, const SlamOptions& options);
+
+  // Extracts features (left and right in parallel) and stereo/RGB-D depth into *out.
+  void Extract(const Frame& frame, TrackedFrame* out) const;
+  // Tracks the frame. When it becomes a keyframe, *new_keyframe is set: pass it to MapKeyFrame().
+  FrameReport Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe);
+  // Local mapping for one keyframe: point upkeep, triangulation, fusion, local BA, culling.
+  void MapKeyFrame(KeyFrameHandle keyframe);
+
+  // Estimated camera poses of all tracked frames (T_world_cam), refined by mapping through
+  // their reference keyframes. Call when no stage is running.
+  [[nodiscard]] Trajectory FrameTrajectory() const;
+  [[nodiscard]] Trajectory KeyFrameTrajectory() const;
+  // Direct map access when no stage is running.
+  [[nodiscard]] const Map& map() const { return map_; }
+  [[nodiscard]] int pending_keyframes() const { return pending_keyframes_; }
+  // Tracking wanted a keyframe on the last frame but local mapping was busy; local BA stops early
+  // while it is set, and a batch run waits for mapping instead of tracking on.
+  [[nodiscard]] bool keyframe_wanted() const { return keyframe_wanted_; }
+  // Loop closures so far (call when no stage is running).
+  [[nodiscard]] const std::vector<LoopClosure>& loop_closures() const { return loops_.closures; }
+  [[nodiscard]] size_t database_size() const { return database_.size(); }
+  // Local mapping's time per stage (call when no stage is running).
+  [[nodiscard]] const MappingTimes& mapping_times() const { return mapping_.times; }
+  // Where background work (global bundle adjustment after a loop) runs: `start` is handed each
+  // task and must run it off the calling (mapping) thread, waiting first for the task it was
+  // handed before; its owner (src/jobs) waits for the last one before the session ends. Unset:
+  // tasks run inline, on the mapping thread. Set before the first frame.
+  void SetBackground(std::function<void(std::function<void()>)> start) { background_ = std::move(start); }
+  // Ends background work at once (an interrupted session): a running global bundle adjustment
+  // stops at its next iteration and its result is dropped; none starts afterwards. The caller
+  // then waits for the running task where it runs.
+  void AbandonBackground() { abandon_background_ = true; }
+  // Receives one line when background work fails and the session goes on without it (global
+  // bundle adjustment, loop closing). Called on the failing thread; set before the first frame.
+  // Unset: the line goes to stderr.
+  void SetWarningSink(std::function<void(const std::string&)> sink) { warning_sink_ = std::move(sink); }
+  // Forces tracking lost from the next frame on (tests and the --lose-at option).
+  void ForceLost();
+  // Continues a saved map (call before the first frame): its keyframes are indexed for place
+  // recognition and tracking starts by relocalizing in it. Needs a vocabulary. A session on an
+  // adopted map never starts a new map segment: it stays lost until it relocalizes. `frames` is the
+  // trajectory of the session being continued (references are keyframes of `map`, or null):
+  // FrameTrajectory() starts with them, and later corrections of the map move them too.
+  void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {});
+  // The session between two frames, for a checkpoint: a copy of the map (Map::AssignForSnapshot:
+  // no bags of words), a view of every tracked frame's pose as recorded, the culled keyframes
+  // those records may still name, and the frame after the last one tracked. Any thread; holds the
+  // map lock while copying (Track and mapping wait meanwhile). Pass the same State each time: the
+  // copy then moves little more than what changed since the last. The frame view reads the
+  // session's own records: use a State only while its session lives.
+  struct State {
+    Map map;
+    ChunkLog<AnchoredFramePose>::View frames;
+    CulledKeyFrames culled;
+    size_t next_frame = 0;  // input index after the last frame given to Track
+    // Every frame anchored at a keyframe of `map` (culled references followed to live ones; none
+    // where no live keyframe is left), for a snapshot's session.
+    void AnchoredToMap(std::vector<AnchoredFramePose>* out) const;
+  };
+  void CaptureState(State* out) const;
+
+ private:
+  static_assert(sizeof(AnchoredFramePose) == 72);
+
+  // Writes what tracking asked for (sightings, keyframes) into the map (mapping system).
+  InsertedTwoView ApplyTrackResult(TrackedFrame& frame, TrackResult& result);
+  // The place node for one keyframe: bag of words into the index, loop detection and correction.
+  void DetectAndCloseLoop(KeyFrameHandle keyframe);
+  // Global bundle adjustment after the loops-th loop closure; dropped if another loop came meanwhile.
+  void GlobalBundleAdjustment(size_t loops);
+  void Warn(const std::string& message) const;
+
+  OrbExtractor extractor_;
+  mutable ObjectPool<ImagePyramid> pyramids_;  // Extract's work pyramids, reused across frames
+  const SystemContext context_;
+
+  // The map lock: held by Track for a whole frame and by each mapping, place and global-BA step
+  // that reads or writes the map; it guards every member below it unless said otherwise.
+  mutable std::mutex map_mutex_;
+  Map map_;
+  TrackerState tracker_;
+  LocalMappingState mapping_;  // local mapping's buffers are touched outside the lock by mapping only
+  KeyFrameDatabase database_;
+  LoopClosingState loops_;
+  size_t next_frame_ = 0;  // input index after the last frame tracked
+  // One per tracked frame, for the trajectory. Fixed chunks that never move: no doubling's unused
+  // half in a long session, and a checkpoint reads them through a view without copying.
+  ChunkLog<AnchoredFramePose> frame_poses_;
+  bool map_corrected_ = false;  // a loop correction moved keyframes: refresh the last frame's pose
+  // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
+  // from an older epoch (local BA, new points) is dropped instead of written back.
+  uint64_t map_epoch_ = 0;
+
+  // Between tracking and mapping, without the lock.
+  std::atomic<int> pending_keyframes_{0};
+  std::atomic<bool> keyframe_wanted_{false};
+  std::function<void(std::function<void()>)> background_;
+  std::atomic<bool> global_ba_running_{false};
+  std::atomic<bool> abandon_background_{false};
+  std::function<void(const std::string&)> warning_sink_;
+};
+
+}  // namespace flatslam

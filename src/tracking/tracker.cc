@@ -1,0 +1,488 @@
+#include "tracking/tracker.h"
+
+#include <algorithm>
+#include <cmath>
+#include <unordered_map>
+#include <unordered_set>
+
+#include <opencv2/calib3d.hpp>
+
+#include "geometry/geometry.h"
+#include "matching/matcher.h"
+#include "optimization/pose_optimizer.h"
+#include "place/vocabulary.h"
+
+namespace flatslam {
+namespace {
+
+// Keypoints of the frame matched to a map point.
+int MatchedCount(const TrackedFrame& frame) {
+  return static_cast<int>(
+      std::count_if(frame.points.begin(), frame.points.end(), [](PointHandle p) { return !p.is_null(); }));
+}
+
+// One frame's tracking: the map, the tracker's memory and what it asks of mapping.
+struct Tracking {
+  const Map& map;
+  const KeyFrameDatabase& database;
+  const SystemContext& context;
+  const SlamOptions& options;
+  TrackerState& s;
+  TrackResult& result;
+
+  bool monocular() const { return context.monocular(); }
+
+  // Stereo/RGB-D: the frame starts a map segment when enough keypoints have depth.
+  bool PlanInitialize(TrackedFrame& frame) {
+    if (std::count_if(frame.keypoints.depth.begin(), frame.keypoints.depth.end(), [](float d) { return d > 0; }) <
+        options.min_init_points)
+      return false;
+    if (s.first_keyframe.is_null()) frame.T_cam_world = Eigen::Isometry3d::Identity();
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    s.segment_keyframes = 0;
+    result.insert = TrackResult::Insert::kFirstKeyFrame;
+    return true;
+  }
+
+  bool PlanMonocularInitialize(TrackedFrame& frame) {
+    if (!s.init_frame || static_cast<int>(frame.size()) <= options.min_init_matches) {
+      if (static_cast<int>(frame.size()) > options.min_init_matches) s.init_frame = frame;
+      return false;
+    }
+    const auto pairs = MatchForInitialization(*s.init_frame, frame, 100.0f, options.matcher);
+    if (static_cast<int>(pairs.size()) < options.min_init_matches) {
+      s.init_frame = frame;  // too little overlap left: start again from this frame
+      return false;
+    }
+    std::vector<Eigen::Vector2d> px1, px2;
+    for (const auto& [i1, i2] : pairs) {
+      px1.push_back(s.init_frame->keypoints.uv[i1].cast<double>());
+      px2.push_back(frame.keypoints.uv[i2].cast<double>());
+    }
+    const std::optional<TwoViewResult> two_view =
+        InitializeTwoView(px1, px2, context.geometry.camera, TwoViewOptions{}, s.rng);
+    if (!two_view) return false;
+
+    // Two keyframes: the first frame at the origin (or the last pose of a previous segment), the
+    // current one at the recovered motion; points are in first-frame coordinates.
+    const Eigen::Isometry3d T_first_world =
+        s.first_keyframe.is_null() ? Eigen::Isometry3d::Identity() : s.init_frame->T_cam_world;
+    TwoViewMap& plan = result.two_view.emplace();
+    plan.first = std::move(*s.init_frame);
+    plan.first.T_cam_world = T_first_world;
+    std::fill(plan.first.points.begin(), plan.first.points.end(), PointHandle::null());
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    frame.T_cam_world = two_view->T_2_1 * T_first_world;
+    s.segment_keyframes = 0;
+    const Eigen::Isometry3d T_world_first = T_first_world.inverse();
+    int created = 0;
+    plan.pairs = pairs;
+    plan.X_world.resize(pairs.size());
+    plan.triangulated.assign(pairs.size(), 0);
+    for (size_t k = 0; k < pairs.size(); ++k) {
+      if (!two_view->triangulated[k]) continue;
+      plan.X_world[k] = T_world_first * two_view->points[k];
+      plan.triangulated[k] = 1;
+      ++created;
+    }
+    result.insert = TrackResult::Insert::kTwoView;
+    s.velocity.reset();
+    s.init_frame.reset();
+    return created >= options.min_init_matches / 2;
+  }
+
+  bool TrackWithMotion(TrackedFrame& frame) {
+    if (!s.velocity || !s.last_frame) return false;
+    frame.T_cam_world = *s.velocity * s.last_frame->T_cam_world;
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    const float radius = options.motion_search_radius;
+    int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
+    if (matches < 20) {
+      std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+      matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, 2 * radius, options.matcher);
+    }
+    if (matches < 20) return false;
+    // A pose carried by a sliver of the last frame's matches is more likely wrong than right:
+    // the reference keyframe search (wider, without the motion prior) gets a say.
+    const int inliers = OptimizeFramePose(map, context, frame);
+    return inliers >= options.min_motion_inliers && inliers * 8 >= s.last_inliers;
+  }
+
+  bool TrackReferenceKeyFrame(TrackedFrame& frame) {
+    if (!s.last_frame) return false;
+    const KeyFrame* reference = map.keyframes().try_get(s.reference_keyframe);
+    if (!reference) return false;
+    // Without a motion prior, search wide around the last pose.
+    frame.T_cam_world = s.last_frame->T_cam_world;
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    const float radius = 4 * options.motion_search_radius;
+    int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
+    matches += MatchByProjection(frame, *reference, map, context.geometry, radius, options.matcher);
+    if (matches < 15) return false;
+    return OptimizeFramePose(map, context, frame) >= options.min_motion_inliers;
+  }
+
+  bool TrackLocalMap(TrackedFrame& frame, int* matches) {
+    // Local keyframes: those sharing points with the frame, plus their best neighbours.
+    std::unordered_map<KeyFrameHandle, int> votes;
+    for (PointHandle p : frame.points) {
+      const MapPoint* point = map.points().try_get(p);
+      if (!point) continue;
+      for (const Observation& o : point->observations) ++votes[o.keyframe];
+    }
+    if (votes.empty()) return false;
+    std::vector<std::pair<KeyFrameHandle, int>> ranked(votes.begin(), votes.end());
+    std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
+      return a.second != b.second ? a.second > b.second : a.first < b.first;
+    });
+    std::vector<KeyFrameHandle>& local = s.local_keyframes;
+    local.clear();
+    std::unordered_set<KeyFrameHandle> in_set;
+    for (const auto& [kf, count] : ranked) {
+      if (local.size() >= options.max_local_map_keyframes) break;
+      if (in_set.insert(kf).second) local.push_back(kf);
+    }
+    s.reference_keyframe = ranked.front().first;
+    const size_t direct = local.size();
+    for (size_t i = 0; i < direct && local.size() < options.max_local_map_keyframes; ++i) {
+      for (KeyFrameHandle n : map.BestCovisible(local[i], 10)) {
+        if (in_set.insert(n).second) local.push_back(n);
+        if (local.size() >= options.max_local_map_keyframes) break;
+      }
+    }
+    s.local_points.clear();
+    std::unordered_set<PointHandle> seen_points;
+    for (KeyFrameHandle kf : local) {
+      for (PointHandle p : map.keyframe(kf).points)
+        if (!p.is_null() && seen_points.insert(p).second) s.local_points.push_back(p);
+    }
+    std::vector<PointHandle> visible;
+    MatchLocalPoints(frame, map, s.local_points, context.geometry, 1.0f, options.matcher, &visible);
+    if (!options.localization_only) result.visible.insert(result.visible.end(), visible.begin(), visible.end());
+    *matches = MatchedCount(frame);
+    int inliers = OptimizeFramePose(map, context, frame);
+    // Far fewer inliers than the last frame had: the predicted pose was off (a sudden turn) and the
+    // narrow search missed most points. Search again, three times as wide, from the refined pose,
+    // before accepting a weak pose (or making a keyframe of it).
+    if (inliers >= 3 && inliers < s.last_inliers / 2) {
+      const Eigen::Isometry3d refined = frame.T_cam_world;
+      const std::vector<PointHandle> kept = frame.points;
+      MatchLocalPoints(frame, map, s.local_points, context.geometry, 3.0f, options.matcher, nullptr);
+      const int retried = OptimizeFramePose(map, context, frame);
+      if (retried > inliers) {
+        inliers = retried;
+        *matches = MatchedCount(frame);
+      } else {
+        frame.T_cam_world = refined;
+        frame.points = kept;
+      }
+    }
+    if (!options.localization_only)
+      for (PointHandle p : frame.points)
+        if (!p.is_null()) result.found.push_back(p);
+    s.last_inliers = inliers;
+    return inliers >= options.min_local_map_inliers;
+  }
+
+  // An older keyframe (not one of the last 20 made) already views the scene from nearby.
+  bool ViewedBefore(const TrackedFrame& frame) const {
+    if (options.revisit_radius <= 0 || s.local_keyframes.empty()) return false;
+    thread_local std::vector<double> depths;
+    depths.clear();
+    for (PointHandle p : frame.points)
+      if (const MapPoint* point = map.points().try_get(p)) depths.push_back((frame.T_cam_world * point->position).z());
+    if (depths.size() < 20) return false;
+    std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+    const double radius = options.revisit_radius * depths[depths.size() / 2];
+    uint64_t newest = 0;
+    for (KeyFrameHandle h : s.local_keyframes)
+      if (const KeyFrame* kf = map.keyframes().try_get(h)) newest = std::max(newest, kf->id);
+    const Eigen::Isometry3d T_world_cam = frame.T_cam_world.inverse();
+    const Eigen::Vector3d axis = T_world_cam.linear().col(2);
+    constexpr uint64_t kRecent = 20;
+    const double min_cos = std::cos(20.0 * M_PI / 180.0);
+    for (KeyFrameHandle h : s.local_keyframes) {
+      const KeyFrame* kf = map.keyframes().try_get(h);
+      if (!kf || kf->id + kRecent > newest) continue;
+      const Eigen::Isometry3d T_world_kf = kf->T_cam_world.inverse();
+      if ((T_world_kf.translation() - T_world_cam.translation()).norm() < radius &&
+          T_world_kf.linear().col(2).dot(axis) > min_cos)
+        return true;
+    }
+    return false;
+  }
+
+  bool NeedKeyFrame(const TrackedFrame& frame, int inliers, int pending_keyframes) {
+    const KeyFrame* reference = map.keyframes().try_get(s.reference_keyframe);
+    if (!reference) return true;
+    // A young segment's points cannot have 3 observers yet: counting only those would leave the
+    // reference empty and no frame would ever look thin (a new monocular segment in a map of
+    // older ones never made a keyframe).
+    const int min_observations = s.segment_keyframes <= 2 ? 2 : 3;
+    int reference_points = 0;
+    for (PointHandle p : reference->points) {
+      const MapPoint* point = map.points().try_get(p);
+      if (point && static_cast<int>(point->observations.size()) >= min_observations) ++reference_points;
+    }
+    const double close = context.CloseDepth();
+    int tracked_close = 0, untracked_close = 0;
+    for (size_t i = 0; i < frame.size(); ++i) {
+      const float d = frame.keypoints.depth[i];
+      if (d <= 0 || d >= close) continue;
+      if (frame.points[i].is_null())
+        ++untracked_close;
+      else
+        ++tracked_close;
+    }
+    const bool need_close = tracked_close < 100 && untracked_close > 70;
+    const size_t since = frame.index - s.last_keyframe_frame;
+    const bool idle = pending_keyframes == 0 && since >= static_cast<size_t>(options.min_frames_between_keyframes);
+    const bool timeout = since >= static_cast<size_t>(options.max_frames_between_keyframes);
+    const bool weak = !monocular() && (inliers < 0.25 * reference_points || need_close);
+    const double ratio = monocular() ? 0.9 : 0.75;
+    const bool thin = (inliers < ratio * reference_points || need_close) && inliers > 15;
+    // Busy mapping with tracking fading (a monocular frame keeping under half the reference
+    // keyframe's points): ask local mapping to finish early.
+    const bool fading = monocular() && (inliers < 0.5 * reference_points || inliers < 100);
+    const bool wanted = thin && !idle && (timeout || weak || fading);
+    const bool make = (timeout || idle || weak) && thin;
+    // A revisit with healthy tracking makes no keyframe (the geometric test only runs when one
+    // would otherwise be made or asked for).
+    if ((wanted || make) && inliers >= 0.5 * reference_points && tracked_close >= 50 && ViewedBefore(frame)) {
+      result.keyframe_wanted = false;
+      return false;
+    }
+    result.keyframe_wanted = wanted;
+    if (!make) return false;
+    return idle || pending_keyframes < 3;
+  }
+};
+
+}  // namespace
+
+const char* TrackingStateName(TrackingState state) {
+  switch (state) {
+    case TrackingState::kNotInitialized:
+      return "not_initialized";
+    case TrackingState::kOk:
+      return "ok";
+    case TrackingState::kLost:
+      return "lost";
+  }
+  return "unknown";
+}
+
+int OptimizeFramePose(const Map& map, const SystemContext& context, TrackedFrame& frame) {
+  const CameraGeometry& geometry = context.geometry;
+  std::vector<PoseObservation> observations;
+  std::vector<uint32_t> index;
+  const double far_depth = context.stereo_depth.FarDepth(frame.keypoints.depth);
+  for (uint32_t i = 0; i < frame.size(); ++i) {
+    const PointHandle p = frame.points[i];
+    if (p.is_null()) continue;
+    const MapPoint* point = map.points().try_get(p);
+    if (!point) {
+      frame.points[i] = PointHandle::null();
+      continue;
+    }
+    PoseObservation o;
+    o.X_world = point->position;
+    o.uv = frame.keypoints.uv[i].cast<double>();
+    o.right_u = StereoDepthRule::RightU(frame.keypoints.right_u[i], frame.keypoints.depth[i], far_depth);
+    o.inv_sigma2 = geometry.pyramid.inv_sigma2[frame.keypoints.octave[i]];
+    observations.push_back(o);
+    index.push_back(i);
+  }
+  if (observations.size() < 3) return 0;
+  const double baseline = geometry.bf / geometry.camera.fx;
+  const PoseOptimizationResult result =
+      OptimizePose(geometry.camera, baseline, frame.T_cam_world, observations, context.options.pose);
+  if (!result.success) return 0;
+  frame.T_cam_world = result.T_cam_world;
+  std::fill(frame.outlier.begin(), frame.outlier.end(), 0);
+  for (size_t k = 0; k < index.size(); ++k)
+    if (!result.inlier[k]) frame.points[index[k]] = PointHandle::null();  // outliers leave the frame
+  return result.num_inliers;
+}
+
+std::optional<KeyFrameHandle> Relocalize(const Map& map, const KeyFrameDatabase& database, const SystemContext& context,
+                                         TrackedFrame& frame) {
+  const SlamOptions& options = context.options;
+  if (!options.vocabulary || database.size() == 0) return std::nullopt;
+  if (frame.bow.empty()) options.vocabulary->Transform(frame.keypoints.descriptor, &frame.bow, &frame.bow_features);
+  std::vector<PlaceCandidate> candidates = database.DetectRelocalizationCandidates(map, frame.bow);
+  if (candidates.size() > 20) candidates.resize(20);
+  const PinholeCamera& cam = context.geometry.camera;
+  const cv::Matx33d K(cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
+  for (const PlaceCandidate& c : candidates) {
+    const KeyFrame* kf = map.keyframes().try_get(c.keyframe);
+    if (!kf) continue;
+    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    if (MatchByBow(frame, *kf, map, options.matcher, 0.75f) < 15) continue;
+    std::vector<cv::Point3d> object;
+    std::vector<cv::Point2d> image;
+    std::vector<uint32_t> index;
+    for (uint32_t i = 0; i < frame.size(); ++i) {
+      const MapPoint* point = map.points().try_get(frame.points[i]);
+      if (!point) continue;
+      object.emplace_back(point->position.x(), point->position.y(), point->position.z());
+      image.emplace_back(frame.keypoints.uv[i].x(), frame.keypoints.uv[i].y());
+      index.push_back(i);
+    }
+    cv::Mat rvec, tvec;
+    std::vector<int> inliers;
+    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 6.0f, 0.99, inliers,
+                                           cv::SOLVEPNP_EPNP);
+    if (!solved || inliers.size() < 10) continue;
+    std::vector<char> keep(index.size(), 0);
+    for (int k : inliers) keep[k] = 1;
+    for (size_t k = 0; k < index.size(); ++k)
+      if (!keep[k]) frame.points[index[k]] = PointHandle::null();
+    cv::Mat R;
+    cv::Rodrigues(rvec, R);
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    for (int r = 0; r < 3; ++r) {
+      for (int col = 0; col < 3; ++col) T.linear()(r, col) = R.at<double>(r, col);
+      T.translation()(r) = tvec.at<double>(r);
+    }
+    frame.T_cam_world = T;
+    int good = OptimizeFramePose(map, context, frame);
+    if (good < 10) continue;
+    if (good < 50) {
+      MatchByProjection(frame, *kf, map, context.geometry, 10.0f, options.matcher);
+      good = OptimizeFramePose(map, context, frame);
+    }
+    if (good < 50) continue;
+    return c.keyframe;
+  }
+  std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+  return std::nullopt;
+}
+
+TrackResult TrackFrame(const Map& map, const KeyFrameDatabase& database, const SystemContext& context, TrackerState& s,
+                       TrackedFrame& frame, int pending_keyframes) {
+  TrackResult result;
+  FrameReport& report = result.report;
+  report.index = frame.index;
+  report.t_ns = frame.t_ns;
+  report.features = static_cast<int>(frame.size());
+  for (float d : frame.keypoints.depth) report.stereo_points += d > 0 ? 1 : 0;
+  const SlamOptions& options = context.options;
+  Tracking t{map, database, context, options, s, result};
+  const bool monocular = context.monocular();
+
+  bool ok = false;
+  int matches = 0;
+  if (s.state == TrackingState::kNotInitialized) {
+    ok = monocular ? t.PlanMonocularInitialize(frame) : t.PlanInitialize(frame);
+    result.map_keyframe = ok;
+  } else {
+    bool relocalizing = s.state == TrackingState::kLost;
+    if (s.force_lost) {
+      s.force_lost = false;
+      relocalizing = true;
+      s.velocity.reset();
+    }
+    if (!relocalizing) ok = t.TrackWithMotion(frame) || t.TrackReferenceKeyFrame(frame);
+    if (!ok && options.vocabulary) {
+      const std::optional<KeyFrameHandle> found = Relocalize(map, database, context, frame);
+      if (found) s.reference_keyframe = *found;
+      ok = found.has_value();
+      report.relocalized = ok;
+    }
+    if (ok) ok = t.TrackLocalMap(frame, &matches);
+    if (!ok) report.relocalized = false;
+    if (!ok && ((options.vocabulary && ++s.lost_frames <= options.relocalization_frames) || !s.allow_new_segments ||
+                (!monocular && !s.last_frame))) {
+      // Lost: relocalize in the same map on the coming frames before starting anew.
+      s.state = TrackingState::kLost;
+    } else if (!ok && monocular) {
+      // Lost without depth: a new two-view initialization starts a new map segment.
+      report.reinitialized = true;
+      s.lost_frames = 0;
+      s.state = TrackingState::kNotInitialized;
+      s.velocity.reset();
+      s.init_frame.reset();
+      s.last_frame.reset();
+    } else if (!ok) {
+      // Lost: start a new map segment at the predicted pose so the trajectory continues.
+      report.reinitialized = true;
+      s.lost_frames = 0;
+      s.state = TrackingState::kOk;
+      frame.T_cam_world = s.velocity ? (*s.velocity * s.last_frame->T_cam_world) : s.last_frame->T_cam_world;
+      std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+      const Eigen::Isometry3d T = frame.T_cam_world;
+      if (t.PlanInitialize(frame)) {
+        frame.T_cam_world = T;
+        result.map_keyframe = true;
+      }
+      s.velocity.reset();
+    } else {
+      s.lost_frames = 0;
+      if (report.relocalized) s.velocity.reset();
+      const int inliers = MatchedCount(frame);
+      report.inliers = inliers;
+      if (!options.localization_only && t.NeedKeyFrame(frame, inliers, pending_keyframes)) {
+        result.insert = TrackResult::Insert::kKeyFrame;
+        result.map_keyframe = true;
+      }
+    }
+  }
+  report.matches = matches;
+  result.ok = ok;
+  return result;
+}
+
+std::optional<AnchoredFramePose> FinishFrame(const Map& map, TrackerState& s, TrackedFrame&& frame, TrackResult& result,
+                                             const InsertedTwoView& inserted,
+                                             std::optional<KeyFrameHandle>* new_keyframe) {
+  new_keyframe->reset();
+  FrameReport& report = result.report;
+  // The keyframes mapping made become tracking's reference.
+  switch (result.insert) {
+    case TrackResult::Insert::kNone:
+      break;
+    case TrackResult::Insert::kKeyFrame:
+    case TrackResult::Insert::kFirstKeyFrame:
+      s.reference_keyframe = inserted.first;
+      s.last_keyframe_frame = frame.index;
+      ++s.segment_keyframes;
+      if (result.insert == TrackResult::Insert::kFirstKeyFrame) {
+        if (s.first_keyframe.is_null()) s.first_keyframe = inserted.first;
+        s.local_keyframes = {inserted.first};
+      }
+      break;
+    case TrackResult::Insert::kTwoView:
+      s.reference_keyframe = inserted.second;
+      s.last_keyframe_frame = frame.index;
+      s.segment_keyframes += 2;
+      if (s.first_keyframe.is_null()) s.first_keyframe = inserted.first;
+      s.local_keyframes = {inserted.first, inserted.second};
+      break;
+  }
+  if (result.map_keyframe) *new_keyframe = s.reference_keyframe;
+
+  const bool ok = result.ok;
+  if (s.state == TrackingState::kLost && !ok) {
+    report.state = TrackingState::kLost;
+  } else if (s.state == TrackingState::kNotInitialized && !ok) {
+    report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kNotInitialized;
+  } else {
+    report.state = report.reinitialized ? TrackingState::kLost : TrackingState::kOk;
+    s.state = TrackingState::kOk;
+    if (s.last_frame && !report.reinitialized && !report.relocalized)
+      s.velocity = frame.T_cam_world * s.last_frame->T_cam_world.inverse();
+    AnchoredFramePose pose;
+    pose.t_ns = frame.t_ns;
+    pose.reference = s.reference_keyframe;
+    pose.T_cam_world = CompactPose(frame.T_cam_world);
+    pose.T_cam_ref = CompactPose(frame.T_cam_world * map.keyframe(s.reference_keyframe).T_cam_world.inverse());
+    report.T_world_cam = frame.T_cam_world.inverse();
+    frame.has_pose = true;
+    s.last_frame = std::move(frame);
+    return pose;
+  }
+  return std::nullopt;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,136 @@
+// Local mapping's steps on small hand-built maps: sightings, keyframe insertion with depth
+// points, keyframe culling.
+#include "mapping/local_mapping.h"
+
+#include <algorithm>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "frontend/orb_extractor.h"
+
+namespace flatslam {
+namespace {
+
+SystemContext MakeContext(Sensor sensor) {
+  Calibration calibration;
+  calibration.sensor = sensor;
+  calibration.camera = {500, 500, 320, 240, 640, 480};
+  calibration.frame_rate_hz = 20;
+  SlamOptions options;
+  options.orb.features = 1000;
+  const SlamOptions resolved = ResolvedOptions(options, calibration);
+  return SystemContext(calibration, resolved, OrbExtractor(resolved.orb).scales());
+}
+
+// A keyframe of n keypoints on a grid, at the origin.
+KeyFrame GridKeyFrame(size_t n) {
+  KeyFrame kf;
+  for (size_t i = 0; i < n; ++i) {
+    kf.uv.emplace_back(20.0f + 20.0f * (i % 30), 20.0f + 20.0f * (i / 30));
+    kf.right_u.push_back(-1);
+    kf.depth.push_back(-1);
+    kf.angle.push_back(0);
+    kf.octave.push_back(0);
+    kf.descriptor.push_back(Descriptor{i, 0, 0, 0});
+  }
+  kf.points.assign(n, PointHandle::null());
+  return kf;
+}
+
+TEST(LocalMapping, SightingsCountOncePerFrameAndSkipErasedPoints) {
+  Map map;
+  const KeyFrameHandle kf = map.AddKeyFrame(GridKeyFrame(2));
+  const PointHandle a = map.AddPoint({0, 0, 1}, kf), b = map.AddPoint({0, 0, 2}, kf);
+  map.ErasePoint(b);
+  const PointHandle seen[] = {a, b};
+  ApplySightings(map, seen, std::span<const PointHandle>(seen, 1));
+  EXPECT_EQ(map.point(a).visible, 2u);
+  EXPECT_EQ(map.point(a).found, 2u);
+}
+
+TEST(LocalMapping, AKeyFrameGetsItsCloseDepthPointsAndAtLeastTheHundredNearest) {
+  const SystemContext context = MakeContext(Sensor::kRgbd);
+  const double close = context.CloseDepth();  // 35 x the 8 cm virtual baseline: 2.8 m
+  ASSERT_NEAR(close, 2.8, 1e-9);
+  TrackedFrame frame;
+  frame.keypoints.resize(200);
+  for (size_t i = 0; i < 200; ++i) {
+    frame.keypoints.uv[i] = Eigen::Vector2f(10.0f + 3.0f * i, 240.0f);
+    frame.keypoints.depth[i] = 0.5f + 0.05f * static_cast<float>(i);  // 0.5 m .. 10.45 m; 46 nearer than 2.8 m
+  }
+  frame.Prepare(640, 480);
+  {
+    Map map;
+    LocalMappingState state;
+    TrackedFrame f = frame;
+    const KeyFrameHandle kf = InsertKeyFrame(map, state, context, f);
+    EXPECT_EQ(map.points().size(), 101u);  // the 46 close ones are fewer than 100: the 101 nearest
+    EXPECT_EQ(state.recent_points.size(), 101u);
+    for (size_t i = 0; i < 200; ++i) EXPECT_EQ(f.points[i].is_null(), i >= 101) << i;
+    // Each point sits at its keypoint's depth along its ray.
+    const MapPoint& p = map.point(f.points[0]);
+    EXPECT_NEAR(p.position.z(), 0.5, 1e-6);
+    EXPECT_EQ(map.keyframe(kf).points[0], f.points[0]);
+  }
+  {
+    Map map;
+    LocalMappingState state;
+    TrackedFrame f = frame;
+    InsertKeyFrame(map, state, context, f, /*all_depth_points=*/true);
+    EXPECT_EQ(map.points().size(), 200u);
+  }
+}
+
+TEST(LocalMapping, CullsKeyFramesWhosePointsOthersSeeAndKeepsTheProtectedOnes) {
+  const SystemContext context = MakeContext(Sensor::kMonocular);
+  Map map;
+  constexpr size_t kPoints = 40, kKeyFrames = 5;
+  std::vector<KeyFrameHandle> kfs;
+  for (size_t k = 0; k < kKeyFrames; ++k) {
+    KeyFrame kf = GridKeyFrame(kPoints);
+    kf.T_cam_world.translation() = Eigen::Vector3d(0.1 * k, 0, 0);
+    kfs.push_back(map.AddKeyFrame(std::move(kf)));
+  }
+  for (size_t i = 0; i < kPoints; ++i) {
+    const PointHandle p = map.AddPoint(Eigen::Vector3d(0.01 * i, 0, 3), kfs[0]);
+    for (KeyFrameHandle kf : kfs) map.AddObservation(p, kf, static_cast<uint32_t>(i));
+  }
+  for (KeyFrameHandle kf : kfs) map.UpdateCovisibility(kf);
+
+  // Every point has 5 observers: keyframes 2, 3, 4 are redundant in turn until the points are
+  // down to 3 observers. Keyframe 1 is protected (tracking's reference).
+  LocalMappingState state;
+  std::vector<KeyFrameHandle> erased;
+  const KeyFrameHandle keep[] = {kfs[1]};
+  CullKeyFrames(map, state, context, kfs[0], keep, [&](KeyFrameHandle h, const KeyFrame&) { erased.push_back(h); });
+  EXPECT_EQ(erased.size(), 2u);
+  EXPECT_TRUE(map.keyframes().contains(kfs[0]));
+  EXPECT_TRUE(map.keyframes().contains(kfs[1]));
+  for (KeyFrameHandle h : erased) {
+    EXPECT_FALSE(map.keyframes().contains(h));
+    EXPECT_NE(h, kfs[1]);
+  }
+  EXPECT_EQ(map.keyframes().size(), kKeyFrames - 2);
+  // What is left keeps every point with at least 3 observers.
+  for (PointHandle p : map.points().handles()) EXPECT_GE(map.point(p).observations.size(), 3u);
+}
+
+TEST(LocalMapping, FramesOfACulledKeyFrameFollowItsParent) {
+  Map map;
+  KeyFrame parent_kf = GridKeyFrame(1), child_kf = GridKeyFrame(1);
+  parent_kf.T_cam_world.translation() = Eigen::Vector3d(1, 0, 0);
+  const KeyFrameHandle parent = map.AddKeyFrame(std::move(parent_kf));
+  const KeyFrameHandle child = map.AddKeyFrame(std::move(child_kf));
+  CulledKeyFrames culled;
+  culled[child] = {parent, Eigen::Isometry3d(Eigen::Translation3d(0, 2, 0))};
+  map.EraseKeyFrame(child);
+  AnchoredFramePose frame;
+  frame.reference = child;
+  frame.T_cam_ref = CompactPose(Eigen::Isometry3d(Eigen::Translation3d(0, 0, 3)));
+  const Eigen::Isometry3d T = ResolveFramePose(map, culled, frame);
+  EXPECT_TRUE(T.translation().isApprox(Eigen::Vector3d(1, 2, 3)));
+}
+
+}  // namespace
+}  // namespace flatslam
