@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <condition_variable>
 #include <fstream>
 #include <memory>
 #include <mutex>
@@ -70,6 +71,10 @@ std::vector<SequenceResult> RunBatch(const std::vector<SequenceSpec>& specs, con
   std::vector<std::unique_ptr<Slot>> slots;
   for (size_t i = 0; i < specs.size(); ++i) slots.push_back(std::make_unique<Slot>());
   std::mutex warning_mutex;
+  // A finishing sequence wakes the coordinator at once; otherwise it samples the resident set
+  // every 50 ms (the peak each running sequence is charged with).
+  std::mutex done_mutex;
+  std::condition_variable done;
   size_t next = 0, running = 0, finished = 0;
   const Clock::time_point start = Clock::now();
   Clock::time_point last_progress = start - std::chrono::hours(1);
@@ -139,7 +144,11 @@ std::vector<SequenceResult> RunBatch(const std::vector<SequenceSpec>& specs, con
           options.on_warning(name, message);
         };
       slot.result = RunSequence(specs[i], run);
-      slot.finished = true;
+      {
+        const std::lock_guard<std::mutex> lock(done_mutex);
+        slot.finished = true;
+      }
+      done.notify_all();
     });
   };
 
@@ -162,7 +171,13 @@ std::vector<SequenceResult> RunBatch(const std::vector<SequenceSpec>& specs, con
         if (options.on_finished) options.on_finished(s.result);
       }
     }
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    {
+      std::unique_lock<std::mutex> lock(done_mutex);
+      done.wait_for(lock, std::chrono::milliseconds(50), [&] {
+        return std::any_of(slots.begin(), slots.end(),
+                           [](const auto& slot) { return slot->state == "running" && slot->finished; });
+      });
+    }
     const double rss = CurrentRssMiB();
     for (auto& slot : slots) {
       Slot& s = *slot;

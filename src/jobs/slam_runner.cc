@@ -11,6 +11,7 @@
 #include "core/error.h"
 #include "jobs/background_worker.h"
 #include "jobs/pipeline.h"
+#include "jobs/system_graph.h"
 
 namespace flatslam {
 namespace {
@@ -44,6 +45,13 @@ struct MappingJob {
 
 SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
   SlamSession slam(dataset.calibration(), options);
+  // The run's steps and the access they declare: refused before the first frame if two that may
+  // run at once conflict without the session's guard between them. Mapping inline (deterministic)
+  // puts the mapping steps on the track lane, which only removes overlaps.
+  SystemGraph steps;
+  for (const SessionStep& s : SlamSession::Steps()) steps.Add({s.name, s.access, s.lane, s.parallel, s.guarded});
+  steps.Add({"read", Access{}, "extract", /*parallel=*/true});  // the dataset's files only
+  steps.Add({"checkpoint.write", Access{}, "checkpoint"});      // the captured copy only
   if (run.on_warning) slam.SetWarningSink(run.on_warning);
   // Global bundle adjustment runs beside the frames on its own thread (declared after slam:
   // destroyed, so waited for, first). Deterministic runs keep it inline, in mapping.
@@ -93,7 +101,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   std::atomic<bool> checkpoint_busy{false};
   // One copy of the session, reused by every checkpoint (one is written at a time). The copy is
   // taken by a job on the mapping queue (or, with mapping inline, by the checkpoint job), not by
-  // the track stage: tracking waits only if it needs the map lock while the copy runs (measured
+  // the track stage: tracking waits only while the copy reads the map (measured
   // in the frames' track_ms).
   SlamSession::State checkpoint_state;
   // Held by the track stage from Track to on_frame, and by a checkpoint's copy: a checkpoint never
@@ -209,7 +217,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
         mapping.post(MappingJob{*keyframe});
     }
     // Frames tracked while a checkpoint was copied or written: their tracking time includes any
-    // wait for the map lock that the copy held.
+    // wait for the map while the copy read it.
     if (checkpoint_busy.load()) {
       result.frame_ms_during_checkpoints.push_back(report.track_ms);
     } else if (checkpointing &&

@@ -1,13 +1,9 @@
 #include "place/vocabulary.h"
 
-#include <fcntl.h>
-#include <sys/mman.h>
-#include <sys/stat.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
 #include <tbb/parallel_sort.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
@@ -25,6 +21,7 @@
 
 #include "core/atomic_write.h"
 #include "core/error.h"
+#include "core/mapped_file.h"
 #include "flatslam/schemas/vocabulary_generated.h"
 
 #ifndef FLATSLAM_DEFAULT_VOCABULARY
@@ -286,8 +283,7 @@ std::string Printable(const uint8_t* p, size_t n) {
 
 struct Vocabulary::Impl {
   std::vector<uint64_t> owned;  // the buffer of a trained or assembled vocabulary (8-byte aligned)
-  void* mapping = nullptr;      // or the mmap'ed file
-  size_t mapping_size = 0;
+  MappedFile file;              // or the mapped file
   const uint8_t* bytes = nullptr;
   size_t size = 0;
 
@@ -297,9 +293,7 @@ struct Vocabulary::Impl {
   Impl() = default;
   Impl(const Impl&) = delete;
   Impl& operator=(const Impl&) = delete;
-  ~Impl() {
-    if (mapping != nullptr) ::munmap(mapping, mapping_size);
-  }
+  ~Impl() = default;
 
   // Serializes the arrays into a flatbuffer held by a new Impl, then verifies it as a loaded file.
   static std::unique_ptr<Impl> Build(uint32_t branching, uint32_t levels, std::span<const Descriptor> descriptors,
@@ -687,26 +681,10 @@ void Vocabulary::Save(const std::filesystem::path& path) const {
 
 Vocabulary Vocabulary::Load(const std::filesystem::path& path) {
   const std::string what = "vocabulary file '" + path.string() + "'";
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  FLATSLAM_CHECK(fd >= 0, what, ": cannot open (", std::strerror(errno), ")");
-  struct stat st {};
-  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {
-    ::close(fd);
-    Fail(what, ": not a regular file");
-  }
   auto impl = std::make_unique<Impl>();
-  impl->size = static_cast<size_t>(st.st_size);
-  if (impl->size < 8) {
-    ::close(fd);
-    Fail(what, ": truncated (", impl->size, " bytes)");
-  }
-  void* map = ::mmap(nullptr, impl->size, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
-  const int map_errno = errno;
-  ::close(fd);
-  FLATSLAM_CHECK(map != MAP_FAILED, what, ": mmap failed (", std::strerror(map_errno), ")");
-  impl->mapping = map;
-  impl->mapping_size = impl->size;
-  impl->bytes = static_cast<const uint8_t*>(map);
+  impl->file = MappedFile::Open(path, what, /*min_size=*/8, /*populate=*/true);
+  impl->bytes = impl->file.bytes().data();
+  impl->size = impl->file.bytes().size();
   impl->Attach(what);
   return Vocabulary(std::move(impl));
 }

@@ -19,6 +19,50 @@ double MsSince(std::chrono::steady_clock::time_point start) {
 
 }  // namespace
 
+// The access each step takes. Local mapping's buffers (the keyframe copies, the BA problem and
+// workspace) belong to the one mapping node and are not a shared component: triangulation and
+// the local BA solve take no access at all, and tracking runs beside them.
+namespace SessionAccess {
+using C = Component;
+constexpr Access kTrack = Access::Of({C::kPlaceIndex}, {C::kMap, C::kTracker, C::kLocalMapping, C::kTrajectory});
+constexpr Access kForceLost = Access::Of({}, {C::kTracker});
+constexpr Access kPrepare = Access::Of({}, {C::kMap, C::kLocalMapping});
+constexpr Access kAddPoints = Access::Of({}, {C::kMap, C::kLocalMapping});
+constexpr Access kBuildLocalBa = Access::Of({C::kMap, C::kTracker}, {});
+constexpr Access kApplyLocalBa = Access::Of({}, {C::kMap});
+constexpr Access kCull = Access::Of({C::kTracker}, {C::kMap, C::kLocalMapping, C::kPlaceIndex});
+constexpr Access kPlace = Access::Of({}, {C::kMap, C::kPlaceIndex, C::kLoops});
+constexpr Access kBuildGlobalBa = Access::Of({C::kMap, C::kTracker}, {});
+constexpr Access kApplyGlobalBa = Access::Of({C::kLoops}, {C::kMap});
+constexpr Access kAdoptMap =
+    Access::Of({}, {C::kMap, C::kTracker, C::kLocalMapping, C::kPlaceIndex, C::kLoops, C::kTrajectory});
+constexpr Access kCapture = Access::Of({C::kMap, C::kLocalMapping, C::kTrajectory}, {});
+constexpr Access kFrameTrajectory = Access::Of({C::kMap, C::kLocalMapping, C::kTrajectory}, {});
+constexpr Access kKeyFrameTrajectory = Access::Of({C::kMap}, {});
+}  // namespace SessionAccess
+
+std::span<const SessionStep> SlamSession::Steps() {
+  using namespace SessionAccess;
+  static constexpr SessionStep kSteps[] = {
+      {"extract", Access{}, "extract", /*parallel=*/true, /*guarded=*/false},
+      {"track", kTrack, "track"},
+      {"force_lost", kForceLost, "track"},
+      {"mapping.prepare", kPrepare, "mapping"},
+      {"mapping.triangulate", Access{}, "mapping", false, false},
+      {"mapping.add_points", kAddPoints, "mapping"},
+      {"mapping.build_local_ba", kBuildLocalBa, "mapping"},
+      {"mapping.solve_local_ba", Access{}, "mapping", false, false},
+      {"mapping.apply_local_ba", kApplyLocalBa, "mapping"},
+      {"mapping.cull", kCull, "mapping"},
+      {"place", kPlace, "mapping"},
+      {"global_ba.build", kBuildGlobalBa, "background"},
+      {"global_ba.solve", Access{}, "background", false, false},
+      {"global_ba.apply", kApplyGlobalBa, "background"},
+      {"checkpoint.capture", kCapture, "checkpoint"},
+  };
+  return kSteps;
+}
+
 SlamSession::SlamSession(const Calibration& calibration, const SlamOptions& options)
     : extractor_(ResolvedOptions(options, calibration).orb),
       context_(calibration, ResolvedOptions(options, calibration), extractor_.scales()),
@@ -60,7 +104,7 @@ void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
 FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe) {
   const auto start = std::chrono::steady_clock::now();
   new_keyframe->reset();
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kTrack);
   next_frame_ = frame.index + 1;
   if (tracker_.state != TrackingState::kNotInitialized && map_corrected_ && tracker_.last_frame &&
       !frame_poses_.empty()) {
@@ -118,7 +162,7 @@ void SlamSession::MapKeyFrame(KeyFrameHandle keyframe) {
     stage_start = now;
   };
   {
-    std::lock_guard<std::mutex> lock(map_mutex_);
+    const auto lease = access_.Acquire(SessionAccess::kPrepare);
     if (!PrepareKeyFrame(map_, mapping_, context_, keyframe, &depth_range)) return;
     frame_index = map_.keyframe(keyframe).frame_index;
     epoch = map_epoch_;
@@ -134,7 +178,7 @@ void SlamSession::MapKeyFrame(KeyFrameHandle keyframe) {
   FeatureVector bow_features = std::move(copy.bow_features);
   lap(&times.triangulate_ms);
   {
-    std::lock_guard<std::mutex> lock(map_mutex_);
+    const auto lease = access_.Acquire(SessionAccess::kAddPoints);
     if (!map_.keyframes().contains(keyframe)) return;
     map_.keyframe(keyframe).bow = std::move(bow);
     map_.keyframe(keyframe).bow_features = std::move(bow_features);
@@ -148,21 +192,21 @@ void SlamSession::MapKeyFrame(KeyFrameHandle keyframe) {
     // neighbourhood.
     bool built = false;
     {
-      std::lock_guard<std::mutex> lock(map_mutex_);
+      const auto lease = access_.Acquire(SessionAccess::kBuildLocalBa);
       epoch = map_epoch_;
       built = BuildLocalBundleAdjustment(map_, mapping_, context_, keyframe, tracker_.first_keyframe);
     }
     if (built) {
       const BundleAdjustmentResult result =
           SolveLocalBundleAdjustment(mapping_, context_, [this] { return pending_keyframes_ > 1 || keyframe_wanted_; });
-      std::lock_guard<std::mutex> lock(map_mutex_);
+      const auto lease = access_.Acquire(SessionAccess::kApplyLocalBa);
       // The map moved meanwhile: this solution is in its old frame.
       if (result.success && epoch == map_epoch_) ApplyLocalBundleAdjustment(map_, mapping_, context_, result);
     }
   }
   lap(&times.local_ba_ms);
   {
-    std::lock_guard<std::mutex> lock(map_mutex_);
+    const auto lease = access_.Acquire(SessionAccess::kCull);
     const KeyFrameHandle keep[] = {tracker_.first_keyframe, tracker_.reference_keyframe};
     CullKeyFrames(map_, mapping_, context_, keyframe, keep,
                   [this](KeyFrameHandle h, const KeyFrame& kf) { database_.Erase(h, kf.bow); });
@@ -184,7 +228,7 @@ void SlamSession::DetectAndCloseLoop(KeyFrameHandle current) {
   if (!context_.options.vocabulary) return;
   size_t loops = 0;
   {
-    std::lock_guard<std::mutex> lock(map_mutex_);
+    const auto lease = access_.Acquire(SessionAccess::kPlace);
     const std::optional<LoopMatch> match =
         DetectLoop(map_, database_, loops_, context_, current, context_.options.loop_closing && !global_ba_running_);
     if (!match) return;
@@ -196,7 +240,7 @@ void SlamSession::DetectAndCloseLoop(KeyFrameHandle current) {
     global_ba_running_ = true;
     loops = loops_.closures.size();
   }
-  // Started after the map lock is released: the adjustment takes it for its own steps (inline,
+  // Started after the place step released its access: the adjustment takes its own (inline,
   // on this thread, when no background lane is set).
   auto task = [this, loops] {
     try {
@@ -222,13 +266,13 @@ void SlamSession::GlobalBundleAdjustment(size_t loops) {
     Fail("injected failure in global bundle adjustment");
   MapBundleAdjustment ba;
   {
-    std::lock_guard<std::mutex> lock(map_mutex_);
+    const auto lease = access_.Acquire(SessionAccess::kBuildGlobalBa);
     if (!BuildGlobalBundleAdjustment(map_, context_, tracker_.first_keyframe, &ba)) return;
   }
   const BundleAdjustmentResult result =
       SolveGlobalBundleAdjustment(ba, context_, [this] { return abandon_background_.load(); });
   if (!result.success || abandon_background_) return;
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kApplyGlobalBa);
   if (loops_.closures.size() != loops) return;  // a newer loop moved the map: this solution is stale
   ApplyGlobalBundleAdjustment(map_, context_, ba, result);
   map_corrected_ = true;
@@ -236,13 +280,13 @@ void SlamSession::GlobalBundleAdjustment(size_t loops) {
 }
 
 void SlamSession::ForceLost() {
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kForceLost);
   tracker_.force_lost = true;
 }
 
 void SlamSession::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
   FLATSLAM_CHECK(context_.options.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kAdoptMap);
   FLATSLAM_CHECK(tracker_.state == TrackingState::kNotInitialized && map_.keyframes().empty(),
                  "a map can only be adopted before the first frame");
   FLATSLAM_CHECK(!map.keyframes().empty(), "the map to continue has no keyframes");
@@ -276,7 +320,7 @@ void SlamSession::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames)
 }
 
 void SlamSession::CaptureState(State* out) const {
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kCapture);
   out->map.AssignForSnapshot(map_);
   frame_poses_.TakeView(&out->frames);
   out->culled = mapping_.culled;
@@ -304,7 +348,7 @@ void SlamSession::Warn(const std::string& message) const {
 }
 
 Trajectory SlamSession::FrameTrajectory() const {
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kFrameTrajectory);
   Trajectory out;
   out.reserve(frame_poses_.size());
   for (size_t i = 0; i < frame_poses_.size(); ++i) {
@@ -318,7 +362,7 @@ Trajectory SlamSession::FrameTrajectory() const {
 }
 
 Trajectory SlamSession::KeyFrameTrajectory() const {
-  std::lock_guard<std::mutex> lock(map_mutex_);
+  const auto lease = access_.Acquire(SessionAccess::kKeyFrameTrajectory);
   std::vector<const KeyFrame*> kfs;
   for (const KeyFrame& kf : map_.keyframes().values()) kfs.push_back(&kf);
   std::sort(kfs.begin(), kfs.end(), [](const KeyFrame* a, const KeyFrame* b) { return a->t_ns < b->t_ns; });

@@ -5,17 +5,16 @@
 // loops and hands global bundle adjustment to background work. Nothing is static: several
 // sessions live side by side in one process.
 // Concurrency: Extract() is const and runs on many frames at once; Track() is called from one
-// serial node (frames in order); MapKeyFrame() from one mapping node; background work from the
-// owner's background lane (SetBackground). Each step states the map access it needs: the map
-// lock is held exclusively by steps that write the map and by tracking (which must see a map no
-// writer changes mid-frame); the triangulation search and the bundle adjustment solves run on
-// copies without it, so tracking goes on meanwhile.
+// serial lane (frames in order); MapKeyFrame() from one mapping lane; global bundle adjustment
+// from the owner's background lane (SetBackground). Every step declares the components it reads
+// and writes (Steps()) and holds that access from the session's AccessGuard while it runs:
+// tracking excludes the map's writers for a whole frame; the triangulation search and the bundle
+// adjustment solves run on copies with no access, so tracking goes on beside them.
 #pragma once
 
 #include <atomic>
 #include <cstdint>
 #include <functional>
-#include <mutex>
 #include <optional>
 #include <span>
 #include <string>
@@ -24,6 +23,7 @@
 #include "config/context.h"
 #include "config/options.h"
 #include "core/object_pool.h"
+#include "ecs/access.h"
 #include "ecs/chunk_log.h"
 #include "ecs/map.h"
 #include "frontend/frame.h"
@@ -36,8 +36,25 @@
 
 namespace flatslam {
 
+// A step of the session's systems, the access it declares, and the lane it runs on ("extract"
+// runs on many frames at once; "track" once per frame in order; "mapping" on the one mapping
+// node; "background" beside all of them). Steps that declare access take it from the session's
+// guard (guarded); the jobs layer checks the declarations when it builds a run
+// (jobs/system_graph.h).
+struct SessionStep {
+  const char* name;
+  Access access;
+  const char* lane;
+  bool parallel = false;  // many instances at once on its lane
+  bool guarded = true;    // takes its access from the session's guard while it runs
+};
+
 class SlamSession {
  public:
+  // Every step the session runs, with its declared access. Steps that declare some access take it
+  // from the session's guard while they run; steps that declare none touch no shared component.
+  [[nodiscard]] static std::span<const SessionStep> Steps();
+
   // Throws flatslam::Error on invalid options or calibration.
   SlamSession(const Calibration& calibration, const SlamOptions& options);
 
@@ -86,8 +103,8 @@ class SlamSession {
   void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {});
   // The session between two frames, for a checkpoint: a copy of the map (Map::AssignForSnapshot:
   // no bags of words), a view of every tracked frame's pose as recorded, the culled keyframes
-  // those records may still name, and the frame after the last one tracked. Any thread; holds the
-  // map lock while copying (Track and mapping wait meanwhile). Pass the same State each time: the
+  // those records may still name, and the frame after the last one tracked. Any thread; reads the
+  // map while copying (its writers, tracking among them, wait meanwhile). Pass the same State each time: the
   // copy then moves little more than what changed since the last. The frame view reads the
   // session's own records: use a State only while its session lives.
   struct State {
@@ -116,15 +133,15 @@ class SlamSession {
   mutable ObjectPool<ImagePyramid> pyramids_;  // Extract's work pyramids, reused across frames
   const SystemContext context_;
 
-  // The map lock: held by Track for a whole frame and by each mapping, place and global-BA step
-  // that reads or writes the map; it guards every member below it unless said otherwise.
-  mutable std::mutex map_mutex_;
-  Map map_;
-  TrackerState tracker_;
-  LocalMappingState mapping_;  // local mapping's buffers are touched outside the lock by mapping only
-  KeyFrameDatabase database_;
-  LoopClosingState loops_;
-  size_t next_frame_ = 0;  // input index after the last frame tracked
+  // Each step takes the access it declares (Steps()) from access_; the members below are the
+  // components it guards, named beside each.
+  mutable AccessGuard access_;
+  Map map_;                    // kMap (with map_corrected_ and map_epoch_)
+  TrackerState tracker_;       // kTracker
+  LocalMappingState mapping_;  // kLocalMapping; its buffers (snapshot, local BA) are the mapping node's own
+  KeyFrameDatabase database_;  // kPlaceIndex
+  LoopClosingState loops_;     // kLoops
+  size_t next_frame_ = 0;      // kTrajectory: input index after the last frame tracked
   // One per tracked frame, for the trajectory. Fixed chunks that never move: no doubling's unused
   // half in a long session, and a checkpoint reads them through a view without copying.
   ChunkLog<AnchoredFramePose> frame_poses_;

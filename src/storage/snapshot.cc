@@ -615,42 +615,28 @@ void SaveMapSnapshot(const std::filesystem::path& path, std::span<const Snapshot
 MapSnapshotView::MapSnapshotView(MapSnapshotView&& other) noexcept
     : name_(std::move(other.name_)),
       bytes_(std::exchange(other.bytes_, {})),
-      mapping_(std::exchange(other.mapping_, nullptr)),
-      mapping_size_(std::exchange(other.mapping_size_, 0)),
+      file_(std::move(other.file_)),
       root_(std::exchange(other.root_, nullptr)) {}
 
 MapSnapshotView& MapSnapshotView::operator=(MapSnapshotView&& other) noexcept {
   if (this != &other) {
-    if (mapping_) ::munmap(mapping_, mapping_size_);
     name_ = std::move(other.name_);
     bytes_ = std::exchange(other.bytes_, {});
-    mapping_ = std::exchange(other.mapping_, nullptr);
-    mapping_size_ = std::exchange(other.mapping_size_, 0);
+    file_ = std::move(other.file_);
     root_ = std::exchange(other.root_, nullptr);
   }
   return *this;
 }
 
-MapSnapshotView::~MapSnapshotView() {
-  if (mapping_) ::munmap(mapping_, mapping_size_);
-}
+MapSnapshotView::~MapSnapshotView() = default;
 
 MapSnapshotView MapSnapshotView::Open(const std::filesystem::path& path, const SnapshotReadOptions& options) {
   MapSnapshotView view;
   view.name_ = path.string();
-  FdCloser file{::open(path.c_str(), O_RDONLY | O_CLOEXEC)};
-  FLATSLAM_CHECK(file.fd >= 0, "map snapshot ", path, ": cannot open: ", ErrnoText());
-  struct stat info {};
-  FLATSLAM_CHECK(::fstat(file.fd, &info) == 0, "map snapshot ", path, ": cannot stat: ", ErrnoText());
-  FLATSLAM_CHECK(S_ISREG(info.st_mode), "map snapshot ", path, ": not a regular file");
-  const size_t size = static_cast<size_t>(info.st_size);
-  FLATSLAM_CHECK(size >= 8, "map snapshot ", path, ": truncated or not a map snapshot (", size, " bytes)");
-  FLATSLAM_CHECK(size < kMaxBufferSize, "map snapshot ", path, ": ", size, " bytes exceeds the 2 GiB format limit");
-  void* mapping = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, file.fd, 0);
-  FLATSLAM_CHECK(mapping != MAP_FAILED, "map snapshot ", path, ": cannot mmap: ", ErrnoText());
-  view.mapping_ = mapping;
-  view.mapping_size_ = size;
-  view.bytes_ = {static_cast<const uint8_t*>(mapping), size};
+  view.file_ = MappedFile::Open(path, "map snapshot \"" + view.name_ + "\"", /*min_size=*/8);
+  view.bytes_ = view.file_.bytes();
+  FLATSLAM_CHECK(view.bytes_.size() < kMaxBufferSize, "map snapshot ", path, ": ", view.bytes_.size(),
+                 " bytes exceeds the 2 GiB format limit");
   view.Verify(options);  // on throw, the view's destructor unmaps
   return view;
 }

@@ -14,6 +14,7 @@
 
 #include <Eigen/Core>
 
+#include "core/mapped_file.h"
 #include "ecs/map.h"
 #include "io/calibration.h"
 #include "trajectory/trajectory.h"
@@ -145,8 +146,7 @@ class MapSnapshotView {
 
   std::string name_;
   std::span<const uint8_t> bytes_;
-  void* mapping_ = nullptr;  // mmap'ed region owned by this view, or null
-  size_t mapping_size_ = 0;
+  MappedFile file_;  // the mapped file this view owns, or none (FromBytes)
   const schema::MapSnapshot* root_ = nullptr;
 };
 
