@@ -25,6 +25,13 @@ std::string SlamOptions::Problem() const {
   FLATSLAM_REQUIRE(r, min_init_points > 0);
   FLATSLAM_REQUIRE(r, min_motion_inliers > 0);
   FLATSLAM_REQUIRE(r, min_local_map_inliers > 0);
+  FLATSLAM_REQUIRE(r, min_motion_matches > 0);
+  FLATSLAM_REQUIRE(r, min_reference_matches > 0);
+  FLATSLAM_REQUIRE(r, keyframe_track_ratio > 0 && keyframe_track_ratio <= 1);
+  FLATSLAM_REQUIRE(r, keyframe_track_ratio_mono > 0 && keyframe_track_ratio_mono <= 1);
+  FLATSLAM_REQUIRE(r, keyframe_close_tracked >= 0);
+  FLATSLAM_REQUIRE(r, keyframe_close_untracked >= 0);
+  FLATSLAM_REQUIRE(r, keyframe_min_inliers >= 0);
   FLATSLAM_REQUIRE(r, motion_search_radius > 0);
   FLATSLAM_REQUIRE(r, max_frames_between_keyframes >= 0);
   FLATSLAM_REQUIRE(r, min_frames_between_keyframes >= -1);
@@ -32,8 +39,14 @@ std::string SlamOptions::Problem() const {
   FLATSLAM_REQUIRE(r, min_parallax_deg >= 0 && min_parallax_deg < 90);
   FLATSLAM_REQUIRE(r, redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1);
   FLATSLAM_REQUIRE(r, revisit_radius >= 0);
+  FLATSLAM_REQUIRE(r, revisit_recent_keyframes >= 0);
+  FLATSLAM_REQUIRE(r, revisit_max_angle_deg > 0 && revisit_max_angle_deg <= 180);
   FLATSLAM_REQUIRE(r, relocalization_frames >= 0);
+  FLATSLAM_REQUIRE(r, relocalization_candidates > 0);
+  FLATSLAM_REQUIRE(r, relocalization_min_bow_matches >= 3);
   FLATSLAM_REQUIRE(r, loop_consistency >= 1);
+  FLATSLAM_REQUIRE(r, loop_min_keyframes >= 0);
+  FLATSLAM_REQUIRE(r, recent_point_min_found_ratio >= 0 && recent_point_min_found_ratio <= 1);
   FLATSLAM_REQUIRE(r, min_loop_matches >= 3);
   return r.first();
 }

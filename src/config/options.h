@@ -48,12 +48,26 @@ struct SlamOptions {
   // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC. A frame whose
   // median measured depth lies beyond it keeps stereo up to that median (the scale needs them).
   double far_stereo_baselines = kFarStereoBaselines;
-  int min_init_points = 150;             // keypoints with depth needed to start a map (stereo/RGB-D)
-  int min_init_matches = 100;            // monocular: matches between the two initial frames
-  float mono_search_radius = 15;         // monocular: projection search radius, pixels x level scale
-  uint64_t seed = 1;                     // RANSAC of the monocular initialization
-  int min_motion_inliers = 10;           // after frame-to-frame tracking
-  int min_local_map_inliers = 30;        // after tracking the local map
+  int min_init_points = 150;       // keypoints with depth needed to start a map (stereo/RGB-D)
+  int min_init_matches = 100;      // monocular: matches between the two initial frames
+  float mono_search_radius = 15;   // monocular: projection search radius, pixels x level scale
+  uint64_t seed = 1;               // RANSAC of the monocular initialization
+  int min_motion_inliers = 10;     // after frame-to-frame tracking
+  int min_local_map_inliers = 30;  // after tracking the local map
+  // The motion-model search: with fewer matches it is retried twice as wide, then given up for the
+  // reference-keyframe search, which needs min_reference_matches (else: relocalization).
+  int min_motion_matches = 20;
+  int min_reference_matches = 15;
+  // The keyframe rule (ORB-SLAM2's): a frame is thin when it tracks fewer than this share of its
+  // reference keyframe's points (monocular: the _mono share, as forward motion thins points
+  // faster), or, with depth, tracks fewer than keyframe_close_tracked close points while
+  // keyframe_close_untracked more are untracked; a thin frame with at least keyframe_min_inliers
+  // inliers becomes a keyframe when mapping is idle or a timeout or weakness calls for one.
+  double keyframe_track_ratio = 0.75;
+  double keyframe_track_ratio_mono = 0.9;
+  int keyframe_close_tracked = 100;
+  int keyframe_close_untracked = 70;
+  int keyframe_min_inliers = 15;
   float motion_search_radius = 7;        // pixels (x level scale) around the predicted position
   int max_frames_between_keyframes = 0;  // 0 = the frame rate (one second)
   // An idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor
@@ -71,20 +85,28 @@ struct SlamOptions {
   // observers still enter as fixed poses.
   size_t max_local_ba_keyframes = 20;
   double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
+  // A point made in the last three keyframes is dropped when tracking matched it on fewer than this
+  // share of the frames that should have seen it.
+  double recent_point_min_found_ratio = 0.25;
   // Revisits: when an older keyframe (not one of the last 20 made) already views the scene from
   // within this fraction of the median scene depth, with its optical axis within 20 degrees, a
   // keyframe is made only if tracking is weak (under half the reference keyframe's points, or
   // under 50 close points). Keeps the map from growing while a place is revisited; 0 = off.
   double revisit_radius = 0.1;
-  uint32_t agent = 0;              // stamped on every keyframe (multi-agent maps)
-  bool localization_only = false;  // track against the map without changing it (no keyframes)
+  int revisit_recent_keyframes = 20;  // the newest keyframes never count as an earlier view
+  double revisit_max_angle_deg = 20;  // optical axes within this angle view the same scene
+  uint32_t agent = 0;                 // stamped on every keyframe (multi-agent maps)
+  bool localization_only = false;     // track against the map without changing it (no keyframes)
   // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
   const Vocabulary* vocabulary = nullptr;  // must outlive the session
   bool loop_closing = true;
-  bool global_bundle_adjustment = true;  // after each loop correction, in the background
-  int relocalization_frames = 10;        // lost frames spent relocalizing before a new map segment starts
-  int loop_consistency = 3;              // consecutive keyframes that must agree on a loop
-  int min_loop_matches = 40;             // map points matched across the loop after the Sim(3)/SE(3) search
+  bool global_bundle_adjustment = true;     // after each loop correction, in the background
+  int relocalization_frames = 10;           // lost frames spent relocalizing before a new map segment starts
+  int relocalization_candidates = 20;       // best place-index candidates tried per lost frame
+  int relocalization_min_bow_matches = 15;  // bag-of-words matches to a candidate before PnP
+  int loop_consistency = 3;                 // consecutive keyframes that must agree on a loop
+  int loop_min_keyframes = 10;              // keyframes in the map, and made since the last loop, before a loop search
+  int min_loop_matches = 40;                // map points matched across the loop after the Sim(3)/SE(3) search
   InjectedFault inject_fault = InjectedFault::kNone;  // tests only (see InjectedFault)
 
   // The first requirement a field breaks, as its condition's text (empty: valid).

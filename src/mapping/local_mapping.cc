@@ -27,7 +27,8 @@ void CullRecentPoints(Map& map, LocalMappingState& state, const SystemContext& c
     MapPoint* point = map.points().try_get(p);
     if (!point) continue;
     const uint64_t age = current_id - std::min(current_id, point->first_keyframe_id);
-    if (point->found_ratio() < 0.25f || (age >= 2 && point->observations.size() < min_observations)) {
+    if (point->found_ratio() < context.options.recent_point_min_found_ratio ||
+        (age >= 2 && point->observations.size() < min_observations)) {
       map.ErasePoint(p);
     } else if (age < 3) {
       keep.push_back(p);

@@ -16,8 +16,9 @@ std::optional<LoopMatch> DetectLoop(const Map& map, KeyFrameDatabase& database, 
   const SlamOptions& options = context.options;
   const KeyFrame* kf = map.keyframes().try_get(current);
   if (!kf || kf->bow.empty()) return std::nullopt;
+  const size_t apart = static_cast<size_t>(options.loop_min_keyframes);
   const bool detect =
-      search && map.keyframes().size() > 10 && (state.closures.empty() || state.keyframes_since_loop >= 10);
+      search && map.keyframes().size() > apart && (state.closures.empty() || state.keyframes_since_loop >= apart);
   ++state.keyframes_since_loop;
   std::vector<PlaceCandidate> candidates;
   if (detect) {

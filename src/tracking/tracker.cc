@@ -97,11 +97,11 @@ struct Tracking {
     std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
     const float radius = options.motion_search_radius;
     int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
-    if (matches < 20) {
+    if (matches < options.min_motion_matches) {
       std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
       matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, 2 * radius, options.matcher);
     }
-    if (matches < 20) return false;
+    if (matches < options.min_motion_matches) return false;
     // A pose carried by a sliver of the last frame's matches is more likely wrong than right:
     // the reference keyframe search (wider, without the motion prior) gets a say.
     const int inliers = OptimizeFramePose(map, context, frame);
@@ -118,7 +118,7 @@ struct Tracking {
     const float radius = 4 * options.motion_search_radius;
     int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
     matches += MatchByProjection(frame, *reference, map, context.geometry, radius, options.matcher);
-    if (matches < 15) return false;
+    if (matches < options.min_reference_matches) return false;
     return OptimizeFramePose(map, context, frame) >= options.min_motion_inliers;
   }
 
@@ -184,7 +184,8 @@ struct Tracking {
     return inliers >= options.min_local_map_inliers;
   }
 
-  // An older keyframe (not one of the last 20 made) already views the scene from nearby.
+  // An older keyframe (not one of the revisit_recent_keyframes newest) already views the scene
+  // from within revisit_radius of the median depth, its optical axis within revisit_max_angle_deg.
   bool ViewedBefore(const TrackedFrame& frame) const {
     if (options.revisit_radius <= 0 || s.local_keyframes.empty()) return false;
     thread_local std::vector<double> depths;
@@ -199,11 +200,11 @@ struct Tracking {
       if (const KeyFrame* kf = map.keyframes().try_get(h)) newest = std::max(newest, kf->id);
     const Eigen::Isometry3d T_world_cam = frame.T_cam_world.inverse();
     const Eigen::Vector3d axis = T_world_cam.linear().col(2);
-    constexpr uint64_t kRecent = 20;
-    const double min_cos = std::cos(20.0 * M_PI / 180.0);
+    const uint64_t recent = static_cast<uint64_t>(options.revisit_recent_keyframes);
+    const double min_cos = std::cos(options.revisit_max_angle_deg * M_PI / 180.0);
     for (KeyFrameHandle h : s.local_keyframes) {
       const KeyFrame* kf = map.keyframes().try_get(h);
-      if (!kf || kf->id + kRecent > newest) continue;
+      if (!kf || kf->id + recent > newest) continue;
       const Eigen::Isometry3d T_world_kf = kf->T_cam_world.inverse();
       if ((T_world_kf.translation() - T_world_cam.translation()).norm() < radius &&
           T_world_kf.linear().col(2).dot(axis) > min_cos)
@@ -234,13 +235,14 @@ struct Tracking {
       else
         ++tracked_close;
     }
-    const bool need_close = tracked_close < 100 && untracked_close > 70;
+    const bool need_close =
+        tracked_close < options.keyframe_close_tracked && untracked_close > options.keyframe_close_untracked;
     const size_t since = frame.index - s.last_keyframe_frame;
     const bool idle = pending_keyframes == 0 && since >= static_cast<size_t>(options.min_frames_between_keyframes);
     const bool timeout = since >= static_cast<size_t>(options.max_frames_between_keyframes);
     const bool weak = !monocular() && (inliers < 0.25 * reference_points || need_close);
-    const double ratio = monocular() ? 0.9 : 0.75;
-    const bool thin = (inliers < ratio * reference_points || need_close) && inliers > 15;
+    const double ratio = monocular() ? options.keyframe_track_ratio_mono : options.keyframe_track_ratio;
+    const bool thin = (inliers < ratio * reference_points || need_close) && inliers > options.keyframe_min_inliers;
     // Busy mapping with tracking fading (a monocular frame keeping under half the reference
     // keyframe's points): ask local mapping to finish early.
     const bool fading = monocular() && (inliers < 0.5 * reference_points || inliers < 100);
@@ -311,14 +313,15 @@ std::optional<KeyFrameHandle> Relocalize(const Map& map, const KeyFrameDatabase&
   if (!options.vocabulary || database.size() == 0) return std::nullopt;
   if (frame.bow.empty()) options.vocabulary->Transform(frame.keypoints.descriptor, &frame.bow, &frame.bow_features);
   std::vector<PlaceCandidate> candidates = database.DetectRelocalizationCandidates(map, frame.bow);
-  if (candidates.size() > 20) candidates.resize(20);
+  const size_t most = static_cast<size_t>(options.relocalization_candidates);
+  if (candidates.size() > most) candidates.resize(most);
   const PinholeCamera& cam = context.geometry.camera;
   const cv::Matx33d K(cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
   for (const PlaceCandidate& c : candidates) {
     const KeyFrame* kf = map.keyframes().try_get(c.keyframe);
     if (!kf) continue;
     std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
-    if (MatchByBow(frame, *kf, map, options.matcher, 0.75f) < 15) continue;
+    if (MatchByBow(frame, *kf, map, options.matcher, 0.75f) < options.relocalization_min_bow_matches) continue;
     std::vector<cv::Point3d> object;
     std::vector<cv::Point2d> image;
     std::vector<uint32_t> index;
