@@ -148,7 +148,21 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // only gives back the trajectory it continues.
   FLATSLAM_CHECK(run.first_frame < frames || (run.initial_map && run.first_frame == frames), "first frame ",
                  run.first_frame, " is past the last frame ", frames - 1);
-  if (run.initial_map) slam.AdoptMap(std::move(*run.initial_map), run.initial_frames);
+  if (run.initial_map) {
+    // A resumed checkpoint whose last two poses are the two frames before the first one read:
+    // tracking goes on from their motion instead of relocalizing.
+    bool resume_tracking = false;
+    const std::vector<AnchoredFramePose>& before = run.initial_frames;
+    if (before.size() >= 2 && run.first_frame >= 2 && run.first_frame <= dataset.size()) {
+      try {
+        resume_tracking = before.back().t_ns == dataset.read(run.first_frame - 1).t_ns &&
+                          before[before.size() - 2].t_ns == dataset.read(run.first_frame - 2).t_ns;
+      } catch (const Error&) {
+        resume_tracking = false;  // an unreadable frame there: relocalize
+      }
+    }
+    slam.AdoptMap(std::move(*run.initial_map), run.initial_frames, resume_tracking);
+  }
   for (size_t i = run.first_frame; i < frames; ++i) {
     const bool skipped =
         std::any_of(run.skip.begin(), run.skip.end(), [&](const auto& r) { return i >= r.first && i < r.second; });

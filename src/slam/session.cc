@@ -284,7 +284,7 @@ void SlamSession::ForceLost() {
   tracker_.force_lost = true;
 }
 
-void SlamSession::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames) {
+void SlamSession::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames, bool resume_tracking) {
   FLATSLAM_CHECK(context_.options.vocabulary, "continuing a saved map needs a vocabulary to relocalize in it");
   const auto lease = access_.Acquire(SessionAccess::kAdoptMap);
   FLATSLAM_CHECK(tracker_.state == TrackingState::kNotInitialized && map_.keyframes().empty(),
@@ -317,6 +317,8 @@ void SlamSession::AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames)
   tracker_.segment_keyframes = map_.keyframes().size();
   tracker_.state = TrackingState::kLost;
   tracker_.allow_new_segments = false;
+  if (resume_tracking && frame_poses_.size() >= 2)
+    ResumeTracking(map_, context_, frame_poses_[frame_poses_.size() - 2], frame_poses_.back(), tracker_);
 }
 
 void SlamSession::CaptureState(State* out) const {

@@ -100,7 +100,10 @@ class SlamSession {
   // adopted map never starts a new map segment: it stays lost until it relocalizes. `frames` is the
   // trajectory of the session being continued (references are keyframes of `map`, or null):
   // FrameTrajectory() starts with them, and later corrections of the map move them too.
-  void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {});
+  // resume_tracking: the first frame given to Track follows the last of `frames` in the input (a
+  // resumed checkpoint of the same dataset): tracking goes on from the last two frames' motion
+  // (ResumeTracking) rather than relocalizing, and relocalizes only if that fails.
+  void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {}, bool resume_tracking = false);
   // The session between two frames, for a checkpoint: a copy of the map (Map::AssignForSnapshot:
   // no bags of words), a view of every tracked frame's pose as recorded, the culled keyframes
   // those records may still name, and the frame after the last one tracked. Any thread; reads the

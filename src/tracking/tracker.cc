@@ -307,6 +307,34 @@ int OptimizeFramePose(const Map& map, const SystemContext& context, TrackedFrame
   return result.num_inliers;
 }
 
+bool ResumeTracking(const Map& map, const SystemContext& context, const AnchoredFramePose& previous,
+                    const AnchoredFramePose& last, TrackerState& state) {
+  const KeyFrame* reference = map.keyframes().try_get(last.reference);
+  if (!reference) return false;
+  TrackedFrame frame;
+  frame.index = reference->frame_index;
+  frame.t_ns = last.t_ns;
+  frame.keypoints.resize(reference->size());
+  frame.keypoints.uv = reference->uv;
+  frame.keypoints.angle = reference->angle;
+  frame.keypoints.octave = reference->octave;
+  frame.keypoints.descriptor = reference->descriptor;
+  frame.keypoints.right_u = reference->right_u;
+  frame.keypoints.depth = reference->depth;
+  frame.Prepare(context.calibration.camera.width, context.calibration.camera.height);
+  frame.points = reference->points;
+  frame.T_cam_world = last.T_cam_ref.isometry() * reference->T_cam_world;
+  frame.has_pose = true;
+  state.velocity = last.T_cam_world.isometry() * previous.T_cam_world.isometry().inverse();
+  state.last_frame = std::move(frame);
+  state.reference_keyframe = last.reference;
+  state.local_keyframes = {last.reference};
+  state.last_inliers = 0;
+  state.lost_frames = 0;
+  state.state = TrackingState::kOk;
+  return true;
+}
+
 std::optional<KeyFrameHandle> Relocalize(const Map& map, const KeyFrameDatabase& database, const SystemContext& context,
                                          TrackedFrame& frame) {
   const SlamOptions& options = context.options;

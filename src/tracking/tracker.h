@@ -101,6 +101,14 @@ struct TrackResult {
                                                            TrackResult& result, const InsertedTwoView& inserted,
                                                            std::optional<KeyFrameHandle>* new_keyframe);
 
+// Resumes tracking where a checkpointed session stopped, so that its continuation tracks on
+// instead of relocalizing: the last frame stands in as its reference keyframe's keypoints and
+// points, at the last frame's pose (through the reference), and the motion model comes from the
+// last two frames' poses as tracked. `previous` and `last` must be consecutive input frames.
+// Returns false, leaving the state as it was, when the reference keyframe is not in the map.
+bool ResumeTracking(const Map& map, const SystemContext& context, const AnchoredFramePose& previous,
+                    const AnchoredFramePose& last, TrackerState& state);
+
 // Relocalization: candidates from the place index by bag of words, then for each a bag-of-words
 // match, PnP RANSAC and pose optimization with a projection search. Returns the keyframe the frame
 // was found at (its pose and point handles set), or none.

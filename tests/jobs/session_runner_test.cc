@@ -159,9 +159,10 @@ TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
 
 // A session captured after frame N and continued from there (deterministic mapping, so the frames
 // are chosen, not the timer's) is as accurate as the uninterrupted run, at the run's quarter
-// points. The continuation relocalizes instead of tracking on, and the room's trajectory reacts
-// chaotically to that: continuations from frames 150-180 drift to 1.5-1.7x the uninterrupted
-// ATE, others land between 0.87x and 1.15x (docs/STATUS.md, sessions).
+// points. The continuation tracks on from the last two frames' motion (it never relocalizes); the
+// room's trajectory still reacts chaotically to the resume: over capture frames 100-300 every
+// 10, one continuation ends at 1.53x the uninterrupted ATE, the others between 0.87x and 1.32x
+// (docs/STATUS.md, sessions).
 TEST(SessionRun, AContinuedSessionIsAsAccurateAsTheWholeRun) {
   const auto dataset = OpenDataset(kScene);
   const SlamOptions options = Options();
@@ -190,6 +191,9 @@ TEST(SessionRun, AContinuedSessionIsAsAccurateAsTheWholeRun) {
     rest.first_frame = k;
     const SlamRunResult continued = RunSlam(*dataset, options, rest);
     ASSERT_EQ(continued.trajectory.size(), n);
+    size_t relocalized = 0;
+    for (const FrameReport& r : continued.reports) relocalized += r.relocalized;
+    EXPECT_EQ(relocalized, 0u) << "the continuation from frame " << k << " should track on, not relocalize";
     const auto score = testing::ScoreTrajectory(*dataset->ground_truth(), continued.trajectory);
     std::printf("whole run ATE %.4f m; continued from frame %zu: ATE %.4f m\n", whole_score.se3.ate_m.rmse, k,
                 score.se3.ate_m.rmse);
