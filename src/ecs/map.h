@@ -31,7 +31,9 @@ struct Observation {
 };
 
 struct KeyFrame {
-  uint64_t id = 0;         // creation order within its map; for tie-breaking, never a clock
+  // Creation order within its map: ages counted in keyframes made since (recent-point culling,
+  // revisits) and tie-breaking; never a time.
+  uint64_t id = 0;
   size_t frame_index = 0;  // index of the input frame it was made from
   int64_t t_ns = 0;
   Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();

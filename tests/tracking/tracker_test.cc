@@ -135,5 +135,47 @@ TEST_F(TrackerTest, AFrameWithoutMatchesIsLostAndTheMapStaysAsItWas) {
   EXPECT_EQ(MapFingerprint::Of(map).numbers, before.numbers);
 }
 
+// A resumed checkpoint: the last two frames' poses and reference keyframe are all the state there
+// is; tracking goes on from their motion without relocalizing (there is no place index here).
+TEST_F(TrackerTest, ResumesFromTheLastTwoPosesOfACheckpoint) {
+  Map map;
+  LocalMappingState mapping;
+  TrackedFrame first = Extract(0);
+  first.T_cam_world = TrueCamWorld(0);
+  const KeyFrameHandle kf = InsertKeyFrame(map, mapping, *context_, first, true);
+  auto record = [&](size_t i) {
+    AnchoredFramePose pose;
+    pose.t_ns = gt_[i].t_ns;
+    pose.reference = kf;
+    pose.T_cam_world = CompactPose(TrueCamWorld(i));
+    pose.T_cam_ref = CompactPose(TrueCamWorld(i) * map.keyframe(kf).T_cam_world.inverse());
+    return pose;
+  };
+  TrackerState state;
+  state.state = TrackingState::kLost;  // how an adopted map starts
+  state.allow_new_segments = false;
+  ASSERT_TRUE(ResumeTracking(map, *context_, record(2), record(3), state));
+  EXPECT_EQ(state.state, TrackingState::kOk);
+  EXPECT_EQ(state.reference_keyframe, kf);
+  ASSERT_TRUE(state.velocity.has_value());
+  EXPECT_TRUE(state.velocity->isApprox(TrueCamWorld(3) * TrueCamWorld(2).inverse(), 1e-4));
+
+  TrackedFrame frame = Extract(4);
+  const KeyFrameDatabase database(0);
+  const TrackResult result = TrackFrame(map, database, *context_, state, frame, 0);
+  ASSERT_TRUE(result.ok);
+  EXPECT_FALSE(result.report.relocalized);
+  EXPECT_LT((frame.T_cam_world * TrueCamWorld(4).inverse()).translation().norm(), 0.01);
+
+  // A reference keyframe that is gone: nothing to resume from, the state is left as it was.
+  TrackerState lost;
+  lost.state = TrackingState::kLost;
+  AnchoredFramePose gone = record(3);
+  gone.reference = KeyFrameHandle::null();
+  EXPECT_FALSE(ResumeTracking(map, *context_, record(2), gone, lost));
+  EXPECT_EQ(lost.state, TrackingState::kLost);
+  EXPECT_FALSE(lost.velocity.has_value());
+}
+
 }  // namespace
 }  // namespace flatslam
