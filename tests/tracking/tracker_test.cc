@@ -53,6 +53,14 @@ class TrackerTest : public ::testing::Test {
     return f;
   }
   Eigen::Isometry3d TrueCamWorld(size_t i) const { return gt_[i].T_world_cam.inverse(); }
+  // The map: frame 0 at its true pose, every keypoint with depth a point; *first is that frame
+  // with its point handles.
+  KeyFrameHandle MapFrameZero(Map& map, TrackedFrame* first) {
+    LocalMappingState mapping;
+    *first = Extract(0);
+    first->T_cam_world = TrueCamWorld(0);
+    return InsertKeyFrame(map, mapping, *context_, *first, /*all_depth_points=*/true);
+  }
 
   std::unique_ptr<Dataset> dataset_;
   SlamOptions options_;
@@ -62,12 +70,9 @@ class TrackerTest : public ::testing::Test {
 };
 
 TEST_F(TrackerTest, TracksAFrameAgainstAMapItDoesNotChange) {
-  // The map: frame 0 at its true pose, every keypoint with depth a point.
   Map map;
-  LocalMappingState mapping;
-  TrackedFrame first = Extract(0);
-  first.T_cam_world = TrueCamWorld(0);
-  const KeyFrameHandle kf = InsertKeyFrame(map, mapping, *context_, first, /*all_depth_points=*/true);
+  TrackedFrame first;
+  const KeyFrameHandle kf = MapFrameZero(map, &first);
   ASSERT_GT(map.points().size(), 300u);
 
   TrackerState state;
@@ -112,10 +117,8 @@ TEST_F(TrackerTest, TracksAFrameAgainstAMapItDoesNotChange) {
 
 TEST_F(TrackerTest, AFrameWithoutMatchesIsLostAndTheMapStaysAsItWas) {
   Map map;
-  LocalMappingState mapping;
-  TrackedFrame first = Extract(0);
-  first.T_cam_world = TrueCamWorld(0);
-  const KeyFrameHandle kf = InsertKeyFrame(map, mapping, *context_, first, true);
+  TrackedFrame first;
+  const KeyFrameHandle kf = MapFrameZero(map, &first);
   TrackerState state;
   state.state = TrackingState::kOk;
   state.reference_keyframe = state.first_keyframe = kf;
@@ -139,10 +142,8 @@ TEST_F(TrackerTest, AFrameWithoutMatchesIsLostAndTheMapStaysAsItWas) {
 // is; tracking goes on from their motion without relocalizing (there is no place index here).
 TEST_F(TrackerTest, ResumesFromTheLastTwoPosesOfACheckpoint) {
   Map map;
-  LocalMappingState mapping;
-  TrackedFrame first = Extract(0);
-  first.T_cam_world = TrueCamWorld(0);
-  const KeyFrameHandle kf = InsertKeyFrame(map, mapping, *context_, first, true);
+  TrackedFrame first;
+  const KeyFrameHandle kf = MapFrameZero(map, &first);
   auto record = [&](size_t i) {
     AnchoredFramePose pose;
     pose.t_ns = gt_[i].t_ns;
