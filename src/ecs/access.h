@@ -49,6 +49,17 @@ struct Access {
   [[nodiscard]] std::string ConflictWith(const Access& other) const;
 };
 
+// A step of a system with the access it declares and the lane it runs on: steps of one lane run
+// one at a time unless the lane is parallel (many instances at once); a guarded step takes its
+// access from an AccessGuard while it runs. jobs/system_graph.h checks a run's steps.
+struct AccessStep {
+  const char* name;
+  Access access;
+  const char* lane;
+  bool parallel = false;
+  bool guarded = false;
+};
+
 class AccessGuard {
  public:
   // Holds the access until destroyed: writes exclusively, reads shared.

@@ -49,7 +49,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // run at once conflict without the session's guard between them. Mapping inline (deterministic)
   // puts the mapping steps on the track lane, which only removes overlaps.
   SystemGraph steps;
-  for (const SessionStep& s : SlamSession::Steps()) steps.Add({s.name, s.access, s.lane, s.parallel, s.guarded});
+  for (const AccessStep& step : SlamSession::Steps()) steps.Add(step);
   steps.Add({"read", Access{}, "extract", /*parallel=*/true});  // the dataset's files only
   steps.Add({"checkpoint.write", Access{}, "checkpoint"});      // the captured copy only
   if (run.on_warning) slam.SetWarningSink(run.on_warning);

@@ -7,30 +7,21 @@
 // Concurrency: built and checked on one thread before the run.
 #pragma once
 
-#include <string>
 #include <vector>
 
 #include "ecs/access.h"
 
 namespace flatslam {
 
-struct GraphStep {
-  std::string name;
-  Access access;
-  std::string lane;       // steps of one lane run one at a time, unless it is parallel
-  bool parallel = false;  // instances of this step run at once on its lane
-  bool guarded = false;   // takes its access from the guard while it runs
-};
-
 class SystemGraph {
  public:
   // Adds a step; throws flatslam::Error when it may run beside a step it conflicts with without
   // both being guarded (a parallel step that writes a component conflicts with itself).
-  void Add(GraphStep step);
-  [[nodiscard]] const std::vector<GraphStep>& steps() const { return steps_; }
+  void Add(const AccessStep& step);
+  [[nodiscard]] const std::vector<AccessStep>& steps() const { return steps_; }
 
  private:
-  std::vector<GraphStep> steps_;
+  std::vector<AccessStep> steps_;
 };
 
 }  // namespace flatslam

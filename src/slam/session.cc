@@ -41,34 +41,37 @@ constexpr Access kFrameTrajectory = Access::Of({C::kMap, C::kLocalMapping, C::kT
 constexpr Access kKeyFrameTrajectory = Access::Of({C::kMap}, {});
 }  // namespace SessionAccess
 
-std::span<const SessionStep> SlamSession::Steps() {
+std::span<const AccessStep> SlamSession::Steps() {
   using namespace SessionAccess;
-  static constexpr SessionStep kSteps[] = {
+  static constexpr AccessStep kSteps[] = {
       {"extract", Access{}, "extract", /*parallel=*/true, /*guarded=*/false},
-      {"track", kTrack, "track"},
-      {"force_lost", kForceLost, "track"},
-      {"mapping.prepare", kPrepare, "mapping"},
+      {"track", kTrack, "track", false, true},
+      {"force_lost", kForceLost, "track", false, true},
+      {"mapping.prepare", kPrepare, "mapping", false, true},
       {"mapping.triangulate", Access{}, "mapping", false, false},
-      {"mapping.add_points", kAddPoints, "mapping"},
-      {"mapping.build_local_ba", kBuildLocalBa, "mapping"},
+      {"mapping.add_points", kAddPoints, "mapping", false, true},
+      {"mapping.build_local_ba", kBuildLocalBa, "mapping", false, true},
       {"mapping.solve_local_ba", Access{}, "mapping", false, false},
-      {"mapping.apply_local_ba", kApplyLocalBa, "mapping"},
-      {"mapping.cull", kCull, "mapping"},
-      {"place", kPlace, "mapping"},
-      {"global_ba.build", kBuildGlobalBa, "background"},
+      {"mapping.apply_local_ba", kApplyLocalBa, "mapping", false, true},
+      {"mapping.cull", kCull, "mapping", false, true},
+      {"place", kPlace, "mapping", false, true},
+      {"global_ba.build", kBuildGlobalBa, "background", false, true},
       {"global_ba.solve", Access{}, "background", false, false},
-      {"global_ba.apply", kApplyGlobalBa, "background"},
-      {"checkpoint.capture", kCapture, "checkpoint"},
+      {"global_ba.apply", kApplyGlobalBa, "background", false, true},
+      {"checkpoint.capture", kCapture, "checkpoint", false, true},
   };
   return kSteps;
 }
 
 SlamSession::SlamSession(const Calibration& calibration, const SlamOptions& options)
-    : extractor_(ResolvedOptions(options, calibration).orb),
-      context_(calibration, ResolvedOptions(options, calibration), extractor_.scales()),
-      tracker_(options.seed),
-      database_(options.vocabulary ? options.vocabulary->word_count() : 0),
-      loops_(options.seed + 1) {
+    : SlamSession(calibration, ResolvedOptions(options, calibration)) {}
+
+SlamSession::SlamSession(const Calibration& calibration, SlamOptions&& resolved)
+    : extractor_(resolved.orb),
+      context_(calibration, resolved, extractor_.scales()),
+      tracker_(resolved.seed),
+      database_(resolved.vocabulary ? resolved.vocabulary->word_count() : 0),
+      loops_(resolved.seed + 1) {
   if (context_.options.localization_only) tracker_.allow_new_segments = false;
 }
 

@@ -36,24 +36,13 @@
 
 namespace flatslam {
 
-// A step of the session's systems, the access it declares, and the lane it runs on ("extract"
-// runs on many frames at once; "track" once per frame in order; "mapping" on the one mapping
-// node; "background" beside all of them). Steps that declare access take it from the session's
-// guard (guarded); the jobs layer checks the declarations when it builds a run
-// (jobs/system_graph.h).
-struct SessionStep {
-  const char* name;
-  Access access;
-  const char* lane;
-  bool parallel = false;  // many instances at once on its lane
-  bool guarded = true;    // takes its access from the session's guard while it runs
-};
-
 class SlamSession {
  public:
-  // Every step the session runs, with its declared access. Steps that declare some access take it
-  // from the session's guard while they run; steps that declare none touch no shared component.
-  [[nodiscard]] static std::span<const SessionStep> Steps();
+  // Every step the session runs, with its declared access and lane ("extract" on many frames at
+  // once, "track" once per frame in order, "mapping" on the one mapping node, "background" and
+  // "checkpoint" beside them). Steps that declare some access take it from the session's guard
+  // while they run (guarded); steps that declare none touch no shared component.
+  [[nodiscard]] static std::span<const AccessStep> Steps();
 
   // Throws flatslam::Error on invalid options or calibration.
   SlamSession(const Calibration& calibration, const SlamOptions& options);
@@ -123,6 +112,9 @@ class SlamSession {
 
  private:
   static_assert(sizeof(AnchoredFramePose) == 72);
+
+  // With the options already resolved for the calibration.
+  SlamSession(const Calibration& calibration, SlamOptions&& resolved);
 
   // Writes what tracking asked for (sightings, keyframes) into the map (mapping system).
   InsertedTwoView ApplyTrackResult(TrackedFrame& frame, TrackResult& result);

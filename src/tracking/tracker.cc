@@ -156,9 +156,9 @@ struct Tracking {
       for (PointHandle p : map.keyframe(kf).points)
         if (!p.is_null() && seen_points.insert(p).second) s.local_points.push_back(p);
     }
-    std::vector<PointHandle> visible;
-    MatchLocalPoints(frame, map, s.local_points, context.geometry, 1.0f, options.matcher, &visible);
-    if (!options.localization_only) result.visible.insert(result.visible.end(), visible.begin(), visible.end());
+    // Points predicted in view count as sightings (none in localization-only mode).
+    MatchLocalPoints(frame, map, s.local_points, context.geometry, 1.0f, options.matcher,
+                     options.localization_only ? nullptr : &result.visible);
     *matches = MatchedCount(frame);
     int inliers = OptimizeFramePose(map, context, frame);
     // Far fewer inliers than the last frame had: the predicted pose was off (a sudden turn) and the

@@ -12,9 +12,9 @@ namespace {
 
 using C = Component;
 
-std::string Refusal(SystemGraph& graph, GraphStep step) {
+std::string Refusal(SystemGraph& graph, const AccessStep& step) {
   try {
-    graph.Add(std::move(step));
+    graph.Add(step);
   } catch (const Error& e) {
     return e.what();
   }
@@ -53,13 +53,12 @@ TEST(SystemGraph, AParallelStepThatWritesMeetsItself) {
 
 TEST(SystemGraph, TheSessionsStepsPassAndAnUnguardedTrackIsRefused) {
   SystemGraph graph;
-  for (const SessionStep& s : SlamSession::Steps())
-    EXPECT_NO_THROW(graph.Add({s.name, s.access, s.lane, s.parallel, s.guarded})) << s.name;
+  for (const AccessStep& s : SlamSession::Steps()) EXPECT_NO_THROW(graph.Add(s)) << s.name;
   SystemGraph broken;
   std::string error;
-  for (const SessionStep& s : SlamSession::Steps()) {
-    const bool guarded = s.guarded && std::string(s.name) != "track";
-    error += Refusal(broken, {s.name, s.access, s.lane, s.parallel, guarded});
+  for (AccessStep s : SlamSession::Steps()) {
+    s.guarded = s.guarded && std::string(s.name) != "track";
+    error += Refusal(broken, s);
   }
   EXPECT_NE(error.find("'track'"), std::string::npos) << error;
 }
