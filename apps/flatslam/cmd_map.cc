@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <optional>
 #include <string>
 #include <system_error>
@@ -26,10 +27,10 @@ const char* const kMapUsage =
     "usage: flatslam map info FILE\n"
     "       flatslam map verify FILE [--vocabulary-checksum N]\n"
     "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary]\n"
-    "                               [--trajectory FILE [--format tum|kitti|euroc]]\n"
+    "                               [--trajectory FILE [--format tum|kitti|euroc] [--agent N]]\n"
     "                               [--colmap DIR [--min-track N]]\n"
     "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
-    "                       [--local-weld] [--seed N]\n\n"
+    "                       [--refine] [--seed N]\n\n"
     "Map snapshots (.fsmap) hold one or more maps with their keyframes, map points and graph edges.\n"
     "  info     format version, file size, vocabulary checksum, calibration, and per map: id,\n"
     "           agents, keyframes, map points, observations, bounding box (read in place: fast)\n"
@@ -38,7 +39,8 @@ const char* const kMapUsage =
     "  export   map points as a PLY point cloud (all maps; ascii by default), the keyframe\n"
     "           trajectory (T_world_cam sorted by time, --format tum (default), kitti (with the\n"
     "           times in FILE.times.txt) or euroc csv; with several maps the poses of each stay\n"
-    "           in that map's own frame) and/or a COLMAP model:\n"
+    "           in that map's own frame; --agent N keeps only agent N's keyframes) and/or a\n"
+    "           COLMAP model:\n"
     "    --colmap DIR  a COLMAP text model (cameras.txt, images.txt, points3D.txt; DIR is created):\n"
     "                  one PINHOLE camera (the left/colour camera), an image per keyframe (pose\n"
     "                  world-to-camera, its keypoints as POINTS2D), a 3D point per map point with\n"
@@ -49,17 +51,19 @@ const char* const kMapUsage =
     "                  observed point); 2 for COLMAP's bundle_adjuster, which refuses points seen\n"
     "                  once (stereo and RGB-D maps hold points placed from one keyframe's depth)\n"
     "  merge    joins the maps of several snapshots (same calibration and vocabulary) where they\n"
-    "           overlap: place recognition between keyframes, a verified SE(3) transform (Sim(3)\n"
-    "           for monocular maps) that several keyframe pairs must agree on, duplicate points\n"
-    "           fused, the seam welded (essential graph and bundle adjustment). The first map's\n"
-    "           frame is kept; maps that overlap nothing are written as separate maps, each in\n"
-    "           its own frame. Inputs are never modified; OUT is written atomically.\n"
+    "           overlap: place recognition between every pair of maps, a verified SE(3) transform\n"
+    "           (Sim(3) for monocular maps) that several keyframe pairs must agree on; the maps\n"
+    "           join along the strongest overlaps (a spanning tree of the overlap graph), each\n"
+    "           merge fusing duplicate points, spreading the correction over the essential graph\n"
+    "           and welding the seam with a bundle adjustment of about 50 keyframes around it.\n"
+    "           The first map's frame is kept; maps that overlap nothing are written as separate\n"
+    "           maps, each in its own frame. Inputs are never modified; OUT is written atomically.\n"
     "    --vocabulary F   the vocabulary the maps were built with (default: the shipped one or\n"
     "                     $FLATSLAM_VOCABULARY); its checksum must match the snapshots'\n"
     "    --min-matches N  map points a keyframe pair must match (default 40)\n"
     "    --min-pairs N    agreeing keyframe pairs, no keyframe used twice, needed to merge (default 3)\n"
-    "    --local-weld     bundle-adjust only the seam neighbourhoods (faster); by default every\n"
-    "                     keyframe is free, which also removes drift between separate seams\n";
+    "    --refine         the weld frees every keyframe (a global bundle adjustment): also takes out\n"
+    "                     drift between seams in several places; time and memory grow with the maps\n";
 
 namespace {
 
@@ -166,6 +170,12 @@ int Export(const std::string& file, const Args& args) {
   if (trajectory_format != "tum" && trajectory_format != "kitti" && trajectory_format != "euroc")
     throw UsageError{"--format is tum, kitti or euroc"};
   if (args.has("format") && !trajectory) throw UsageError{"--format applies to --trajectory"};
+  if (args.has("agent") && !trajectory) throw UsageError{"--agent applies to --trajectory"};
+  const int64_t agent_arg = args.get_int("agent", 0);
+  if (agent_arg < 0 || agent_arg > std::numeric_limits<uint32_t>::max())
+    throw UsageError{"--agent must be an agent id (0 or more)"};
+  const std::optional<uint32_t> agent =
+      args.has("agent") ? std::optional(static_cast<uint32_t>(agent_arg)) : std::nullopt;
   const int64_t min_track_arg = args.get_int("min-track", 1);
   if (min_track_arg < 1) throw UsageError{"--min-track must be at least 1"};
   if (args.has("min-track") && !colmap) throw UsageError{"--min-track applies to --colmap"};
@@ -183,10 +193,16 @@ int Export(const std::string& file, const Args& args) {
   if (trajectory) {
     Trajectory all;
     for (size_t m = 0; m < view.map_count(); ++m) {
-      const Trajectory t = view.KeyFrameTrajectory(m);
+      const Trajectory t = view.KeyFrameTrajectory(m, agent);
       all.insert(all.end(), t.begin(), t.end());
     }
     std::stable_sort(all.begin(), all.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
+    if (agent && all.empty()) {
+      std::string present;
+      for (size_t m = 0; m < view.map_count(); ++m)
+        for (uint32_t a : view.agents(m)) present += (present.empty() ? "" : ",") + std::to_string(a);
+      FLATSLAM_CHECK(false, file, " has no keyframes of agent ", *agent, " (its maps hold agents [", present, "])");
+    }
     if (trajectory_format == "kitti") {
       WriteKitti(*trajectory, all);
       WriteKittiTimes(*trajectory + ".times.txt", all);
@@ -251,7 +267,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   MapMergeOptions options;
   options.min_matches = static_cast<int>(args.get_int("min-matches", options.min_matches));
   options.min_consistent_pairs = static_cast<int>(args.get_int("min-pairs", options.min_consistent_pairs));
-  options.global_bundle_adjustment = !args.has("local-weld");
+  options.refine = args.has("refine");
   options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   options.seed = static_cast<uint64_t>(args.get_int("seed", static_cast<int64_t>(options.seed)));
   if (!options.Check()) throw UsageError{"--min-matches and --min-pairs must be at least 3 and 1"};
@@ -310,7 +326,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   const MergeCamera camera =
       MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
   const auto merge_start = std::chrono::steady_clock::now();
-  MultiMapMerge merged = MergeMapsGreedy(std::move(maps), vocabulary, camera, options);
+  MultiMapMerge merged = MergeAllMaps(std::move(maps), vocabulary, camera, options);
   const double merge_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - merge_start).count();
   auto list = [&](const std::vector<size_t>& members) {
@@ -318,6 +334,10 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
     for (size_t m : members) s += (s.empty() ? "" : "+") + std::to_string(m);
     return s;
   };
+  for (const OverlapEdge& e : merged.overlaps) {
+    std::printf("overlap       %zu-%zu: %s (%zu independent agreeing pairs, %zu point pairs)\n", e.a, e.b,
+                e.found ? "found" : "none", e.independent_pairs, e.correspondences);
+  }
   for (const MergeAttempt& a : merged.attempts) {
     const MergeReport& r = a.report;
     const MapOverlap& o = r.overlap;
@@ -338,9 +358,10 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
         S.t.x(), S.t.y(), S.t.z(), rotation.angle() * 180.0 / M_PI, S.s, o.correspondences, o.residual_rms);
     std::printf(
         "              merged: %zu keyframes and %zu points added, %zu points fused, %zu loop edges, "
-        "%zu keyframes welded (%zu outlier observations), %.0f ms\n",
-        r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes, r.weld_outliers,
-        r.merge_ms);
+        "%zu keyframes welded%s (%zu outlier observations), %.0f ms (fuse %.0f, essential graph %.0f, "
+        "weld %.0f)\n",
+        r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes,
+        r.refined ? " (refine: all)" : "", r.weld_outliers, r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
   }
   std::vector<SnapshotMapRef> refs;
   for (size_t g = 0; g < merged.maps.size(); ++g) {
@@ -369,9 +390,9 @@ int RunMap(const std::vector<std::string>& argv) {
   for (std::string& a : expanded)
     if (a == "-o") a = "--out";
   const Args args(expanded,
-                  {"ply", "ply-format", "trajectory", "format", "colmap", "min-track", "vocabulary-checksum", "out",
-                   "vocabulary", "min-matches", "min-pairs", "seed"},
-                  {"local-weld"});
+                  {"ply", "ply-format", "trajectory", "format", "agent", "colmap", "min-track", "vocabulary-checksum",
+                   "out", "vocabulary", "min-matches", "min-pairs", "seed"},
+                  {"refine"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);
     return 0;

@@ -8,6 +8,14 @@
 #include "core/error.h"
 
 namespace flatslam {
+namespace {
+
+// Covisibility lists are kept strongest first, ties by handle.
+bool StrongerLink(const std::pair<KeyFrameHandle, int>& a, const std::pair<KeyFrameHandle, int>& b) {
+  return a.second != b.second ? a.second > b.second : a.first < b.first;
+}
+
+}  // namespace
 
 void KeyFrame::resize(size_t n) {
   uv.resize(n, Eigen::Vector2f::Zero());
@@ -161,6 +169,10 @@ void Map::AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b) {
 }
 
 void Map::UpdateCovisibility(KeyFrameHandle kf, int min_shared) {
+  SetCovisibility(kf, ComputeCovisibility(kf, min_shared));
+}
+
+Map::CovisibilityLinks Map::ComputeCovisibility(KeyFrameHandle kf, int min_shared) const {
   std::unordered_map<KeyFrameHandle, int> shared;
   const KeyFrame& frame = keyframes_.get(kf);
   for (PointHandle p : frame.points) {
@@ -169,7 +181,7 @@ void Map::UpdateCovisibility(KeyFrameHandle kf, int min_shared) {
     for (const Observation& o : point->observations)
       if (o.keyframe != kf) ++shared[o.keyframe];
   }
-  std::vector<std::pair<KeyFrameHandle, int>> links;
+  CovisibilityLinks links;
   std::pair<KeyFrameHandle, int> best{KeyFrameHandle::null(), 0};
   for (const auto& [other, weight] : shared) {
     if (!keyframes_.contains(other)) continue;
@@ -178,17 +190,16 @@ void Map::UpdateCovisibility(KeyFrameHandle kf, int min_shared) {
     if (weight >= min_shared) links.emplace_back(other, weight);
   }
   if (links.empty() && !best.first.is_null()) links.push_back(best);
-  std::sort(links.begin(), links.end(), [](const auto& a, const auto& b) {
-    return a.second != b.second ? a.second > b.second : a.first < b.first;
-  });
+  std::sort(links.begin(), links.end(), StrongerLink);
+  return links;
+}
 
+void Map::SetCovisibility(KeyFrameHandle kf, CovisibilityLinks links) {
   RemoveCovisibilityLinks(kf);
   for (const auto& [other, weight] : links) {
-    KeyFrame& o = keyframes_.get(other);
-    o.covisible.emplace_back(kf, weight);
-    std::sort(o.covisible.begin(), o.covisible.end(), [](const auto& a, const auto& b) {
-      return a.second != b.second ? a.second > b.second : a.first < b.first;
-    });
+    std::vector<std::pair<KeyFrameHandle, int>>& list = keyframes_.get(other).covisible;
+    const std::pair<KeyFrameHandle, int> link(kf, weight);
+    list.insert(std::upper_bound(list.begin(), list.end(), link, StrongerLink), link);
   }
   KeyFrame& self = keyframes_.get(kf);
   self.covisible = std::move(links);

@@ -143,6 +143,12 @@ class Map {
   // the single best one) and mirrors the weights into the neighbours. Sets the parent of a
   // keyframe without one to its strongest neighbour.
   void UpdateCovisibility(KeyFrameHandle kf, int min_shared = 15);
+  // The two halves of UpdateCovisibility, so that many keyframes can be counted at once: the
+  // links kf would get, strongest first (reads only: concurrent calls are safe while nothing
+  // writes the map), and writing them (as UpdateCovisibility does with them).
+  using CovisibilityLinks = std::vector<std::pair<KeyFrameHandle, int>>;
+  [[nodiscard]] CovisibilityLinks ComputeCovisibility(KeyFrameHandle kf, int min_shared = 15) const;
+  void SetCovisibility(KeyFrameHandle kf, CovisibilityLinks links);
   // The n strongest covisible keyframes of kf that are still alive.
   [[nodiscard]] std::vector<KeyFrameHandle> BestCovisible(KeyFrameHandle kf, size_t n) const;
   // Recomputes normal, distance range and representative descriptor of p from its observations.

@@ -286,7 +286,7 @@ double OptimizePoseGraph(std::vector<Similarity3>& S_cw, const std::vector<bool>
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   solver.max_num_iterations = options.iterations;
-  solver.num_threads = 1;
+  solver.num_threads = options.num_threads;
   ceres::Solver::Summary summary;
   ceres::Solve(solver, &problem, &summary);
   for (size_t k = 0; k < n; ++k) {

@@ -99,6 +99,7 @@ class PoseGraphEdgeSet {
 struct PoseGraphOptions {
   int iterations = 20;
   bool fix_scale = false;  // SE(3) graph (stereo/RGB-D)
+  int num_threads = 1;     // Ceres' residual and Jacobian evaluation
 };
 
 // Optimizes the free nodes of S_cw in place (fixed[i] holds node i). Returns the final cost.

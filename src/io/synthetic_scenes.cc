@@ -204,9 +204,13 @@ SceneDescription Town() {
     for (int j = 0; j < 2; ++j)
       AddFacadeRect({50.0 * i + 6, 40.0 * j + 6}, {50.0 * i + 44, 40.0 * j + 34}, tpm, &rng, &s.quads);
   AddFacadeRect({-6, -6}, {156, 86}, tpm, &rng, &s.quads);
-  s.agents.push_back(StreetPath({0, 0}, {100, 40}, 0));     // blocks (0,0),(1,0)
-  s.agents.push_back(StreetPath({50, 0}, {150, 40}, 60));   // blocks (1,0),(2,0)
-  s.agents.push_back(StreetPath({0, 40}, {100, 80}, 120));  // blocks (0,1),(1,1)
+  s.agents.push_back(StreetPath({0, 0}, {100, 40}, 0));    // blocks (0,0),(1,0)
+  s.agents.push_back(StreetPath({50, 0}, {150, 40}, 60));  // blocks (1,0),(2,0)
+  // Blocks (0,1),(1,1), driven clockwise: the road it shares with agents 0 and 1 (y = 40) is then
+  // driven in their direction, as a forward camera recognizes a place only when seen the same way.
+  CameraPath third = StreetPath({0, 40}, {100, 80}, 120);
+  std::reverse(third.control_points.begin(), third.control_points.end());
+  s.agents.push_back(third);
   s.default_duration_s = 90;
   s.default_baseline_m = 0.5;
   return s;

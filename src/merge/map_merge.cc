@@ -3,10 +3,12 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <optional>
 #include <random>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
+#include <utility>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -41,6 +43,16 @@ double Median(std::vector<double> v) {
 // The camera pose (rigid, T_cam_world) a pose S_cw implies, as a scale-1 similarity.
 Similarity3 PoseOf(const Similarity3& S_cw) {
   return Similarity3::FromIsometry(S_cw.ToIsometry());
+}
+
+// Map::UpdateCovisibility of every keyframe given (all alive): counted in parallel (reads only),
+// then written in one pass.
+void UpdateCovisibilities(const std::vector<KeyFrameHandle>& keyframes, Map* map) {
+  std::vector<Map::CovisibilityLinks> links(keyframes.size());
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, keyframes.size(), 16), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t k = r.begin(); k != r.end(); ++k) links[k] = std::as_const(*map).ComputeCovisibility(keyframes[k]);
+  });
+  for (size_t k = 0; k < keyframes.size(); ++k) map->SetCovisibility(keyframes[k], std::move(links[k]));
 }
 
 // Verifies one place-recognition candidate: bag-of-words matches, RANSAC, guided search.
@@ -320,6 +332,10 @@ MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
     for (size_t k = 0; k < source.size(); ++k) kf.points[k] = remap(from, source.points[k]);
     for (const auto& [other, weight] : source.covisible)
       if (const KeyFrameHandle o = remap(from, other); !o.is_null()) kf.covisible.emplace_back(o, weight);
+    // Fresh handles may order ties differently: strongest first, ties by handle, as Map keeps them.
+    std::sort(kf.covisible.begin(), kf.covisible.end(), [](const auto& a, const auto& b) {
+      return a.second != b.second ? a.second > b.second : a.first < b.first;
+    });
     kf.parent = remap(from, source.parent);
     for (KeyFrameHandle c : source.children)
       if (const KeyFrameHandle o = remap(from, c); !o.is_null()) kf.children.push_back(o);
@@ -329,16 +345,40 @@ MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
   return remap;
 }
 
+std::vector<KeyFrameHandle> SelectWeldWindow(const Map& map, std::span<const SeamPair> seam, size_t neighbours,
+                                             size_t max_keyframes) {
+  std::vector<KeyFrameHandle> window;
+  std::unordered_set<KeyFrameHandle> in_window;
+  auto add = [&](KeyFrameHandle h) {
+    if (map.keyframes().contains(h) && in_window.insert(h).second) window.push_back(h);
+  };
+  for (const SeamPair& pair : seam) {
+    if (window.size() >= max_keyframes) break;
+    for (KeyFrameHandle h : {pair.into_keyframe, pair.from_keyframe}) {
+      if (!map.keyframes().contains(h)) continue;
+      add(h);
+      for (KeyFrameHandle n : map.BestCovisible(h, neighbours)) add(n);
+    }
+  }
+  return window;
+}
+
 MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
                       const MapMergeOptions& options) {
-  MergeReport report;
   const auto start = std::chrono::steady_clock::now();
-  report.overlap = FindMapOverlap(into, from, vocabulary, camera, options);
-  report.place_ms = MsSince(start);
-  if (!report.overlap.found) {
-    report.merge_ms = MsSince(start);
-    return report;
-  }
+  MapOverlap overlap = FindMapOverlap(into, from, vocabulary, camera, options);
+  const double place_ms = MsSince(start);
+  MergeReport report = MergeMaps(into, from, std::move(overlap), camera, options);
+  report.place_ms = place_ms;
+  return report;
+}
+
+MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeCamera& camera,
+                      const MapMergeOptions& options) {
+  MergeReport report;
+  report.overlap = std::move(found);
+  const auto start = std::chrono::steady_clock::now();
+  if (!report.overlap.found) return report;
   const MapOverlap& overlap = report.overlap;
   std::vector<const MergePair*> seam;
   for (size_t k : overlap.consistent) seam.push_back(&overlap.verified[k]);
@@ -399,18 +439,39 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
     return out;
   };
   {
-    const std::vector<PointHandle> into_points = points_of(seam_into), from_points = points_of(seam_from);
-    for (KeyFrameHandle h : seam_from) FusePoints(into, h, into_points, camera.geometry, options.matcher);
-    for (KeyFrameHandle h : seam_into) FusePoints(into, h, from_points, camera.geometry, options.matcher);
+    // Each seam keyframe is offered only the other side's points that project into its image:
+    // found first for every keyframe in parallel over a copy of the positions (the fuse moves
+    // no point), so that FusePoints visits the map only for those.
+    auto in_view = [&](const std::vector<KeyFrameHandle>& keyframes, const std::vector<PointHandle>& points) {
+      std::vector<Eigen::Vector3d> positions(points.size());
+      for (size_t k = 0; k < points.size(); ++k) positions[k] = into.point(points[k]).position;
+      std::vector<std::vector<PointHandle>> out(keyframes.size());
+      tbb::parallel_for(tbb::blocked_range<size_t>(0, keyframes.size(), 4), [&](const tbb::blocked_range<size_t>& r) {
+        for (size_t i = r.begin(); i != r.end(); ++i) {
+          const Eigen::Isometry3d T = into.keyframe(keyframes[i]).T_cam_world;
+          double u, v;
+          for (size_t k = 0; k < points.size(); ++k)
+            if (camera.geometry.Project(T * positions[k], &u, &v)) out[i].push_back(points[k]);
+        }
+      });
+      return out;
+    };
+    const std::vector<std::vector<PointHandle>> into_seen = in_view(seam_from, points_of(seam_into));
+    const std::vector<std::vector<PointHandle>> from_seen = in_view(seam_into, points_of(seam_from));
+    for (size_t i = 0; i < seam_from.size(); ++i)
+      FusePoints(into, seam_from[i], into_seen[i], camera.geometry, options.matcher);
+    for (size_t i = 0; i < seam_into.size(); ++i)
+      FusePoints(into, seam_into[i], from_seen[i], camera.geometry, options.matcher);
   }
   report.points_fused = points_before - into.points().size();
+  report.fuse_ms = MsSince(start);
 
   // 4. Covisibility across the seam: every keyframe that sees a seam point.
   {
     std::unordered_set<KeyFrameHandle> touched(seam_set);
     for (PointHandle p : points_of(std::vector<KeyFrameHandle>(seam_set.begin(), seam_set.end())))
       for (const Observation& o : into.point(p).observations) touched.insert(o.keyframe);
-    for (KeyFrameHandle h : touched) into.UpdateCovisibility(h);
+    UpdateCovisibilities(std::vector<KeyFrameHandle>(touched.begin(), touched.end()), &into);
   }
 
   // 5. Essential graph: spanning tree, loop edges and strong covisibility within each map measured
@@ -429,41 +490,40 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   PoseGraphOptions graph_options;
   graph_options.fix_scale = !camera.monocular;
   graph_options.iterations = options.pose_graph_iterations;
+  graph_options.num_threads = options.bundle_adjustment.num_threads;
   if (options.pose_graph_iterations > 0) OptimizePoseGraph(graph.S, graph.fixed, graph.edges.edges(), graph_options);
   graph.Apply(&into, [&](PointHandle, const MapPoint& point) {
     if (into.keyframes().contains(point.reference) || point.observations.empty()) return point.reference;
     return point.observations.front().keyframe;
   });
+  report.graph_ms = MsSince(start) - report.fuse_ms;
 
-  // 6. Welding bundle adjustment: the seam keyframes and their neighbours free, every other
-  // keyframe that sees their points fixed.
+  // 6. Welding bundle adjustment: the weld window free (every keyframe with refine, into's oldest
+  // held), every other keyframe that sees its points fixed.
   {
     std::vector<KeyFrameHandle> free;
-    std::unordered_set<KeyFrameHandle> window;
-    auto add = [&](KeyFrameHandle h) {
-      if (window.insert(h).second) free.push_back(h);
-    };
-    if (options.global_bundle_adjustment)
-      for (KeyFrameHandle h : into.keyframes().handles()) add(h);
-    for (const MergePair* pair : seam) {
-      for (KeyFrameHandle h : {pair->into_keyframe, remap(from, pair->from_keyframe)}) {
-        add(h);
-        for (KeyFrameHandle n : into.BestCovisible(h, options.weld_neighbours)) add(n);
-      }
+    if (options.refine) {
+      free.assign(into.keyframes().handles().begin(), into.keyframes().handles().end());
+    } else {
+      std::vector<SeamPair> pairs;
+      for (const MergePair* pair : seam) pairs.push_back({pair->into_keyframe, remap(from, pair->from_keyframe)});
+      free = SelectWeldWindow(into, pairs, options.weld_neighbours, options.max_weld_keyframes);
     }
-    report.welded_keyframes = window.size();
+    report.refined = options.refine;
+    report.welded_keyframes = free.size();
     MapBundleAdjustment ba;
     BuildMapBundleAdjustment(into, camera.geometry, camera.stereo_depth, free, anchor, 1, &ba);
     if (!ba.problem.observations.empty()) {
       BundleAdjustmentOptions ba_options = options.bundle_adjustment;
-      if (window.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
+      if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
         ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
       const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
       if (result.success) report.weld_outliers += ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &into);
     }
-    for (KeyFrameHandle h : window)
-      if (into.keyframes().contains(h)) into.UpdateCovisibility(h);
+    std::erase_if(free, [&](KeyFrameHandle h) { return !into.keyframes().contains(h); });
+    UpdateCovisibilities(free, &into);
   }
+  report.weld_ms = MsSince(start) - report.fuse_ms - report.graph_ms;
   const std::vector<PointHandle> all_points(into.points().handles().begin(), into.points().handles().end());
   for (PointHandle p : all_points) into.UpdatePointStats(p, camera.scales);
   report.merged = true;
@@ -471,50 +531,95 @@ MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, 
   return report;
 }
 
-MultiMapMerge MergeMapsGreedy(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
-                              const MapMergeOptions& options) {
-  MultiMapMerge out;
-  struct Group {
-    Map map;
-    std::vector<size_t> members;
-    uint64_t version = 0;
+std::vector<MergeStep> PlanMergeOrder(size_t count, const std::vector<OverlapEdge>& edges) {
+  auto stronger = [&](size_t x, size_t y) {
+    const OverlapEdge &ex = edges[x], &ey = edges[y];
+    if (ex.independent_pairs != ey.independent_pairs) return ex.independent_pairs > ey.independent_pairs;
+    if (ex.correspondences != ey.correspondences) return ex.correspondences > ey.correspondences;
+    return x < y;
   };
-  std::vector<Group> groups;
-  for (size_t i = 0; i < maps.size(); ++i) {
-    ComputeKeyFrameBow(maps[i], vocabulary);
-    groups.push_back({std::move(maps[i]), {i}, 0});
+  // Kruskal: the strongest edges that join two trees.
+  std::vector<size_t> order;
+  for (size_t e = 0; e < edges.size(); ++e) {
+    FLATSLAM_CHECK(edges[e].a < count && edges[e].b < count && edges[e].a != edges[e].b, "PlanMergeOrder: edge ", e,
+                   " joins inputs ", edges[e].a, " and ", edges[e].b, " of ", count);
+    if (edges[e].found) order.push_back(e);
   }
-  // A pair of groups that failed is retried only when one of them has grown since.
-  std::unordered_set<std::string> failed;
-  auto key = [&](const Group& a, const Group& b) {
-    return std::to_string(a.members.front()) + ":" + std::to_string(a.version) + "/" +
-           std::to_string(b.members.front()) + ":" + std::to_string(b.version);
+  std::sort(order.begin(), order.end(), stronger);
+  std::vector<size_t> parent(count);
+  for (size_t i = 0; i < count; ++i) parent[i] = i;
+  auto find = [&](size_t i) {
+    while (parent[i] != i) i = parent[i] = parent[parent[i]];
+    return i;
   };
-  bool progress = true;
-  while (progress) {
-    progress = false;
-    for (size_t j = 1; j < groups.size() && !progress; ++j) {
-      for (size_t i = 0; i < j && !progress; ++i) {
-        if (failed.count(key(groups[i], groups[j]))) continue;
-        MergeAttempt attempt;
-        attempt.into = groups[i].members;
-        attempt.from = groups[j].members;
-        attempt.report = MergeMaps(groups[i].map, groups[j].map, vocabulary, camera, options);
-        if (attempt.report.merged) {
-          groups[i].members.insert(groups[i].members.end(), groups[j].members.begin(), groups[j].members.end());
-          ++groups[i].version;
-          groups.erase(groups.begin() + static_cast<std::ptrdiff_t>(j));
-          progress = true;
-        } else {
-          failed.insert(key(groups[i], groups[j]));
-        }
-        out.attempts.push_back(std::move(attempt));
-      }
+  std::vector<size_t> tree;
+  for (size_t e : order) {
+    const size_t ra = find(edges[e].a), rb = find(edges[e].b);
+    if (ra == rb) continue;
+    parent[std::max(ra, rb)] = std::min(ra, rb);
+    tree.push_back(e);
+  }
+  // Prim from each tree's lowest input, over the tree's edges.
+  std::vector<MergeStep> steps;
+  std::vector<bool> joined(count, false);
+  for (size_t root = 0; root < count; ++root) {
+    if (joined[root]) continue;
+    joined[root] = true;
+    for (;;) {
+      std::optional<size_t> best;
+      for (size_t e : tree)
+        if (joined[edges[e].a] != joined[edges[e].b] && (!best || stronger(e, *best))) best = e;
+      if (!best) break;
+      const size_t from = joined[edges[*best].a] ? edges[*best].b : edges[*best].a;
+      joined[from] = true;
+      steps.push_back({root, from, *best});
     }
   }
-  for (Group& g : groups) {
-    out.maps.push_back(std::move(g.map));
-    out.members.push_back(std::move(g.members));
+  return steps;
+}
+
+MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
+                           const MapMergeOptions& options) {
+  MultiMapMerge out;
+  for (Map& map : maps) ComputeKeyFrameBow(map, vocabulary);
+  // The overlap graph: every pair measured once, the lower input as the into side.
+  std::vector<MapOverlap> found;
+  std::vector<double> place_ms;
+  for (size_t a = 0; a < maps.size(); ++a) {
+    for (size_t b = a + 1; b < maps.size(); ++b) {
+      const auto start = std::chrono::steady_clock::now();
+      found.push_back(FindMapOverlap(maps[a], maps[b], vocabulary, camera, options));
+      place_ms.push_back(MsSince(start));
+      const MapOverlap& o = found.back();
+      out.overlaps.push_back({a, b, o.independent_pairs, o.correspondences, o.found});
+    }
+  }
+  std::vector<std::vector<size_t>> members(maps.size());
+  for (size_t i = 0; i < maps.size(); ++i) members[i] = {i};
+  std::vector<bool> absorbed(maps.size(), false);
+  for (const MergeStep& step : PlanMergeOrder(maps.size(), out.overlaps)) {
+    MergeAttempt attempt;
+    attempt.into = members[step.root];
+    attempt.from = members[step.from];
+    const OverlapEdge& edge = out.overlaps[step.edge];
+    if (members[step.root].size() == 1 && edge.a == step.root && edge.b == step.from) {
+      // Both maps are as they were measured: the pair's overlap holds.
+      attempt.report = MergeMaps(maps[step.root], maps[step.from], std::move(found[step.edge]), camera, options);
+      attempt.report.place_ms = place_ms[step.edge];
+    } else {
+      attempt.report = MergeMaps(maps[step.root], maps[step.from], vocabulary, camera, options);
+    }
+    if (attempt.report.merged) {
+      members[step.root].insert(members[step.root].end(), members[step.from].begin(), members[step.from].end());
+      absorbed[step.from] = true;
+      maps[step.from] = Map();
+    }
+    out.attempts.push_back(std::move(attempt));
+  }
+  for (size_t i = 0; i < maps.size(); ++i) {
+    if (absorbed[i]) continue;
+    out.maps.push_back(std::move(maps[i]));
+    out.members.push_back(std::move(members[i]));
   }
   return out;
 }

@@ -8,6 +8,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -52,9 +53,15 @@ struct MapMergeOptions {
   double max_scale_disagreement = 0.1;  // monocular: |s_i / s_j - 1|
   int ransac_iterations = 300;
   size_t weld_neighbours = 10;  // covisible keyframes freed with each seam keyframe in the weld
-  // The weld frees every keyframe (into's oldest held): with seams in several places this also
-  // takes out drift between them. Off: only the seam neighbourhoods move in the weld.
-  bool global_bundle_adjustment = true;
+  // The weld window: seam pairs strongest first, each freeing its two keyframes and their
+  // weld_neighbours best covisible ones, until this many keyframes are free. About 25 keyframes on
+  // each side of the seam, the window ORB-SLAM3 welds a merge with; the essential graph carries the
+  // correction to every other keyframe. The weld's cost follows the window, not the maps.
+  size_t max_weld_keyframes = 50;
+  // Refine: the weld frees every keyframe instead (into's oldest held), a global bundle
+  // adjustment that also takes out drift between seams in several places. Costs time and memory
+  // in proportion to the whole map.
+  bool refine = false;
   int pose_graph_iterations = 20;
   BundleAdjustmentOptions bundle_adjustment;
   uint64_t seed = 1;  // RANSAC sampling (each query keyframe gets its own stream)
@@ -118,13 +125,51 @@ struct MergeReport {
   size_t loop_edges = 0;        // added between matched keyframes
   size_t welded_keyframes = 0;  // free in the seam bundle adjustment
   size_t weld_outliers = 0;     // observations dropped by it
+  bool refined = false;         // the weld freed every keyframe (MapMergeOptions::refine)
   double place_ms = 0, merge_ms = 0;
+  // Parts of merge_ms: append and fuse, covisibility and essential graph, weld bundle adjustment.
+  double fuse_ms = 0, graph_ms = 0, weld_ms = 0;
 };
+
+// The keyframes a weld frees (SelectWeldWindow): seam pairs in the order given (strongest
+// first), each adding its two keyframes and their `neighbours` best covisible keyframes, until
+// the window holds max_keyframes (a pair is added whole, so the last one may pass it by up to
+// 2 + 2 x neighbours). Dead handles are skipped.
+struct SeamPair {
+  KeyFrameHandle into_keyframe, from_keyframe;  // both in the merged map
+};
+[[nodiscard]] std::vector<KeyFrameHandle> SelectWeldWindow(const Map& map, std::span<const SeamPair> seam,
+                                                           size_t neighbours, size_t max_keyframes);
 
 // Merges `from` into `into` when they overlap (into's frame is kept); leaves `into` untouched
 // otherwise. `from` is never modified. Both maps need bags of words (ComputeKeyFrameBow).
 [[nodiscard]] MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
                                     const MapMergeOptions& options);
+
+// The same with the overlap already found by FindMapOverlap(into, from, ...) on these two maps
+// as they are now.
+[[nodiscard]] MergeReport MergeMaps(Map& into, const Map& from, MapOverlap overlap, const MergeCamera& camera,
+                                    const MapMergeOptions& options);
+
+// Overlap between two input maps, as place recognition measured it before any merge.
+struct OverlapEdge {
+  size_t a = 0, b = 0;           // input indices, a < b (a was the into side)
+  size_t independent_pairs = 0;  // agreeing keyframe pairs with distinct keyframes
+  size_t correspondences = 0;    // point pairs of the fitted transform
+  bool found = false;            // enough agreeing pairs to merge
+};
+
+// One merge of the plan: input `from` joins the group whose first input is `root`.
+struct MergeStep {
+  size_t root = 0, from = 0;
+  size_t edge = 0;  // index of the OverlapEdge it follows
+};
+
+// The order to merge `count` inputs in: a maximum spanning forest of the overlap graph (edges
+// that found an overlap, weighted by independent pairs, then correspondences), each tree rooted at
+// its lowest input (whose frame the merged map keeps) and grown strongest edge first from the
+// inputs already joined (Prim). Inputs on no edge are not in any step and stay separate.
+[[nodiscard]] std::vector<MergeStep> PlanMergeOrder(size_t count, const std::vector<OverlapEdge>& edges);
 
 struct MergeAttempt {
   std::vector<size_t> into, from;  // input maps already in each side (into keeps its frame)
@@ -134,13 +179,15 @@ struct MergeAttempt {
 struct MultiMapMerge {
   std::vector<Map> maps;                     // one per group of overlapping inputs
   std::vector<std::vector<size_t>> members;  // input maps of each output map, first = its frame
+  std::vector<OverlapEdge> overlaps;         // every pair of inputs, as first measured
   std::vector<MergeAttempt> attempts;        // in the order they were made
 };
 
-// Greedy merge of several maps: each input joins the first group it overlaps (input 0 founds
-// the first group), inputs that overlap nothing found new groups, and the remaining inputs are
-// retried whenever a group grew. Inputs keep their own frames when nothing overlaps them.
-[[nodiscard]] MultiMapMerge MergeMapsGreedy(std::vector<Map> maps, const Vocabulary& vocabulary,
-                                            const MergeCamera& camera, const MapMergeOptions& options);
+// Merges several maps: place recognition between every pair of inputs (the overlap graph), then
+// the merges of PlanMergeOrder. A step whose group has grown since the pair was measured finds
+// the overlap again against the whole group. An input whose merge fails, or that overlaps
+// nothing, is kept as its own map in its own frame.
+[[nodiscard]] MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
+                                         const MapMergeOptions& options);
 
 }  // namespace flatslam

@@ -893,11 +893,12 @@ BoundingBox MapSnapshotView::bounds(size_t m) const {
   return box;
 }
 
-Trajectory MapSnapshotView::KeyFrameTrajectory(size_t m) const {
+Trajectory MapSnapshotView::KeyFrameTrajectory(size_t m, std::optional<uint32_t> agent) const {
   Trajectory out;
   if (const auto* kfs = segment(m).keyframes()) {
     out.reserve(kfs->size());
-    for (const schema::KeyFrameRecord* kf : *kfs) out.push_back({kf->t_ns(), FromPose(kf->cam_from_world()).inverse()});
+    for (const schema::KeyFrameRecord* kf : *kfs)
+      if (!agent || kf->agent() == *agent) out.push_back({kf->t_ns(), FromPose(kf->cam_from_world()).inverse()});
   }
   std::stable_sort(out.begin(), out.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
   return out;

@@ -129,8 +129,8 @@ class MapSnapshotView {
   // Of the map points' positions.
   [[nodiscard]] BoundingBox bounds(size_t m) const;
   [[nodiscard]] Eigen::Vector3d point_position(size_t m, size_t i) const;
-  // Keyframe poses as T_world_cam, sorted by time.
-  [[nodiscard]] Trajectory KeyFrameTrajectory(size_t m) const;
+  // Keyframe poses as T_world_cam, sorted by time (only `agent`'s keyframes when given).
+  [[nodiscard]] Trajectory KeyFrameTrajectory(size_t m, std::optional<uint32_t> agent = std::nullopt) const;
   // A checkpoint's session without its trajectory (frames stays empty; LoadMapSnapshot gives it
   // with handles); nullopt for a snapshot that is not a checkpoint.
   [[nodiscard]] std::optional<SnapshotSession> session_summary() const;

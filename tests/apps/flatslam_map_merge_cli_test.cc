@@ -1,6 +1,7 @@
 // flatslam map merge: overlapping maps join, a map of another place stays separate, inputs are
 // never modified, and mismatched calibration or vocabulary, a missing vocabulary and an output
 // that is an input are refused with one clear error and nothing written.
+#include <algorithm>
 #include <array>
 #include <cstdio>
 #include <filesystem>
@@ -59,9 +60,12 @@ TEST_F(MapMergeCli, JoinsOverlappingMapsAndKeepsOthersApart) {
   const Result r =
       RunApp("map merge " + path("room1") + " " + path("room2") + " " + path("street") + " -o " + path("merged"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  for (const char* part : {"pairs verified", "transform", "points fused", "output map 0   inputs 0+1, agents [0,1]",
+  for (const char* part : {"overlap       0-1: found", "overlap       0-2: none", "overlap       1-2: none",
+                           "pairs verified", "transform", "points fused", "output map 0   inputs 0+1, agents [0,1]",
                            "output map 1   inputs 2, agents [2]", "kept separate", "2 maps", "time"})
     EXPECT_TRUE(Contains(r.output, part)) << part << "\n" << r.output;
+  // One try only: the street overlaps nothing, so no merge with it is attempted.
+  EXPECT_EQ(r.output.find("try "), r.output.rfind("try ")) << r.output;
   EXPECT_EQ(ReadBytes(path("room1")), before1);
   EXPECT_EQ(ReadBytes(path("room2")), before2);
   EXPECT_EQ(ReadBytes(path("street")), before3);
@@ -70,6 +74,34 @@ TEST_F(MapMergeCli, JoinsOverlappingMapsAndKeepsOthersApart) {
   const Result info = RunApp("map info " + path("merged"));
   EXPECT_TRUE(Contains(info.output, "maps          2")) << info.output;
   EXPECT_TRUE(Contains(info.output, "agents [0,1]")) << info.output;
+
+  // Each agent's keyframes exported on their own add up to the merged map's.
+  auto poses = [&](const std::string& agent) {
+    const std::string file = (dir_ / ("poses" + agent + ".tum")).string();
+    const Result e =
+        RunApp("map export " + path("merged") + " --trajectory " + file + (agent.empty() ? "" : " --agent " + agent));
+    EXPECT_EQ(e.exit_code, 0) << e.output;
+    std::ifstream in(file);
+    size_t count = 0;
+    for (std::string line; std::getline(in, line);) count += !line.empty() && line[0] != '#';
+    return count;
+  };
+  const size_t agent0 = poses("0"), agent1 = poses("1"), agent2 = poses("2");
+  EXPECT_GT(agent0, 10u);
+  EXPECT_GT(agent1, 10u);
+  EXPECT_GT(agent2, 0u);  // the street, a map of its own in the same file
+  EXPECT_EQ(agent0 + agent1 + agent2, poses(""));
+  const Result none =
+      RunApp("map export " + path("merged") + " --trajectory " + (dir_ / "none.tum").string() + " --agent 7");
+  EXPECT_NE(none.exit_code, 0);
+  EXPECT_TRUE(Contains(none.output, "no keyframes of agent 7 (its maps hold agents [0,1,2])")) << none.output;
+  EXPECT_FALSE(fs::exists(dir_ / "none.tum"));
+
+  // --refine frees every keyframe in the weld.
+  const Result refined = RunApp("map merge " + path("room1") + " " + path("room2") + " --refine -o " + path("refined"));
+  ASSERT_EQ(refined.exit_code, 0) << refined.output;
+  EXPECT_TRUE(Contains(refined.output, "welded (refine: all)")) << refined.output;
+  EXPECT_EQ(RunApp("map verify " + path("refined")).exit_code, 0);
 }
 
 // ctest runs every test in its own process, and the set-up makes five SLAM runs: the refusals

@@ -1,10 +1,11 @@
-// Map merging: the handle remap of AppendMap, two town agents merged into one frame with each
-// agent's keyframe ATE (one alignment for the merged map) within 1.5x of its own, and maps of
-// unrelated places left apart and untouched.
+// Map merging: the merge order and weld window, the handle remap of AppendMap, three town agents
+// merged into one frame with each agent's keyframe ATE (one alignment for the merged map) within
+// 1.5x of its own, and maps of unrelated places left apart and untouched.
 #include "merge/map_merge.h"
 
 #include <algorithm>
 #include <cstdio>
+#include <set>
 #include <string>
 #include <unordered_set>
 #include <vector>
@@ -97,114 +98,82 @@ MergeCamera CameraOf(const AgentRun& run) {
 
 // Agent 0 drives the bottom road (+x), the right side and most of the top road (-x); agent 1
 // starts at the far end of its loop and drives the shared parts of both roads in the same
-// directions, so the maps overlap in two places 40 m apart. 10 frames/s keeps the runs short.
+// directions, so the maps overlap in two places 40 m apart; agent 2 loops the blocks above,
+// clockwise, and drives the top road of the others (-x) as they do. 10 frames/s keeps the runs
+// short.
 std::string Town(int agent) {
   return "synth:town:agent=" + std::to_string(agent) +
          ",width=480,height=360,fps=10,duration=" + (agent == 0 ? "36" : "55");
 }
 
-TEST(MapMerge, AppendMapRemapsEveryHandle) {
-  const AgentRun room = RunAgent("synth:room:duration=5,width=480,height=360", 0);
-  ASSERT_GT(room.map.keyframes().size(), 3u);
-  Map into = room.map;
-  const Map& from = room.map;
-  Similarity3 S;
-  S.R = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
-  S.t = Eigen::Vector3d(4, -2, 7);
-  S.s = 2.0;
-  uint64_t max_id = 0;
-  for (const KeyFrame& kf : into.keyframes().values()) max_id = std::max(max_id, kf.id);
-  const MapRemap remap = AppendMap(into, from, S);
-  EXPECT_EQ(into.Validate(), "");
-  EXPECT_EQ(into.keyframes().size(), 2 * from.keyframes().size());
-  EXPECT_EQ(into.points().size(), 2 * from.points().size());
-  std::unordered_set<KeyFrameHandle> fresh;
-  for (size_t i = 0; i < from.keyframes().size(); ++i) {
-    const KeyFrameHandle h = from.keyframes().handles()[i];
-    const KeyFrameHandle n = remap(from, h);
-    ASSERT_TRUE(into.keyframes().contains(n));
-    EXPECT_NE(n, h);
-    EXPECT_TRUE(fresh.insert(n).second);
-    const KeyFrame& a = from.keyframe(h);
-    const KeyFrame& b = into.keyframe(n);
-    EXPECT_GT(b.id, max_id);
-    EXPECT_EQ(b.agent, a.agent);
-    EXPECT_EQ(b.t_ns, a.t_ns);
-    EXPECT_LT((b.camera_center() - S * a.camera_center()).norm(), 1e-9);
-    EXPECT_LT((b.T_cam_world.linear() - a.T_cam_world.linear() * S.R.transpose()).norm(), 1e-9);
-    for (size_t k = 0; k < a.size(); ++k) EXPECT_EQ(b.points[k], remap(from, a.points[k]));
-    EXPECT_EQ(b.parent, remap(from, a.parent));
-    ASSERT_EQ(b.covisible.size(), a.covisible.size());
-    for (size_t k = 0; k < a.covisible.size(); ++k) {
-      EXPECT_EQ(b.covisible[k].first, remap(from, a.covisible[k].first));
-      EXPECT_EQ(b.covisible[k].second, a.covisible[k].second);
-    }
-  }
-  for (size_t i = 0; i < from.points().size(); ++i) {
-    const PointHandle h = from.points().handles()[i];
-    const MapPoint& a = from.point(h);
-    const MapPoint& b = into.point(remap(from, h));
-    EXPECT_LT((b.position - S * a.position).norm(), 1e-9);
-    EXPECT_NEAR(b.max_distance, 2 * a.max_distance, 1e-4 * a.max_distance);
-    ASSERT_EQ(b.observations.size(), a.observations.size());
-    for (size_t k = 0; k < a.observations.size(); ++k) {
-      EXPECT_EQ(b.observations[k].keyframe, remap(from, a.observations[k].keyframe));
-      EXPECT_EQ(b.observations[k].keypoint, a.observations[k].keypoint);
-    }
-  }
-  // The entities that were there before are untouched.
-  for (size_t i = 0; i < from.points().size(); ++i)
-    EXPECT_EQ(into.point(from.points().handles()[i]).position, from.points().values()[i].position);
-}
-
-TEST(MapMerge, TwoTownAgentsShareOneFrame) {
+TEST(MapMerge, TownAgentsJoinAlongTheirOverlapsAndAnUnrelatedMapStaysApart) {
   const AgentRun a0 = RunAgent(Town(0), 0);
   const AgentRun a1 = RunAgent(Town(1), 1);
-  ASSERT_GT(a0.map.keyframes().size(), 20u);
-  ASSERT_GT(a1.map.keyframes().size(), 20u);
-  const std::vector<double> apart = JointAte({&a0.map, &a1.map}, {&a0, &a1});
+  const AgentRun a2 = RunAgent(Town(2), 2);
+  const AgentRun room = RunAgent("synth:room:duration=6,width=480,height=360", 3);
+  const std::vector<const AgentRun*> town = {&a0, &a1, &a2};
+  for (const AgentRun* run : town) ASSERT_GT(run->map.keyframes().size(), 20u);
+  const std::vector<double> apart = JointAte({&a0.map, &a1.map, &a2.map}, town);
 
-  const Map input1 = a1.map;
-  const MultiMapMerge merged = MergeMapsGreedy({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
-  ASSERT_EQ(merged.attempts.size(), 1u);
-  const MergeReport& report = merged.attempts[0].report;
-  const MapOverlap& overlap = report.overlap;
-  std::printf(
-      "queries %zu, candidates %zu, verified %zu, agreeing %zu (%zu independent), %zu point pairs rms %.3f m, "
-      "fused %zu, welded %zu, place %.0f ms, merge %.0f ms\n",
-      overlap.queries, overlap.candidates, overlap.verified.size(), overlap.consistent.size(),
-      overlap.independent_pairs, overlap.correspondences, overlap.residual_rms, report.points_fused,
-      report.welded_keyframes, report.place_ms, report.merge_ms);
-  ASSERT_TRUE(report.merged);
-  ASSERT_EQ(merged.maps.size(), 1u);
-  EXPECT_EQ(merged.members[0], (std::vector<size_t>{0, 1}));
+  const MultiMapMerge merged =
+      MergeAllMaps({a0.map, a1.map, a2.map, room.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
+  // The overlap graph: the three town agents overlap pairwise, the room overlaps none of them.
+  ASSERT_EQ(merged.overlaps.size(), 6u);
+  for (const OverlapEdge& e : merged.overlaps) {
+    std::printf("overlap %zu-%zu: %s, %zu independent pairs, %zu point pairs\n", e.a, e.b, e.found ? "found" : "none",
+                e.independent_pairs, e.correspondences);
+    EXPECT_EQ(e.found, e.b != 3) << e.a << "-" << e.b;
+  }
+  // Two merges along the spanning tree, into input 0's frame; the room stays apart, untouched.
+  ASSERT_EQ(merged.attempts.size(), 2u);
+  ASSERT_EQ(merged.maps.size(), 2u);
+  EXPECT_EQ(merged.members[0].front(), 0u);
+  EXPECT_EQ(std::set<size_t>(merged.members[0].begin(), merged.members[0].end()), (std::set<size_t>{0, 1, 2}));
+  EXPECT_EQ(merged.members[1], std::vector<size_t>{3});
+  EXPECT_EQ(merged.maps[1].keyframes().size(), room.map.keyframes().size());
   const Map& map = merged.maps[0];
   EXPECT_EQ(map.Validate(), "");
-  EXPECT_EQ(map.keyframes().size(), a0.map.keyframes().size() + a1.map.keyframes().size());
-  EXPECT_GT(report.points_fused, 100u);
-  EXPECT_LT(map.points().size(), a0.map.points().size() + a1.map.points().size());
-  EXPECT_GE(overlap.independent_pairs, 3u);
-  // Every seam pair is a true place: both keyframes' true camera centres are close.
-  for (size_t k : overlap.consistent) {
-    const MergePair& pair = overlap.verified[k];
-    auto true_center = [](const AgentRun& run, const Map& m, KeyFrameHandle h) {
-      const int64_t t = m.keyframe(h).t_ns;
-      const auto it = std::min_element(run.gt.begin(), run.gt.end(), [&](const TimedPose& a, const TimedPose& b) {
-        return std::abs(a.t_ns - t) < std::abs(b.t_ns - t);
+  EXPECT_EQ(map.keyframes().size(), a0.map.keyframes().size() + a1.map.keyframes().size() + a2.map.keyframes().size());
+  EXPECT_LT(map.points().size(), a0.map.points().size() + a1.map.points().size() + a2.map.points().size());
+  for (const MergeAttempt& attempt : merged.attempts) {
+    const MergeReport& report = attempt.report;
+    const MapOverlap& overlap = report.overlap;
+    std::printf(
+        "merge %zu: verified %zu, agreeing %zu (%zu independent), %zu point pairs rms %.3f m, fused %zu, welded "
+        "%zu, place %.0f ms, merge %.0f ms\n",
+        attempt.from.front(), overlap.verified.size(), overlap.consistent.size(), overlap.independent_pairs,
+        overlap.correspondences, overlap.residual_rms, report.points_fused, report.welded_keyframes, report.place_ms,
+        report.merge_ms);
+    ASSERT_TRUE(report.merged);
+    ASSERT_EQ(attempt.from.size(), 1u);
+    EXPECT_GE(overlap.independent_pairs, 3u);
+    EXPECT_GT(report.points_fused, 100u);
+    EXPECT_LE(report.welded_keyframes,
+              MapMergeOptions{}.max_weld_keyframes + 2 + 2 * MapMergeOptions{}.weld_neighbours);
+    // Every seam pair is a true place: both keyframes' true camera centres are close. The into
+    // keyframe lives on in the merged map (merges erase no keyframe), the from keyframe in its input.
+    auto true_center = [&](const Map& m, KeyFrameHandle h) {
+      const KeyFrame& kf = m.keyframe(h);
+      const Trajectory& gt = town.at(kf.agent)->gt;
+      const auto it = std::min_element(gt.begin(), gt.end(), [&](const TimedPose& a, const TimedPose& b) {
+        return std::abs(a.t_ns - kf.t_ns) < std::abs(b.t_ns - kf.t_ns);
       });
       return Eigen::Vector3d(it->T_world_cam.translation());
     };
-    EXPECT_LT((true_center(a0, a0.map, pair.into_keyframe) - true_center(a1, input1, pair.from_keyframe)).norm(), 15.0);
+    const Map& from = town.at(attempt.from.front())->map;
+    for (size_t k : overlap.consistent) {
+      const MergePair& pair = overlap.verified[k];
+      EXPECT_LT((true_center(map, pair.into_keyframe) - true_center(from, pair.from_keyframe)).norm(), 15.0);
+    }
   }
 
-  const std::vector<double> ate = JointAte({&map}, {&a0, &a1});
-  std::printf(
-      "keyframe ATE: agent 0 own %.3f m, merged %.3f m; agent 1 own %.3f m, merged %.3f m; "
-      "unmerged maps in one frame %.1f / %.1f m\n",
-      a0.own_ate_m, ate[0], a1.own_ate_m, ate[1], apart[0], apart[1]);
-  EXPECT_GT(std::max(apart[0], apart[1]), 10.0);  // before the merge the frames differ
-  EXPECT_LE(ate[0], 1.5 * a0.own_ate_m);
-  EXPECT_LE(ate[1], 1.5 * a1.own_ate_m);
+  const std::vector<double> ate = JointAte({&map}, town);
+  for (size_t k = 0; k < town.size(); ++k) {
+    std::printf("agent %zu keyframe ATE: own %.3f m, merged %.3f m, unmerged maps in one frame %.1f m\n", k,
+                town[k]->own_ate_m, ate[k], apart[k]);
+    EXPECT_LE(ate[k], 1.5 * town[k]->own_ate_m);
+  }
+  EXPECT_GT(*std::max_element(apart.begin(), apart.end()), 10.0);  // before the merge the frames differ
 }
 
 // Two monocular runs of the room with different noise: the maps have different arbitrary scales,
@@ -213,7 +182,7 @@ TEST(MapMerge, MonocularMapsMergeWithScale) {
   const std::string spec = "synth:room:sensor=mono,duration=12,width=480,height=360,seed=";
   const AgentRun a0 = RunAgent(spec + "1", 0, Alignment::kSim3);
   const AgentRun a1 = RunAgent(spec + "2", 1, Alignment::kSim3);
-  const MultiMapMerge merged = MergeMapsGreedy({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
+  const MultiMapMerge merged = MergeAllMaps({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
   ASSERT_EQ(merged.maps.size(), 1u);
   const MergeReport& report = merged.attempts.at(0).report;
   EXPECT_EQ(merged.maps[0].Validate(), "");
@@ -233,11 +202,13 @@ TEST(MapMerge, UnrelatedMapsStaySeparate) {
   const AgentRun room = RunAgent("synth:room:duration=6,width=480,height=360", 0);
   const AgentRun street = RunAgent("synth:street:duration=6,width=480,height=360", 1);
   MapMergeOptions options;
-  const MultiMapMerge merged = MergeMapsGreedy({room.map, street.map}, DefaultVocabulary(), CameraOf(room), options);
+  const MultiMapMerge merged = MergeAllMaps({room.map, street.map}, DefaultVocabulary(), CameraOf(room), options);
   ASSERT_EQ(merged.maps.size(), 2u);
-  ASSERT_EQ(merged.attempts.size(), 1u);
-  EXPECT_FALSE(merged.attempts[0].report.merged);
-  EXPECT_LT(merged.attempts[0].report.overlap.independent_pairs, static_cast<size_t>(options.min_consistent_pairs));
+  // The pair was measured and found no overlap, so no merge was tried.
+  ASSERT_EQ(merged.overlaps.size(), 1u);
+  EXPECT_FALSE(merged.overlaps[0].found);
+  EXPECT_LT(merged.overlaps[0].independent_pairs, static_cast<size_t>(options.min_consistent_pairs));
+  EXPECT_TRUE(merged.attempts.empty());
   EXPECT_EQ(merged.members[0], std::vector<size_t>{0});
   EXPECT_EQ(merged.members[1], std::vector<size_t>{1});
   // Each map is kept as it was, in its own frame.
