@@ -27,6 +27,7 @@ std::string SlamOptions::Problem() const {
   FLATSLAM_REQUIRE(r, min_local_map_inliers > 0);
   FLATSLAM_REQUIRE(r, min_motion_matches > 0);
   FLATSLAM_REQUIRE(r, min_reference_matches > 0);
+  FLATSLAM_REQUIRE(r, reference_bow_ratio > 0 && reference_bow_ratio <= 1);
   FLATSLAM_REQUIRE(r, keyframe_track_ratio > 0 && keyframe_track_ratio <= 1);
   FLATSLAM_REQUIRE(r, keyframe_track_ratio_mono > 0 && keyframe_track_ratio_mono <= 1);
   FLATSLAM_REQUIRE(r, keyframe_close_tracked >= 0);

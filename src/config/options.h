@@ -58,6 +58,9 @@ struct SlamOptions {
   // reference-keyframe search, which needs min_reference_matches (else: relocalization).
   int min_motion_matches = 20;
   int min_reference_matches = 15;
+  // Best/second-best ratio of its search by words (ORB-SLAM2's 0.7), made beside the projection
+  // search around the last pose (the pose with more inliers wins).
+  float reference_bow_ratio = 0.7f;
   // The keyframe rule (ORB-SLAM2's): a frame is thin when it tracks fewer than this share of its
   // reference keyframe's points (monocular: the _mono share, as forward motion thins points
   // faster), or, with depth, tracks fewer than keyframe_close_tracked close points while

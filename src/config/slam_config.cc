@@ -86,6 +86,7 @@ const std::vector<Entry>& Entries() {
       {"min_local_map_inliers", [](SlamOptions& o) -> Field { return &o.min_local_map_inliers; }},
       {"min_motion_matches", [](SlamOptions& o) -> Field { return &o.min_motion_matches; }},
       {"min_reference_matches", [](SlamOptions& o) -> Field { return &o.min_reference_matches; }},
+      {"reference_bow_ratio", [](SlamOptions& o) -> Field { return &o.reference_bow_ratio; }},
       {"keyframe_track_ratio", [](SlamOptions& o) -> Field { return &o.keyframe_track_ratio; }},
       {"keyframe_track_ratio_mono", [](SlamOptions& o) -> Field { return &o.keyframe_track_ratio_mono; }},
       {"keyframe_close_tracked", [](SlamOptions& o) -> Field { return &o.keyframe_close_tracked; }},

@@ -8,14 +8,6 @@
 #include "core/error.h"
 
 namespace flatslam {
-namespace {
-
-// Covisibility lists are kept strongest first, ties by handle.
-bool StrongerLink(const std::pair<KeyFrameHandle, int>& a, const std::pair<KeyFrameHandle, int>& b) {
-  return a.second != b.second ? a.second > b.second : a.first < b.first;
-}
-
-}  // namespace
 
 void KeyFrame::resize(size_t n) {
   uv.resize(n, Eigen::Vector2f::Zero());

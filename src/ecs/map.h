@@ -147,6 +147,11 @@ class Map {
   // links kf would get, strongest first (reads only: concurrent calls are safe while nothing
   // writes the map), and writing them (as UpdateCovisibility does with them).
   using CovisibilityLinks = std::vector<std::pair<KeyFrameHandle, int>>;
+  // The order every covisibility list is kept in: strongest first, ties by handle.
+  [[nodiscard]] static bool StrongerLink(const std::pair<KeyFrameHandle, int>& a,
+                                         const std::pair<KeyFrameHandle, int>& b) {
+    return a.second != b.second ? a.second > b.second : a.first < b.first;
+  }
   [[nodiscard]] CovisibilityLinks ComputeCovisibility(KeyFrameHandle kf, int min_shared = 15) const;
   void SetCovisibility(KeyFrameHandle kf, CovisibilityLinks links);
   // The n strongest covisible keyframes of kf that are still alive.

@@ -332,10 +332,8 @@ MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
     for (size_t k = 0; k < source.size(); ++k) kf.points[k] = remap(from, source.points[k]);
     for (const auto& [other, weight] : source.covisible)
       if (const KeyFrameHandle o = remap(from, other); !o.is_null()) kf.covisible.emplace_back(o, weight);
-    // Fresh handles may order ties differently: strongest first, ties by handle, as Map keeps them.
-    std::sort(kf.covisible.begin(), kf.covisible.end(), [](const auto& a, const auto& b) {
-      return a.second != b.second ? a.second > b.second : a.first < b.first;
-    });
+    // Fresh handles may order ties differently.
+    std::sort(kf.covisible.begin(), kf.covisible.end(), Map::StrongerLink);
     kf.parent = remap(from, source.parent);
     for (KeyFrameHandle c : source.children)
       if (const KeyFrameHandle o = remap(from, c); !o.is_null()) kf.children.push_back(o);
