@@ -53,13 +53,18 @@ std::string SlamOptions::Problem() const {
 }
 
 int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz) {
-  // One feature per 300 px^2 keeps the keypoints per FAST cell the same at every resolution (the
-  // density of ORB-SLAM's budgets for 640x480 and 752x480 cameras: 1000 and 1200). Below 20 Hz the
-  // scene moves further between frames and fewer keypoints survive from one frame to the next:
-  // the budget grows with sqrt(20 / rate), halfway (in log terms) between no growth and growth
-  // with the image motion per frame.
+  // 1.9 features per pixel of the image's linear size (the square root of its area). The budget a
+  // camera needs follows its linear size, not its area: the scene holds about as many trackable
+  // corners at any resolution (the pyramid finds them at coarser levels), while the image motion
+  // they must be found across grows with the size. 1.9 is the middle of the range of coefficients
+  // (1.82-1.98) for which the rule returns ORB-SLAM's published budgets for 640x480, 752x480 and
+  // 1241x376 at 10 Hz (1000, 1200, 2000). Below 20 Hz the scene moves further between frames
+  // and fewer keypoints survive from one frame to the next: the budget grows with
+  // sqrt(20 / rate), halfway (in log terms) between no growth and growth with the image motion
+  // per frame.
   const double rate = frame_rate_hz > 0 ? frame_rate_hz : 20.0;
-  const double raw = static_cast<double>(camera.width) * camera.height / 300.0 * std::sqrt(std::max(1.0, 20.0 / rate));
+  const double raw =
+      1.9 * std::sqrt(static_cast<double>(camera.width) * camera.height) * std::sqrt(std::max(1.0, 20.0 / rate));
   // Nearest value of the 1-1.2-1.5-2-2.5-3-4-5-6-8 series (in log terms), so that cameras of
   // nearly the same size share a budget.
   static constexpr double kSeries[] = {1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10};
@@ -83,8 +88,8 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
   if (o.orb.features == 0) {
     o.orb.features = DerivedFeatureBudget(cam, rate);
     std::snprintf(text, sizeof(text),
-                  "one feature per 300 px^2 of %dx%d, x sqrt(20 Hz / %.3g Hz) below 20 Hz, rounded to the "
-                  "1-1.2-1.5-2-2.5-3-4-5-6-8 series",
+                  "1.9 x sqrt(%d x %d) (the image's linear size), x sqrt(20 Hz / %.3g Hz) below 20 Hz, "
+                  "rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series",
                   cam.width, cam.height, rate > 0 ? rate : 20.0);
     note("orb.features", text);
   }

@@ -129,7 +129,7 @@ struct DerivedOption {
 [[nodiscard]] SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration,
                                           std::vector<DerivedOption>* derived = nullptr);
 
-// Features per image for a camera: one per 300 square pixels, times sqrt(20 Hz / frame rate)
+// Features per image for a camera: 1.9 x sqrt(width x height), times sqrt(20 Hz / frame rate)
 // below 20 Hz, rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series and kept in [500, 8000].
 [[nodiscard]] int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz);
 

@@ -6,10 +6,14 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <optional>
+#include <sstream>
 #include <string>
 #include <thread>
 
 #include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
 #include "place/vocabulary.h"
@@ -29,8 +33,11 @@ struct Outcome {
 };
 
 // features 0: the budget derived from the camera, as `flatslam run` does by default.
-Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 1000) {
-  const auto dataset = OpenDataset(spec);
+Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 1000,
+                    std::optional<Sensor> sensor = std::nullopt) {
+  DatasetOptions dataset_options;
+  dataset_options.sensor = sensor;
+  const auto dataset = OpenDataset(spec, dataset_options);
   static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
   SlamOptions options;
   options.orb.features = features;
@@ -156,6 +163,75 @@ TEST(SlamRun, KittiStereoAtTwiceAndThreeTimesTheSpeed) {
     EXPECT_EQ(o.run.trajectory.size(), static_cast<size_t>((51 + stride - 1) / stride)) << "stride " << stride;
     EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m) << "stride " << stride;
     EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01) << "stride " << stride;
+  }
+}
+
+// A KITTI sequence with every image scaled by `factor` (area-averaged) and the projection
+// matrices scaled to match (pixel centres kept): the same scene seen by a smaller camera.
+std::filesystem::path KittiResized(const std::string& sequence, double factor) {
+  namespace fs = std::filesystem;
+  const fs::path kitti = testing::DatasetsDir() / "kitti";
+  const fs::path source = kitti / "sequences" / sequence;
+  const fs::path root = testing::FreshTempDir("kitti_resized" + std::to_string(static_cast<int>(100 * factor)));
+  const fs::path target = root / "sequences" / sequence;
+  fs::create_directories(root / "poses");
+  fs::copy_file(kitti / "poses" / (sequence + ".txt"), root / "poses" / (sequence + ".txt"));
+  fs::create_directories(target);
+  fs::copy_file(source / "times.txt", target / "times.txt");
+  for (const char* camera : {"image_0", "image_1"}) {
+    if (!fs::exists(source / camera)) continue;
+    fs::create_directories(target / camera);
+    for (const fs::directory_entry& e : fs::directory_iterator(source / camera)) {
+      cv::Mat image = cv::imread(e.path().string(), cv::IMREAD_UNCHANGED), scaled;
+      cv::resize(image, scaled, cv::Size(), factor, factor, cv::INTER_AREA);
+      cv::imwrite((target / camera / e.path().filename()).string(), scaled);
+    }
+  }
+  // P = K [I | t]: rows 0 and 1 scale (focal lengths, fx * baseline), principal points move
+  // with the pixel centres.
+  std::ifstream in(source / "calib.txt");
+  std::ofstream out(target / "calib.txt");
+  out.precision(12);
+  for (std::string line; std::getline(in, line);) {
+    std::istringstream fields(line);
+    std::string name;
+    fields >> name;
+    out << name;
+    double v[12];
+    for (int k = 0; k < 12; ++k) fields >> v[k];
+    for (int k = 0; k < 4; ++k) {
+      v[k] *= factor;
+      v[4 + k] *= factor;
+    }
+    v[2] += 0.5 * factor - 0.5;  // c' = (c + 0.5) f - 0.5, with P[0][2], P[1][2] = cx, cy (P[2][2] = 1)
+    v[6] += 0.5 * factor - 0.5;
+    for (double x : v) out << " " << x;
+    out << "\n";
+  }
+  return target;
+}
+
+// The stereo snippet seen by a camera of three quarters and half the size (920x277, 613x185), and
+// monocular at three quarters. The feature budget follows the camera's linear size (1500, 1000);
+// one following its area (1200, 500) lost 7 monocular frames at three quarters (Sim(3) 0.08 m)
+// and doubled the stereo error at half size. Monocular at half size still loses frames with the
+// derived 1000 (docs/STATUS.md). Bars: the for monocular scenes (no frame lost after the
+// start, Sim(3) ATE under 2% of the path) and for stereo (under 0.5% of the path, scale within 1%).
+TEST(SlamRun, KittiAtThreeQuartersAndHalfTheResolution) {
+  for (double factor : {0.75, 0.5}) {
+    const std::string seq = KittiResized("06", factor).string();
+    const Outcome stereo = RunAndScore(seq, false, 0);
+    EXPECT_EQ(stereo.lost, 0u) << factor;
+    EXPECT_LT(stereo.se3.ate_m.rmse, 0.005 * stereo.path_m) << factor;
+    EXPECT_NEAR(stereo.sim3.alignment.scale, 1.0, 0.01) << factor;
+    if (factor < 0.75) continue;
+    const Outcome mono = RunAndScore(seq, false, 0, Sensor::kMonocular);
+    size_t first_tracked = mono.run.reports.size();
+    for (const FrameReport& r : mono.run.reports)
+      if (r.state == TrackingState::kOk) first_tracked = std::min(first_tracked, r.index);
+    EXPECT_LE(first_tracked, 5u) << factor;
+    EXPECT_EQ(mono.run.trajectory.size(), mono.run.reports.size() - first_tracked) << factor;
+    EXPECT_LT(mono.sim3.ate_m.rmse, 0.02 * mono.path_m) << factor;
   }
 }
 
