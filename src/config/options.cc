@@ -45,6 +45,10 @@ std::string SlamOptions::Problem() const {
   FLATSLAM_REQUIRE(r, relocalization_frames >= 0);
   FLATSLAM_REQUIRE(r, relocalization_candidates > 0);
   FLATSLAM_REQUIRE(r, relocalization_min_bow_matches >= 3);
+  FLATSLAM_REQUIRE(r, relocalization_ransac_iterations > 0);
+  FLATSLAM_REQUIRE(r, relocalization_ransac_px > 0);
+  FLATSLAM_REQUIRE(r, relocalization_min_pnp_inliers >= 4);
+  FLATSLAM_REQUIRE(r, essential_graph_min_covisibility > 0);
   FLATSLAM_REQUIRE(r, loop_consistency >= 1);
   FLATSLAM_REQUIRE(r, loop_min_keyframes >= 0);
   FLATSLAM_REQUIRE(r, recent_point_min_found_ratio >= 0 && recent_point_min_found_ratio <= 1);

@@ -107,9 +107,18 @@ struct SlamOptions {
   int relocalization_frames = 10;           // lost frames spent relocalizing before a new map segment starts
   int relocalization_candidates = 20;       // best place-index candidates tried per lost frame
   int relocalization_min_bow_matches = 15;  // bag-of-words matches to a candidate before PnP
-  int loop_consistency = 3;                 // consecutive keyframes that must agree on a loop
-  int loop_min_keyframes = 10;              // keyframes in the map, and made since the last loop, before a loop search
-  int min_loop_matches = 40;                // map points matched across the loop after the Sim(3)/SE(3) search
+  // EPnP RANSAC on those matches (OpenCV's): iterations, reprojection gate in pixels, and the
+  // inliers a candidate's pose needs before it is optimized (ORB-SLAM2's PnP solver: 300
+  // iterations, chi-square 5.991 at level 0, 10 inliers).
+  int relocalization_ransac_iterations = 200;
+  float relocalization_ransac_px = 6.0f;
+  int relocalization_min_pnp_inliers = 10;
+  // Essential graph (loop correction, map merge): covisible keyframes sharing at least this many
+  // points are joined by an edge (ORB-SLAM2's 100).
+  int essential_graph_min_covisibility = 100;
+  int loop_consistency = 3;     // consecutive keyframes that must agree on a loop
+  int loop_min_keyframes = 10;  // keyframes in the map, and made since the last loop, before a loop search
+  int min_loop_matches = 40;    // map points matched across the loop after the Sim(3)/SE(3) search
   InjectedFault inject_fault = InjectedFault::kNone;  // tests only (see InjectedFault)
 
   // The first requirement a field breaks, as its condition's text (empty: valid).

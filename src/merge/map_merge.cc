@@ -140,6 +140,7 @@ std::string MapMergeOptions::Problem() const {
   FLATSLAM_REQUIRE(r, max_scale_disagreement > 0);
   FLATSLAM_REQUIRE(r, ransac_iterations > 0);
   FLATSLAM_REQUIRE(r, pose_graph_iterations >= 0);
+  FLATSLAM_REQUIRE(r, essential_graph_min_covisibility > 0);
   return r.first();
 }
 
@@ -483,7 +484,7 @@ MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeC
     graph.edges.Add(i, j, graph.S[i] * S_q.inverse());
   }
   // Across the seam, only the pairs above.
-  graph.AddMapEdges(into, graph.S, 100,
+  graph.AddMapEdges(into, graph.S, options.essential_graph_min_covisibility,
                     [&](uint32_t i, uint32_t j) { return appended(graph.nodes[i]) == appended(graph.nodes[j]); });
   PoseGraphOptions graph_options;
   graph_options.fix_scale = !camera.monocular;

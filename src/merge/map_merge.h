@@ -63,6 +63,7 @@ struct MapMergeOptions {
   // in proportion to the whole map.
   bool refine = false;
   int pose_graph_iterations = 20;
+  int essential_graph_min_covisibility = 100;  // within each map (SlamOptions' of the same name)
   BundleAdjustmentOptions bundle_adjustment;
   uint64_t seed = 1;  // RANSAC sampling (each query keyframe gets its own stream)
 

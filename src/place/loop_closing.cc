@@ -134,10 +134,13 @@ void CorrectLoop(Map& map, LoopClosingState& state, const SystemContext& context
     const uint32_t i = graph.index.at(k), j = graph.index.at(n);
     const auto& cov = map.keyframe(k).covisible;
     const auto w = std::find_if(cov.begin(), cov.end(), [&](const auto& l) { return l.first == n; });
-    if (k != current && n != m.candidate && (w == cov.end() || w->second < 100)) continue;
+    if (k != current && n != m.candidate &&
+        (w == cov.end() || w->second < context.options.essential_graph_min_covisibility))
+      continue;
     graph.edges.Add(i, j, graph.S[i] * graph.S[j].inverse());
   }
-  graph.AddMapEdges(map, measured, 100, [](uint32_t, uint32_t) { return true; });
+  graph.AddMapEdges(map, measured, context.options.essential_graph_min_covisibility,
+                    [](uint32_t, uint32_t) { return true; });
   {
     const uint32_t i = graph.index.at(current), j = graph.index.at(m.candidate);
     graph.edges.Add(i, j, graph.S[i] * graph.S[j].inverse());

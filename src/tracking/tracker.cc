@@ -379,9 +379,10 @@ std::optional<KeyFrameHandle> Relocalize(const Map& map, const KeyFrameDatabase&
     }
     cv::Mat rvec, tvec;
     std::vector<int> inliers;
-    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 6.0f, 0.99, inliers,
-                                           cv::SOLVEPNP_EPNP);
-    if (!solved || inliers.size() < 10) continue;
+    const bool solved =
+        cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, options.relocalization_ransac_iterations,
+                           options.relocalization_ransac_px, 0.99, inliers, cv::SOLVEPNP_EPNP);
+    if (!solved || static_cast<int>(inliers.size()) < options.relocalization_min_pnp_inliers) continue;
     std::vector<char> keep(index.size(), 0);
     for (int k : inliers) keep[k] = 1;
     for (size_t k = 0; k < index.size(); ++k)
