@@ -189,7 +189,7 @@ Map::CovisibilityLinks Map::ComputeCovisibility(KeyFrameHandle kf, int min_share
 void Map::SetCovisibility(KeyFrameHandle kf, CovisibilityLinks links) {
   RemoveCovisibilityLinks(kf);
   for (const auto& [other, weight] : links) {
-    std::vector<std::pair<KeyFrameHandle, int>>& list = keyframes_.get(other).covisible;
+    CovisibilityLinks& list = keyframes_.get(other).covisible;
     const std::pair<KeyFrameHandle, int> link(kf, weight);
     list.insert(std::upper_bound(list.begin(), list.end(), link, StrongerLink), link);
   }

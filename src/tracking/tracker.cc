@@ -15,6 +15,11 @@
 namespace flatslam {
 namespace {
 
+// The frame's bag of words, computed once (reference tracking and relocalization both use it).
+void ComputeFrameWords(const Vocabulary& vocabulary, TrackedFrame& frame) {
+  if (frame.bow.empty()) vocabulary.Transform(frame.keypoints.descriptor, &frame.bow, &frame.bow_features);
+}
+
 // Keypoints of the frame matched to a map point.
 int MatchedCount(const TrackedFrame& frame) {
   return static_cast<int>(
@@ -117,18 +122,20 @@ struct Tracking {
     // is mostly far points, whose pose then has almost no translation (KITTI 06 at 2.4 m a frame:
     // 0.29 m), and the next prediction inherits it. By words against the reference keyframe
     // (ORB-SLAM2's search): independent of how far the camera moved, with fewer matches.
+    auto from_last_pose = [&] {
+      frame.T_cam_world = s.last_frame->T_cam_world;
+      std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    };
     const float radius = 4 * options.motion_search_radius;
-    frame.T_cam_world = s.last_frame->T_cam_world;
-    std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+    from_last_pose();
     int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
     matches += MatchByProjection(frame, *reference, map, context.geometry, radius, options.matcher);
     int inliers = matches >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
     if (options.vocabulary && !reference->bow_features.empty()) {
       const Eigen::Isometry3d around_last = frame.T_cam_world;
       const std::vector<PointHandle> around_last_points = frame.points;
-      frame.T_cam_world = s.last_frame->T_cam_world;
-      std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
-      if (frame.bow.empty()) options.vocabulary->Transform(frame.keypoints.descriptor, &frame.bow, &frame.bow_features);
+      from_last_pose();
+      ComputeFrameWords(*options.vocabulary, frame);
       const int by_words = MatchByBow(frame, *reference, map, options.matcher, options.reference_bow_ratio);
       const int words_inliers = by_words >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
       if (words_inliers > inliers) {
@@ -356,7 +363,7 @@ std::optional<KeyFrameHandle> Relocalize(const Map& map, const KeyFrameDatabase&
                                          TrackedFrame& frame) {
   const SlamOptions& options = context.options;
   if (!options.vocabulary || database.size() == 0) return std::nullopt;
-  if (frame.bow.empty()) options.vocabulary->Transform(frame.keypoints.descriptor, &frame.bow, &frame.bow_features);
+  ComputeFrameWords(*options.vocabulary, frame);
   std::vector<PlaceCandidate> candidates = database.DetectRelocalizationCandidates(map, frame.bow);
   const size_t most = static_cast<size_t>(options.relocalization_candidates);
   if (candidates.size() > most) candidates.resize(most);
