@@ -30,6 +30,119 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
   return orb;
 }
 
+// The SLAM systems' own options: X(type, name, default, requirement, description)
+// (core/option_fields.h). A value 0 or -1 that the description calls "by sensor" or "the frame
+// rate" is filled in by ResolvedOptions.
+#define FLATSLAM_SLAM_OPTIONS(X)                                                                                      \
+  X(double, rgbd_virtual_baseline_m, 0.08, rgbd_virtual_baseline_m > 0,                                               \
+    "RGB-D depth becomes a stereo measurement with this baseline (metres)")                                           \
+  X(double, close_depth_baselines, 35, close_depth_baselines > 0,                                                     \
+    "\"close\" points (reliable stereo depth) are nearer than this x baseline: created from one frame, counted "      \
+    "for keyframe decisions and culling; ORB-SLAM2 uses 35 for KITTI and EuRoC, 40 for TUM")                          \
+  X(double, far_stereo_baselines, kFarStereoBaselines, far_stereo_baselines >= 0,                                     \
+    "stereo keypoints deeper than this x baseline count as monocular observations in pose optimization and "          \
+    "bundle adjustment (0: never): their disparity is a few pixels, where a tenth of a pixel of rectification "       \
+    "error is a percent of depth, and it biased the trajectory's scale (KITTI 06: 0.4% too long with them); they "    \
+    "still give rotation, and depth once triangulated over keyframes. 35 is ORB-SLAM2's close-depth threshold for "   \
+    "KITTI and EuRoC. A frame whose median measured depth lies beyond it keeps stereo up to that median (the scale "  \
+    "needs them)")                                                                                                    \
+  X(int, min_init_points, 150, min_init_points > 0, "keypoints with depth needed to start a map (stereo/RGB-D)")      \
+  X(int, min_init_matches, 100, min_init_matches > 0, "monocular: matches between the two initial frames")            \
+  X(float, init_search_px, 100, init_search_px > 0,                                                                   \
+    "monocular: pixels around a keypoint of the first frame searched for its match in the second (ORB-SLAM2's "       \
+    "100; the two frames are close in time)")                                                                         \
+  X(float, mono_search_radius, 15, mono_search_radius > 0,                                                            \
+    "monocular: projection search radius, pixels x level scale")                                                      \
+  X(uint64_t, seed, 1, true, "RANSAC of the monocular initialization")                                                \
+  X(int, min_motion_inliers, 10, min_motion_inliers > 0, "inliers needed after frame-to-frame tracking")              \
+  X(int, min_local_map_inliers, 30, min_local_map_inliers > 0, "inliers needed after tracking the local map")         \
+  X(int, min_motion_matches, 20, min_motion_matches > 0,                                                              \
+    "the motion-model search: with fewer matches it is retried twice as wide, then given up for the "                 \
+    "reference-keyframe search")                                                                                      \
+  X(int, min_reference_matches, 15, min_reference_matches > 0,                                                        \
+    "matches the reference-keyframe search needs (else: relocalization)")                                             \
+  X(float, reference_bow_ratio, 0.7f, reference_bow_ratio > 0 && reference_bow_ratio <= 1,                            \
+    "best/second-best ratio of the reference search by words (ORB-SLAM2's 0.7), made beside the projection search "   \
+    "around the last pose (the pose with more inliers wins)")                                                         \
+  X(double, keyframe_track_ratio, 0.75, keyframe_track_ratio > 0 && keyframe_track_ratio <= 1,                        \
+    "the keyframe rule (ORB-SLAM2's): a frame is thin when it tracks fewer than this share of its reference "         \
+    "keyframe's points, or, with depth, tracks fewer than keyframe_close_tracked close points while "                 \
+    "keyframe_close_untracked more are untracked; a thin frame with at least keyframe_min_inliers inliers becomes a " \
+    "keyframe when mapping is idle or a timeout or weakness calls for one")                                           \
+  X(double, keyframe_track_ratio_mono, 0.9, keyframe_track_ratio_mono > 0 && keyframe_track_ratio_mono <= 1,          \
+    "keyframe_track_ratio for monocular input: forward motion thins points faster")                                   \
+  X(int, keyframe_close_tracked, 100, keyframe_close_tracked >= 0, "see keyframe_track_ratio")                        \
+  X(int, keyframe_close_untracked, 70, keyframe_close_untracked >= 0, "see keyframe_track_ratio")                     \
+  X(int, keyframe_min_inliers, 15, keyframe_min_inliers >= 0, "see keyframe_track_ratio")                             \
+  X(double, keyframe_weak_ratio, 0.25, keyframe_weak_ratio >= 0 && keyframe_weak_ratio <= 1,                          \
+    "with depth, a frame tracking under this share of its reference keyframe's points is weak: a keyframe even "      \
+    "while mapping is busy (ORB-SLAM2's 0.25)")                                                                       \
+  X(double, keyframe_fading_ratio, 0.5, keyframe_fading_ratio >= 0 && keyframe_fading_ratio <= 1,                     \
+    "monocular: tracking fades under this share of the reference keyframe's points, or under "                        \
+    "keyframe_fading_inliers inliers; busy mapping is then asked to finish early")                                    \
+  X(int, keyframe_fading_inliers, 100, keyframe_fading_inliers >= 0, "see keyframe_fading_ratio")                     \
+  X(float, motion_search_radius, 7, motion_search_radius > 0,                                                         \
+    "pixels (x level scale) searched around a point's predicted position")                                            \
+  X(int, max_frames_between_keyframes, 0, max_frames_between_keyframes >= 0, "0 = the frame rate (one second)")       \
+  X(int, min_frames_between_keyframes, -1, min_frames_between_keyframes >= -1,                                        \
+    "an idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor (2 monocular: "      \
+    "forward motion thins the tracked points every frame; 0 with depth)")                                             \
+  X(size_t, local_keyframes, 10, local_keyframes > 0, "covisible keyframes used for triangulation")                   \
+  X(double, new_point_depth_factor, 4, new_point_depth_factor >= 1,                                                   \
+    "new points of a keyframe are searched between the near depth of the points it sees (5th percentile) "            \
+    "divided by this and the far one (95th) times this: the same scene, with room both ways")                         \
+  X(double, min_parallax_deg, 0, min_parallax_deg >= 0 && min_parallax_deg < 90,                                      \
+    "least angle between the rays of a point triangulated from two keyframes; 0 = by sensor: 2 deg monocular "        \
+    "(depth within about 4% at a pixel of noise; on KITTI 07 it also keeps out cars driving ahead, whose features "   \
+    "look like points at infinity), 1.146 deg (ORB-SLAM2's cos 0.9998) with depth, where close points come from "     \
+    "the stereo or depth measurement")                                                                                \
+  X(size_t, max_local_map_keyframes, 80, max_local_map_keyframes > 0, "keyframes whose points are tracked")           \
+  X(size_t, max_local_ba_keyframes, 20, max_local_ba_keyframes > 0,                                                   \
+    "free keyframes of local BA: the new one and its strongest covisible; bounds a keyframe's cost where far points " \
+    "make every recent keyframe covisible (fast forward motion); the rest of their observers still enter as fixed "   \
+    "poses")                                                                                                          \
+  X(double, redundant_keyframe_ratio, 0.9, redundant_keyframe_ratio > 0 && redundant_keyframe_ratio <= 1,             \
+    "a keyframe is culled when this share of its points is seen by 3 others")                                         \
+  X(double, recent_point_min_found_ratio, 0.25,                                                                       \
+    recent_point_min_found_ratio >= 0 && recent_point_min_found_ratio <= 1,                                           \
+    "a point made in the last three keyframes is dropped when tracking matched it on fewer than this share of the "   \
+    "frames that should have seen it")                                                                                \
+  X(double, revisit_radius, 0.1, revisit_radius >= 0,                                                                 \
+    "revisits: when an older keyframe already views the scene from within this fraction of the median scene depth, "  \
+    "with its optical axis within revisit_max_angle_deg, a keyframe is made only if tracking is weak (under half "    \
+    "the reference keyframe's points, or under 50 close points); keeps the map from growing while a place is "        \
+    "revisited; 0 = off")                                                                                             \
+  X(int, revisit_recent_keyframes, 20, revisit_recent_keyframes >= 0,                                                 \
+    "the newest keyframes made never count as an earlier view")                                                       \
+  X(double, revisit_max_angle_deg, 20, revisit_max_angle_deg > 0 && revisit_max_angle_deg <= 180,                     \
+    "optical axes within this angle view the same scene")                                                             \
+  X(double, revisit_healthy_ratio, 0.5, revisit_healthy_ratio >= 0 && revisit_healthy_ratio <= 1,                     \
+    "a revisit makes no keyframe while tracking keeps this share of the reference keyframe's points and "             \
+    "revisit_healthy_close close points")                                                                             \
+  X(int, revisit_healthy_close, 50, revisit_healthy_close >= 0, "see revisit_healthy_ratio")                          \
+  X(bool, loop_closing, true, true, "detect and close loops (needs a vocabulary)")                                    \
+  X(bool, global_bundle_adjustment, true, true, "after each loop correction, in the background")                      \
+  X(int, relocalization_frames, 10, relocalization_frames >= 0,                                                       \
+    "lost frames spent relocalizing before a new map segment starts")                                                 \
+  X(int, relocalization_candidates, 20, relocalization_candidates > 0,                                                \
+    "best place-index candidates tried per lost frame")                                                               \
+  X(int, relocalization_min_bow_matches, 15, relocalization_min_bow_matches >= 3,                                     \
+    "bag-of-words matches to a candidate before PnP")                                                                 \
+  X(int, relocalization_ransac_iterations, 200, relocalization_ransac_iterations > 0,                                 \
+    "EPnP RANSAC iterations on those matches (ORB-SLAM2's PnP solver: 300)")                                          \
+  X(float, relocalization_ransac_px, 6.0f, relocalization_ransac_px > 0,                                              \
+    "EPnP RANSAC reprojection gate in pixels (ORB-SLAM2: chi-square 5.991 at level 0)")                               \
+  X(int, relocalization_min_pnp_inliers, 10, relocalization_min_pnp_inliers >= 4,                                     \
+    "inliers a candidate's PnP pose needs before it is optimized (ORB-SLAM2: 10)")                                    \
+  X(int, essential_graph_min_covisibility, 100, essential_graph_min_covisibility > 0,                                 \
+    "essential graph (loop correction): covisible keyframes sharing at least this many points are joined by an "      \
+    "edge (ORB-SLAM2's 100)")                                                                                         \
+  X(int, loop_consistency, 3, loop_consistency >= 1, "consecutive keyframes that must agree on a loop")               \
+  X(int, loop_min_keyframes, 10, loop_min_keyframes >= 0,                                                             \
+    "keyframes in the map, and made since the last loop, before a loop search")                                       \
+  X(int, min_loop_matches, 40, min_loop_matches >= 3,                                                                 \
+    "map points matched across the loop after the Sim(3)/SE(3) search")
+
 struct SlamOptions {
   // Extraction; orb.features 0 = derived from the camera (see ResolvedOptions).
   OrbOptions orb = SlamOrbDefaults();
@@ -37,89 +150,32 @@ struct SlamOptions {
   MatcherOptions matcher;
   PoseOptimizerOptions pose;
   BundleAdjustmentOptions bundle_adjustment;
-  double rgbd_virtual_baseline_m = 0.08;  // RGB-D depth becomes a stereo measurement with this baseline
-  // "Close" points (reliable stereo depth) are nearer than this x baseline: created from one frame,
-  // counted for keyframe decisions and culling. ORB-SLAM2 uses 35 for KITTI and EuRoC, 40 for TUM.
-  double close_depth_baselines = 35;
-  // Stereo keypoints deeper than this x baseline count as monocular observations in pose
-  // optimization and bundle adjustment (0: never): their disparity is a few pixels, where a tenth
-  // of a pixel of rectification error is a percent of depth, and it biased the trajectory's scale
-  // (KITTI 06: 0.4% too long with them). They still give rotation, and depth once triangulated
-  // over keyframes. 35 is ORB-SLAM2's close-depth threshold for KITTI and EuRoC. A frame whose
-  // median measured depth lies beyond it keeps stereo up to that median (the scale needs them).
-  double far_stereo_baselines = kFarStereoBaselines;
-  int min_init_points = 150;       // keypoints with depth needed to start a map (stereo/RGB-D)
-  int min_init_matches = 100;      // monocular: matches between the two initial frames
-  float mono_search_radius = 15;   // monocular: projection search radius, pixels x level scale
-  uint64_t seed = 1;               // RANSAC of the monocular initialization
-  int min_motion_inliers = 10;     // after frame-to-frame tracking
-  int min_local_map_inliers = 30;  // after tracking the local map
-  // The motion-model search: with fewer matches it is retried twice as wide, then given up for the
-  // reference-keyframe search, which needs min_reference_matches (else: relocalization).
-  int min_motion_matches = 20;
-  int min_reference_matches = 15;
-  // Best/second-best ratio of its search by words (ORB-SLAM2's 0.7), made beside the projection
-  // search around the last pose (the pose with more inliers wins).
-  float reference_bow_ratio = 0.7f;
-  // The keyframe rule (ORB-SLAM2's): a frame is thin when it tracks fewer than this share of its
-  // reference keyframe's points (monocular: the _mono share, as forward motion thins points
-  // faster), or, with depth, tracks fewer than keyframe_close_tracked close points while
-  // keyframe_close_untracked more are untracked; a thin frame with at least keyframe_min_inliers
-  // inliers becomes a keyframe when mapping is idle or a timeout or weakness calls for one.
-  double keyframe_track_ratio = 0.75;
-  double keyframe_track_ratio_mono = 0.9;
-  int keyframe_close_tracked = 100;
-  int keyframe_close_untracked = 70;
-  int keyframe_min_inliers = 15;
-  float motion_search_radius = 7;        // pixels (x level scale) around the predicted position
-  int max_frames_between_keyframes = 0;  // 0 = the frame rate (one second)
-  // An idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor
-  // (2 monocular: forward motion thins the tracked points every frame; 0 with depth).
-  int min_frames_between_keyframes = -1;
-  size_t local_keyframes = 10;  // covisible keyframes used for triangulation
-  // Least angle between the rays of a point triangulated from two keyframes; 0 = by sensor: 2 deg
-  // monocular (depth within about 4% at a pixel of noise; on KITTI 07 it also keeps out cars
-  // driving ahead, whose features look like points at infinity), 1.146 deg (ORB-SLAM2's cos 0.9998)
-  // with depth, where close points come from the stereo or depth measurement.
-  double min_parallax_deg = 0;
-  size_t max_local_map_keyframes = 80;  // keyframes whose points are tracked
-  // Free keyframes of local BA: the new one and its strongest covisible. Bounds a keyframe's cost where
-  // far points make every recent keyframe covisible (fast forward motion); the rest of their
-  // observers still enter as fixed poses.
-  size_t max_local_ba_keyframes = 20;
-  double redundant_keyframe_ratio = 0.9;  // culled when this share of its points is seen by 3 others
-  // A point made in the last three keyframes is dropped when tracking matched it on fewer than this
-  // share of the frames that should have seen it.
-  double recent_point_min_found_ratio = 0.25;
-  // Revisits: when an older keyframe (not one of the last 20 made) already views the scene from
-  // within this fraction of the median scene depth, with its optical axis within 20 degrees, a
-  // keyframe is made only if tracking is weak (under half the reference keyframe's points, or
-  // under 50 close points). Keeps the map from growing while a place is revisited; 0 = off.
-  double revisit_radius = 0.1;
-  int revisit_recent_keyframes = 20;  // the newest keyframes never count as an earlier view
-  double revisit_max_angle_deg = 20;  // optical axes within this angle view the same scene
-  uint32_t agent = 0;                 // stamped on every keyframe (multi-agent maps)
-  bool localization_only = false;     // track against the map without changing it (no keyframes)
+  FLATSLAM_SLAM_OPTIONS(FLATSLAM_OPTION_FIELD)
+  // Not settable by name.
+  uint32_t agent = 0;              // stamped on every keyframe (multi-agent maps)
+  bool localization_only = false;  // track against the map without changing it (no keyframes)
   // Place recognition. Without a vocabulary there is no relocalization and no loop closing.
-  const Vocabulary* vocabulary = nullptr;  // must outlive the session
-  bool loop_closing = true;
-  bool global_bundle_adjustment = true;     // after each loop correction, in the background
-  int relocalization_frames = 10;           // lost frames spent relocalizing before a new map segment starts
-  int relocalization_candidates = 20;       // best place-index candidates tried per lost frame
-  int relocalization_min_bow_matches = 15;  // bag-of-words matches to a candidate before PnP
-  // EPnP RANSAC on those matches (OpenCV's): iterations, reprojection gate in pixels, and the
-  // inliers a candidate's pose needs before it is optimized (ORB-SLAM2's PnP solver: 300
-  // iterations, chi-square 5.991 at level 0, 10 inliers).
-  int relocalization_ransac_iterations = 200;
-  float relocalization_ransac_px = 6.0f;
-  int relocalization_min_pnp_inliers = 10;
-  // Essential graph (loop correction, map merge): covisible keyframes sharing at least this many
-  // points are joined by an edge (ORB-SLAM2's 100).
-  int essential_graph_min_covisibility = 100;
-  int loop_consistency = 3;     // consecutive keyframes that must agree on a loop
-  int loop_min_keyframes = 10;  // keyframes in the map, and made since the last loop, before a loop search
-  int min_loop_matches = 40;    // map points matched across the loop after the Sim(3)/SE(3) search
+  const Vocabulary* vocabulary = nullptr;             // must outlive the session
   InjectedFault inject_fault = InjectedFault::kNone;  // tests only (see InjectedFault)
+
+  FLATSLAM_OPTION_MEMBERS(FLATSLAM_SLAM_OPTIONS)
+  // Every settable field, nested ones first with their struct's prefix ("orb.features"):
+  // visit(key, field&, description).
+  template <class Visit>
+  void VisitAll(Visit&& visit) {
+    auto nested = [&](const char* prefix, auto& options) {
+      options.VisitFields([&](const char* name, auto& field, const char* description) {
+        visit(std::string(prefix) + "." + name, field, description);
+      });
+    };
+    nested("orb", orb);
+    nested("stereo", stereo);
+    nested("matcher", matcher);
+    nested("pose", pose);
+    nested("bundle_adjustment", bundle_adjustment);
+    VisitFields(
+        [&](const char* name, auto& field, const char* description) { visit(std::string(name), field, description); });
+  }
 
   // The first requirement a field breaks, as its condition's text (empty: valid).
   [[nodiscard]] std::string Problem() const;

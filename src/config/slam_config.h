@@ -1,7 +1,8 @@
 // SLAM options by name: a config file of "key = value" lines and single "key=value" settings
 // (flatslam run --config FILE --set KEY=VALUE), so a run can be tuned without rebuilding.
 // Keys are the option fields with their struct as prefix: "orb.features", "stereo.sad_half_window",
-// "bundle_adjustment.first_pass_iterations", "min_local_map_inliers".
+// "bundle_adjustment.first_pass_iterations", "min_local_map_inliers"; every key comes from the
+// option lists (core/option_fields.h, SlamOptions::VisitAll).
 // Concurrency: free functions on the caller's options.
 #pragma once
 
@@ -37,8 +38,9 @@ void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options);
 void ApplySlamOptionSources(SlamOptions* options, const OrbSettings* settings, Sensor sensor, int features,
                             const std::string& config, const std::vector<std::string>& set);
 
-// Every key with its current value in `options`, as "key = value" lines (the config file format).
-// A key listed in `derived` (ResolvedOptions) is preceded by a "# derived: RULE" comment line.
+// Every key with its current value in `options`, as "key = value" lines (the config file format),
+// each after its description as '#' comment lines and, for a key listed in `derived`
+// (ResolvedOptions), a "# derived: RULE" line; a blank line between keys.
 [[nodiscard]] std::vector<std::string> DescribeSlamOptions(const SlamOptions& options,
                                                            std::span<const DerivedOption> derived = {});
 

@@ -24,7 +24,6 @@
 namespace flatslam {
 namespace {
 
-constexpr int kOrientationRadius = 15;  // intensity-centroid disc radius (level pixels)
 constexpr int kDescriptorBits = 256;
 
 // A FAST corner on one level, level coordinates.
@@ -830,20 +829,6 @@ const BriefPattern& LearnedBriefPattern() {
     return p;
   }();
   return pattern;
-}
-
-std::string OrbOptions::Problem() const {
-  Requirements r;
-  FLATSLAM_REQUIRE(r, features >= 1);
-  FLATSLAM_REQUIRE(r, levels >= 1 && levels <= 32);
-  FLATSLAM_REQUIRE(r, scale_factor > 1.f || levels == 1);
-  FLATSLAM_REQUIRE(r, fast_threshold >= 1 && fast_threshold <= 127);
-  FLATSLAM_REQUIRE(r, min_fast_threshold >= 1 && min_fast_threshold <= fast_threshold);
-  FLATSLAM_REQUIRE(r, cell_size >= 8);
-  FLATSLAM_REQUIRE(r, edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000);
-  FLATSLAM_REQUIRE(r, blur_sigma >= 0);
-  FLATSLAM_REQUIRE(r, blur_kernel >= 1 && blur_kernel % 2 == 1 && blur_kernel <= 31);
-  return r.first();
 }
 
 void FastScores(const cv::Mat& gray, cv::Mat* scores) {

@@ -14,6 +14,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "core/object_pool.h"
+#include "core/option_fields.h"
 #include "frontend/features.h"
 
 namespace flatslam {
@@ -44,24 +45,35 @@ inline constexpr int kLearnedPatternPoolSize = 40000;
 // centre + t, or all darker than centre - t) exactly when its score > t. Throws on a bad image.
 void FastScores(const cv::Mat& gray, cv::Mat* scores);
 
+// Radius of the intensity-centroid disc that orients a keypoint (level pixels).
+inline constexpr int kOrientationRadius = 15;
+
+// The extractor's options: X(type, name, default, requirement, description) (core/option_fields.h).
+#define FLATSLAM_ORB_OPTIONS(X)                                                                                \
+  X(int, features, 1000, features >= 1, "keypoints per image over all levels")                                 \
+  X(float, scale_factor, 1.2f, scale_factor > 1.f || levels == 1, "scale between consecutive pyramid levels")  \
+  X(int, levels, 8, levels >= 1 && levels <= 32, "pyramid levels")                                             \
+  X(int, fast_threshold, 20, fast_threshold >= 1 && fast_threshold <= 127, "FAST threshold (grey levels)")     \
+  X(int, min_fast_threshold, 7, min_fast_threshold >= 1 && min_fast_threshold <= fast_threshold,               \
+    "FAST threshold used in a grid cell where fast_threshold finds nothing")                                   \
+  X(int, cell_size, 30, cell_size >= 8, "pixels (at each level) of a FAST grid cell, about")                   \
+  X(int, edge_margin, 19, edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000,                        \
+    "pixels (at each level) kept free at the border, beyond the orientation disc's radius")                    \
+  X(bool, budget_by_area, false, true,                                                                         \
+    "false: level i gets a share of the budget proportional to 1/scale_factor^i (ORB-SLAM2's series, level 0 " \
+    "gets 21.7% at 1.2 x 8); true: proportional to the level's area, 1/scale_factor^(2i) (32.3%)")             \
+  X(double, blur_sigma, 2.0, blur_sigma >= 0, "Gaussian blur before the BRIEF tests (pixels)")                 \
+  X(int, blur_kernel, 7, blur_kernel >= 1 && blur_kernel % 2 == 1 && blur_kernel <= 31, "odd kernel size of that blur")
+
 struct OrbOptions {
-  int features = 1000;         // keypoints per image over all levels
-  float scale_factor = 1.2f;   // between consecutive pyramid levels
-  int levels = 8;              // pyramid levels
-  int fast_threshold = 20;     // FAST threshold (grey levels, 1..127)
-  int min_fast_threshold = 7;  // used in a grid cell where fast_threshold finds nothing
-  int cell_size = 30;          // pixels (at each level) of a FAST grid cell, about
-  int edge_margin = 19;        // pixels (at each level) kept free at the border, >= 16 (radius 15 disc)
-  // false: level i gets a share proportional to 1/scale_factor^i (ORB-SLAM2's series, level 0
-  // gets 21.7% at 1.2 x 8); true: proportional to the level's area, 1/scale_factor^(2i) (32.3%).
-  bool budget_by_area = false;
-  double blur_sigma = 2.0;    // Gaussian blur before the BRIEF tests (pixels)
-  int blur_kernel = 7;        // odd kernel size of that blur
+  FLATSLAM_ORB_OPTIONS(FLATSLAM_OPTION_FIELD)
+  // Not settable by name: they change the descriptors themselves (tests and benchmarks only).
   uint64_t pattern_seed = 0;  // 0 = LearnedBriefPattern(); else 256 GaussianBriefPairs(seed)
   bool use_avx2 = true;       // where the CPU has it; false forces the baseline kernels (same output)
 
+  FLATSLAM_OPTION_MEMBERS(FLATSLAM_ORB_OPTIONS)
   // The first requirement a field breaks, as its condition's text (empty: valid).
-  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] std::string Problem() const { return FieldsProblem(); }
   [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 

@@ -110,18 +110,6 @@ void ZeroMeanSads(bool avx2, const cv::Mat& limg, int xl, int yl, const cv::Mat&
 
 }  // namespace
 
-std::string StereoOptions::Problem() const {
-  Requirements r;
-  FLATSLAM_REQUIRE(r, min_depth_m >= 0);
-  FLATSLAM_REQUIRE(r, descriptor_threshold >= 1 && descriptor_threshold <= 257);
-  FLATSLAM_REQUIRE(r, row_radius >= 0);
-  FLATSLAM_REQUIRE(r, octave_radius >= 0);
-  FLATSLAM_REQUIRE(r, sad_half_window >= 1 && sad_half_window <= 15);
-  FLATSLAM_REQUIRE(r, sad_search_radius >= 1 && sad_search_radius <= 64);
-  FLATSLAM_REQUIRE(r, outlier_factor > 0);
-  return r.first();
-}
-
 StereoStats MatchStereo(const Keypoints& right, const ImagePyramid& left_pyramid, const ImagePyramid& right_pyramid,
                         const ScalePyramid& scales, double fx, double baseline_m, const StereoOptions& options,
                         Keypoints* left) {

@@ -11,21 +11,32 @@
 
 #include "frontend/features.h"
 #include "frontend/orb_extractor.h"
+#include "core/option_fields.h"
 
 namespace flatslam {
 
-struct StereoOptions {
-  double min_depth_m = 0;         // nearest accepted depth; 0 = one baseline (max disparity = fx)
-  int descriptor_threshold = 75;  // Hamming distance accepted when below (mean of 100 and 50)
-  float row_radius = 2.0f;        // candidate rows: |v_right - v_left| <= row_radius * scale(right octave)
-  int octave_radius = 1;          // candidate octaves: |octave_right - octave_left| <= octave_radius
-  int sad_half_window = 5;        // SAD patch (2w+1)^2 on the left keypoint's pyramid level
-  int sad_search_radius = 5;      // level pixels searched either side of the descriptor match
-  float outlier_factor = 2.1f;    // drop matches whose SAD exceeds factor * median SAD (1.5 * 1.4)
-  bool use_avx2 = true;           // where the CPU has it; false forces the baseline kernels (same output)
+// Stereo matching's options: X(type, name, default, requirement, description) (core/option_fields.h).
+#define FLATSLAM_STEREO_OPTIONS(X)                                                                                 \
+  X(double, min_depth_m, 0, min_depth_m >= 0, "nearest accepted depth; 0 = one baseline (max disparity = fx)")     \
+  X(int, descriptor_threshold, 75, descriptor_threshold >= 1 && descriptor_threshold <= 257,                       \
+    "Hamming distance accepted when below (mean of 100 and 50)")                                                   \
+  X(float, row_radius, 2.0f, row_radius >= 0,                                                                      \
+    "candidate rows: |v_right - v_left| <= row_radius x scale of the right keypoint's octave")                     \
+  X(int, octave_radius, 1, octave_radius >= 0, "candidate octaves: |octave_right - octave_left| <= octave_radius") \
+  X(int, sad_half_window, 5, sad_half_window >= 1 && sad_half_window <= 15,                                        \
+    "SAD patch (2w+1)^2 on the left keypoint's pyramid level")                                                     \
+  X(int, sad_search_radius, 5, sad_search_radius >= 1 && sad_search_radius <= 64,                                  \
+    "level pixels searched either side of the descriptor match")                                                   \
+  X(float, outlier_factor, 2.1f, outlier_factor > 0, "drop matches whose SAD exceeds factor x median SAD (1.5 x 1.4)")
 
+struct StereoOptions {
+  FLATSLAM_STEREO_OPTIONS(FLATSLAM_OPTION_FIELD)
+  // Not settable by name: a test switch.
+  bool use_avx2 = true;  // where the CPU has it; false forces the baseline kernels (same output)
+
+  FLATSLAM_OPTION_MEMBERS(FLATSLAM_STEREO_OPTIONS)
   // The first requirement a field breaks, as its condition's text (empty: valid).
-  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] std::string Problem() const { return FieldsProblem(); }
   [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 

@@ -38,16 +38,16 @@ void CullRecentPoints(Map& map, LocalMappingState& state, const SystemContext& c
 }
 
 // Depths (metres) where new points of a keyframe may lie, from the points it already sees.
-std::pair<double, double> SceneDepthRange(const Map& map, KeyFrameHandle h) {
+std::pair<double, double> SceneDepthRange(const Map& map, KeyFrameHandle h, double factor) {
   const KeyFrame& kf = map.keyframe(h);
   std::vector<double> depths;
   for (PointHandle p : kf.points)
     if (const MapPoint* point = map.points().try_get(p)) depths.push_back((kf.T_cam_world * point->position).z());
   if (depths.size() < 10) return {0.05, 1e4};
   std::sort(depths.begin(), depths.end());
-  // Well beyond the depths seen so far, both ways: new points lie in the same scene.
+  // Beyond the depths seen so far, both ways (SlamOptions::new_point_depth_factor).
   const double near = depths[depths.size() / 20], far = depths[depths.size() - 1 - depths.size() / 20];
-  return {std::max(0.01, 0.25 * near), 4.0 * far};
+  return {std::max(0.01, near / factor), factor * far};
 }
 
 void Fuse(Map& map, const SystemContext& context, KeyFrameHandle current) {
@@ -173,7 +173,7 @@ bool PrepareKeyFrame(Map& map, LocalMappingState& state, const SystemContext& co
     if (map.points().contains(p)) map.UpdatePointStats(p, context.map_scales);
   map.UpdateCovisibility(keyframe);
   CullRecentPoints(map, state, context, keyframe);
-  *depth_range = SceneDepthRange(map, keyframe);
+  *depth_range = SceneDepthRange(map, keyframe, context.options.new_point_depth_factor);
   // Copies of the keyframes to triangulate against, so matching runs without map access;
   // assigned over the last keyframe's copies, whose buffers they reuse.
   state.neighbours = map.BestCovisible(keyframe, context.options.local_keyframes);

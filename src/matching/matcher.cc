@@ -9,12 +9,6 @@
 
 namespace flatslam {
 
-std::string MatcherOptions::Problem() const {
-  Requirements r;
-  FLATSLAM_REQUIRE(r, max_distance > 0);
-  FLATSLAM_REQUIRE(r, nn_ratio > 0 && nn_ratio <= 1);
-  return r.first();
-}
 namespace {
 
 constexpr float kTwoPi = 6.28318530717958647692f;

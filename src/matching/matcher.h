@@ -12,6 +12,7 @@
 #include <Eigen/Core>
 
 #include "ecs/map.h"
+#include "core/option_fields.h"
 #include "io/types.h"
 #include "frontend/features.h"
 #include "frontend/frame.h"
@@ -20,15 +21,20 @@
 
 namespace flatslam {
 
-struct MatcherOptions {
-  int max_distance = 100;         // Hamming gate for projection search (ORB-SLAM2 TH_HIGH)
-  int max_distance_strict = 50;   // Hamming gate for triangulation and fusion (TH_LOW)
-  float nn_ratio = 0.8f;          // best / second best at the same level, local-map search
-  bool check_orientation = true;  // keep matches whose rotation agrees with the dominant ones
-  float fusion_radius = 3.0f;     // pixels at level 0, times the level scale
+// The searches' options: X(type, name, default, requirement, description) (core/option_fields.h).
+#define FLATSLAM_MATCHER_OPTIONS(X)                                                                                 \
+  X(int, max_distance, 100, max_distance > 0, "Hamming gate for projection search (ORB-SLAM2's TH_HIGH)")           \
+  X(int, max_distance_strict, 50, max_distance_strict > 0, "Hamming gate for triangulation and fusion (TH_LOW)")    \
+  X(float, nn_ratio, 0.8f, nn_ratio > 0 && nn_ratio <= 1, "best / second best at the same level, local-map search") \
+  X(bool, check_orientation, true, true, "keep matches whose rotation agrees with the dominant ones")               \
+  X(float, fusion_radius, 3.0f, fusion_radius > 0, "pixels at level 0, times the level scale")
 
+struct MatcherOptions {
+  FLATSLAM_MATCHER_OPTIONS(FLATSLAM_OPTION_FIELD)
+
+  FLATSLAM_OPTION_MEMBERS(FLATSLAM_MATCHER_OPTIONS)
   // The first requirement a field breaks, as its condition's text (empty: valid).
-  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] std::string Problem() const { return FieldsProblem(); }
   [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 

@@ -176,20 +176,6 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
 
 }  // namespace
 
-std::string BundleAdjustmentOptions::Problem() const {
-  Requirements r;
-  FLATSLAM_REQUIRE(r, first_pass_iterations >= 1);
-  FLATSLAM_REQUIRE(r, second_pass_iterations >= 0);
-  FLATSLAM_REQUIRE(r, chi2_mono > 0);
-  FLATSLAM_REQUIRE(r, chi2_stereo > 0);
-  FLATSLAM_REQUIRE(r, huber_mono > 0);
-  FLATSLAM_REQUIRE(r, huber_stereo > 0);
-  FLATSLAM_REQUIRE(r, dense_schur_max_poses >= 0);
-  FLATSLAM_REQUIRE(r, schur_lm_max_poses >= 0);
-  FLATSLAM_REQUIRE(r, num_threads >= 1);
-  return r.first();
-}
-
 BundleAdjustmentWorkspace::BundleAdjustmentWorkspace() : schur_(detail::MakeSchurWorkspace()) {}
 
 BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, const BundleAdjustmentOptions& options,

@@ -15,6 +15,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include "core/option_fields.h"
 #include "io/types.h"
 
 namespace flatslam {
@@ -45,28 +46,40 @@ struct BundleAdjustmentOptions {
   enum class LinearSolver { kAuto, kDenseSchur, kSparseSchur };
   enum class Solver { kSchurLm, kCeres };
 
-  int first_pass_iterations = 5;         // robust pass before outlier classification (ORB-SLAM2: 5)
-  int second_pass_iterations = 10;       // pass on inliers only (ORB-SLAM2: 10); 0 skips it
-  double chi2_mono = 5.991;              // outlier gate, 2 DoF at 95%
-  double chi2_stereo = 7.815;            // outlier gate, 3 DoF at 95%
-  double huber_mono = std::sqrt(5.991);  // Huber delta on the whitened residual
-  double huber_stereo = std::sqrt(7.815);
-  bool robust_second_pass = false;   // ORB-SLAM2 drops the robust kernel in the second pass
-  Solver solver = Solver::kSchurLm;  // kCeres: the same passes through Ceres (reference path)
+// X(type, name, default, requirement, description) (core/option_fields.h).
+#define FLATSLAM_BUNDLE_ADJUSTMENT_OPTIONS(X)                                                                         \
+  X(Solver, solver, Solver::kSchurLm, true, "schur_lm, or ceres: the same passes through Ceres (reference path)")     \
+  X(int, first_pass_iterations, 5, first_pass_iterations >= 1,                                                        \
+    "robust pass before outlier classification (ORB-SLAM2: 5)")                                                       \
+  X(int, second_pass_iterations, 10, second_pass_iterations >= 0, "pass on inliers only (ORB-SLAM2: 10); 0 skips it") \
+  X(double, chi2_mono, 5.991, chi2_mono > 0, "outlier gate, 2 DoF at 95%")                                            \
+  X(double, chi2_stereo, 7.815, chi2_stereo > 0, "outlier gate, 3 DoF at 95%")                                        \
+  X(double, huber_mono, std::sqrt(5.991), huber_mono > 0, "Huber delta on the whitened monocular residual")           \
+  X(double, huber_stereo, std::sqrt(7.815), huber_stereo > 0, "Huber delta on the whitened stereo residual")          \
+  X(bool, robust_second_pass, false, true, "keep the robust kernel in the second pass (ORB-SLAM2 drops it)")          \
+  X(int, dense_schur_max_poses, 40, dense_schur_max_poses >= 0,                                                       \
+    "automatic linear solver: dense Schur up to this many free poses, else sparse")                                   \
+  X(int, schur_lm_max_poses, 150, schur_lm_max_poses >= 0,                                                            \
+    "schur_lm hands problems with more free poses than this to Ceres, whose sparse Schur runs on CHOLMOD's "          \
+    "supernodal factorization (Eigen's simplicial LDLT took 60% of a 1,125-keyframe merge weld); local BA "           \
+    "windows stay well below it")                                                                                     \
+  X(int, num_threads, 1, num_threads >= 1, "Ceres threads; 1 keeps the call single-threaded")
+
+  FLATSLAM_BUNDLE_ADJUSTMENT_OPTIONS(FLATSLAM_OPTION_FIELD)
+  // Not settable by name.
   LinearSolver linear_solver = LinearSolver::kAuto;
-  int dense_schur_max_poses = 40;  // kAuto: dense Schur up to this many free poses, else sparse
-  // kSchurLm hands problems with more free poses than this to Ceres, whose sparse Schur runs on
-  // CHOLMOD's supernodal factorization (Eigen's simplicial LDLT took 60% of a 1,125-keyframe
-  // merge weld); local BA windows stay well below it.
-  int schur_lm_max_poses = 150;
-  int num_threads = 1;  // Ceres threads; 1 keeps the call single-threaded
   // Asked after every solver iteration; true ends the solve at the current iterate (the
   // outlier classification still runs). Local mapping uses it to yield to a waiting keyframe.
   std::function<bool()> stop_early;
 
+  FLATSLAM_OPTION_MEMBERS(FLATSLAM_BUNDLE_ADJUSTMENT_OPTIONS)
   // The first requirement a field breaks, as its condition's text (empty: valid).
-  [[nodiscard]] std::string Problem() const;
-  [[nodiscard]] bool Check() const { return Problem().empty(); }
+  [[nodiscard]] std::string Problem() const {
+    return FieldsProblem();
+  }
+  [[nodiscard]] bool Check() const {
+    return Problem().empty();
+  }
 };
 
 struct BundleAdjustmentResult {

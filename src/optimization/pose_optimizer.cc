@@ -173,18 +173,6 @@ double Chi2(const PinholeCamera& camera, double bf, const Eigen::Isometry3d& T, 
 
 }  // namespace
 
-std::string PoseOptimizerOptions::Problem() const {
-  Requirements r;
-  FLATSLAM_REQUIRE(r, rounds >= 1);
-  FLATSLAM_REQUIRE(r, iterations_per_round >= 1);
-  FLATSLAM_REQUIRE(r, chi2_mono > 0);
-  FLATSLAM_REQUIRE(r, chi2_stereo > 0);
-  FLATSLAM_REQUIRE(r, huber_mono > 0);
-  FLATSLAM_REQUIRE(r, huber_stereo > 0);
-  FLATSLAM_REQUIRE(r, min_observations >= 0);
-  return r.first();
-}
-
 PoseOptimizationResult OptimizePose(const PinholeCamera& camera, double baseline_m,
                                     const Eigen::Isometry3d& T_cam_world_initial,
                                     const std::vector<PoseObservation>& observations,

@@ -11,6 +11,8 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include "core/option_fields.h"
+
 #include "io/types.h"
 
 namespace ceres {
@@ -27,18 +29,23 @@ struct PoseObservation {
   float inv_sigma2 = 1.0f;                       // 1 / scale_factor^(2 octave)
 };
 
-struct PoseOptimizerOptions {
-  int rounds = 4;                        // optimize / classify rounds
-  int iterations_per_round = 10;         // Levenberg-Marquardt iterations per round
-  double chi2_mono = 5.991;              // outlier gate, 2 DoF at 95%
-  double chi2_stereo = 7.815;            // outlier gate, 3 DoF at 95%
-  double huber_mono = std::sqrt(5.991);  // Huber delta on the whitened residual
-  double huber_stereo = std::sqrt(7.815);
-  bool robust_last_round = false;  // ORB-SLAM2 drops the robust kernel in the last round
-  int min_observations = 3;        // fewer active observations = failure
+// Pose optimization's options: X(type, name, default, requirement, description) (core/option_fields.h).
+#define FLATSLAM_POSE_OPTIONS(X)                                                                             \
+  X(int, rounds, 4, rounds >= 1, "optimize / classify rounds")                                               \
+  X(int, iterations_per_round, 10, iterations_per_round >= 1, "Levenberg-Marquardt iterations per round")    \
+  X(double, chi2_mono, 5.991, chi2_mono > 0, "outlier gate, 2 DoF at 95%")                                   \
+  X(double, chi2_stereo, 7.815, chi2_stereo > 0, "outlier gate, 3 DoF at 95%")                               \
+  X(double, huber_mono, std::sqrt(5.991), huber_mono > 0, "Huber delta on the whitened monocular residual")  \
+  X(double, huber_stereo, std::sqrt(7.815), huber_stereo > 0, "Huber delta on the whitened stereo residual") \
+  X(bool, robust_last_round, false, true, "keep the robust kernel in the last round (ORB-SLAM2 drops it)")   \
+  X(int, min_observations, 3, min_observations >= 0, "fewer active observations = failure")
 
+struct PoseOptimizerOptions {
+  FLATSLAM_POSE_OPTIONS(FLATSLAM_OPTION_FIELD)
+
+  FLATSLAM_OPTION_MEMBERS(FLATSLAM_POSE_OPTIONS)
   // The first requirement a field breaks, as its condition's text (empty: valid).
-  [[nodiscard]] std::string Problem() const;
+  [[nodiscard]] std::string Problem() const { return FieldsProblem(); }
   [[nodiscard]] bool Check() const { return Problem().empty(); }
 };
 

@@ -54,7 +54,7 @@ struct Tracking {
       if (static_cast<int>(frame.size()) > options.min_init_matches) s.init_frame = frame;
       return false;
     }
-    const auto pairs = MatchForInitialization(*s.init_frame, frame, 100.0f, options.matcher);
+    const auto pairs = MatchForInitialization(*s.init_frame, frame, options.init_search_px, options.matcher);
     if (static_cast<int>(pairs.size()) < options.min_init_matches) {
       s.init_frame = frame;  // too little overlap left: start again from this frame
       return false;
@@ -264,17 +264,19 @@ struct Tracking {
     const size_t since = frame.index - s.last_keyframe_frame;
     const bool idle = pending_keyframes == 0 && since >= static_cast<size_t>(options.min_frames_between_keyframes);
     const bool timeout = since >= static_cast<size_t>(options.max_frames_between_keyframes);
-    const bool weak = !monocular() && (inliers < 0.25 * reference_points || need_close);
+    const bool weak = !monocular() && (inliers < options.keyframe_weak_ratio * reference_points || need_close);
     const double ratio = monocular() ? options.keyframe_track_ratio_mono : options.keyframe_track_ratio;
     const bool thin = (inliers < ratio * reference_points || need_close) && inliers > options.keyframe_min_inliers;
-    // Busy mapping with tracking fading (a monocular frame keeping under half the reference
-    // keyframe's points): ask local mapping to finish early.
-    const bool fading = monocular() && (inliers < 0.5 * reference_points || inliers < 100);
+    // Busy mapping with tracking fading (a monocular frame keeping few of the reference keyframe's
+    // points, keyframe_fading_ratio): ask local mapping to finish early.
+    const bool fading = monocular() && (inliers < options.keyframe_fading_ratio * reference_points ||
+                                        inliers < options.keyframe_fading_inliers);
     const bool wanted = thin && !idle && (timeout || weak || fading);
     const bool make = (timeout || idle || weak) && thin;
     // A revisit with healthy tracking makes no keyframe (the geometric test only runs when one
     // would otherwise be made or asked for).
-    if ((wanted || make) && inliers >= 0.5 * reference_points && tracked_close >= 50 && ViewedBefore(frame)) {
+    if ((wanted || make) && inliers >= options.revisit_healthy_ratio * reference_points &&
+        tracked_close >= options.revisit_healthy_close && ViewedBefore(frame)) {
       result.keyframe_wanted = false;
       return false;
     }

@@ -117,6 +117,47 @@ TEST(SlamConfig, FileErrorsNameTheFileAndLine) {
   std::filesystem::remove(range);
 }
 
+// The option lists are the one source of every key: each key listed is settable by name and
+// explains itself with a description, no key appears twice, and a field's requirement is checked
+// under its key's struct.
+TEST(SlamConfig, EveryListedOptionIsDescribedAndSettable) {
+  const std::vector<std::string> lines = DescribeSlamOptions(SlamOptions{});
+  std::vector<std::string> keys;
+  for (size_t i = 0; i < lines.size(); ++i) {
+    const size_t eq = lines[i].find(" = ");
+    if (lines[i].empty() || lines[i][0] == '#') continue;
+    ASSERT_NE(eq, std::string::npos) << lines[i];
+    ASSERT_GT(i, 0u);
+    EXPECT_EQ(lines[i - 1].rfind("# ", 0), 0u) << "no description before " << lines[i];
+    EXPECT_GT(lines[i - 1].size(), 4u) << lines[i];
+    keys.push_back(lines[i].substr(0, eq));
+  }
+  // Every struct's list is walked, nested ones under their prefix.
+  for (const char* key : {"orb.levels", "stereo.outlier_factor", "matcher.nn_ratio", "pose.min_observations",
+                          "bundle_adjustment.num_threads", "min_loop_matches"})
+    EXPECT_NE(std::find(keys.begin(), keys.end(), key), keys.end()) << key;
+  std::vector<std::string> sorted = keys;
+  std::sort(sorted.begin(), sorted.end());
+  EXPECT_EQ(std::adjacent_find(sorted.begin(), sorted.end()), sorted.end());
+  // Setting each key to its own listed value is accepted and changes nothing.
+  SlamOptions o;
+  for (size_t i = 0; i < lines.size(); ++i) {
+    const size_t eq = lines[i].find(" = ");
+    if (lines[i].empty() || lines[i][0] == '#') continue;
+    SetSlamOption(&o, lines[i].substr(0, eq), lines[i].substr(eq + 3));
+  }
+  EXPECT_EQ(DescribeSlamOptions(o), lines);
+  // Thresholds that were literals in tracking and mapping, by name and range.
+  for (const char* key : {"init_search_px", "keyframe_weak_ratio", "keyframe_fading_ratio", "keyframe_fading_inliers",
+                          "revisit_healthy_ratio", "revisit_healthy_close", "new_point_depth_factor"})
+    EXPECT_NE(std::find(keys.begin(), keys.end(), key), keys.end()) << key;
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "new_point_depth_factor=0.5"); }).find("new_point_depth_factor >= 1"),
+            std::string::npos);
+  o.new_point_depth_factor = 4;
+  EXPECT_NE(ErrorOf([&] { ApplySlamSetting(&o, "matcher.fusion_radius=0"); }).find("matcher: fusion_radius > 0"),
+            std::string::npos);
+}
+
 // What --list-options prints reads back as the same options.
 TEST(SlamConfig, DescriptionRoundTripsThroughAConfigFile) {
   SlamOptions changed;
