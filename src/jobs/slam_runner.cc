@@ -52,6 +52,10 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   for (const AccessStep& step : SlamSession::Steps()) steps.Add(step);
   steps.Add({"read", Access{}, "extract", /*parallel=*/true});  // the dataset's files only
   steps.Add({"checkpoint.write", Access{}, "checkpoint"});      // the captured copy only
+  // The stages built below, one per declared lane: refused if a step names a lane none runs.
+  static const SystemGraph::Lane kStages[] = {
+      {"extract", true}, {"track", false}, {"mapping", false}, {"background", false}, {"checkpoint", false}};
+  steps.CheckStages(kStages);
   if (run.on_warning) slam.SetWarningSink(run.on_warning);
   // Global bundle adjustment runs beside the frames on its own thread (declared after slam:
   // destroyed, so waited for, first). Deterministic runs keep it inline, in mapping.

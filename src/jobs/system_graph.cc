@@ -1,5 +1,6 @@
 #include "jobs/system_graph.h"
 
+#include <algorithm>
 #include <string_view>
 
 #include "core/error.h"
@@ -29,6 +30,35 @@ void SystemGraph::Add(const AccessStep& step) {
     Refuse(step, other);
   }
   steps_.push_back(step);
+}
+
+std::vector<SystemGraph::Lane> SystemGraph::Lanes() const {
+  std::vector<Lane> lanes;
+  for (const AccessStep& step : steps_) {
+    auto it = std::find_if(lanes.begin(), lanes.end(), [&](const Lane& l) { return l.name == step.lane; });
+    if (it == lanes.end()) {
+      lanes.push_back({step.lane, step.parallel});
+      continue;
+    }
+    FLATSLAM_CHECK(it->parallel == step.parallel, "step '", step.name, "' declares lane ", step.lane,
+                   step.parallel ? " parallel" : " one at a time", ", other steps of that lane declare it ",
+                   it->parallel ? "parallel" : "one at a time");
+  }
+  return lanes;
+}
+
+void SystemGraph::CheckStages(std::span<const Lane> stages) const {
+  const std::vector<Lane> lanes = Lanes();
+  for (const Lane& lane : lanes) {
+    auto it = std::find_if(stages.begin(), stages.end(), [&](const Lane& s) { return s.name == lane.name; });
+    FLATSLAM_CHECK(it != stages.end(), "lane ", lane.name, " is declared by a step but no stage runs it");
+    FLATSLAM_CHECK(it->parallel == lane.parallel, "lane ", lane.name, " is declared ",
+                   lane.parallel ? "parallel" : "one at a time", " but its stage runs ",
+                   it->parallel ? "in parallel" : "one item at a time");
+  }
+  for (const Lane& stage : stages)
+    FLATSLAM_CHECK(std::any_of(lanes.begin(), lanes.end(), [&](const Lane& l) { return l.name == stage.name; }),
+                   "a stage runs lane ", stage.name, ", which no step declares");
 }
 
 }  // namespace flatslam

@@ -7,6 +7,8 @@
 // Concurrency: built and checked on one thread before the run.
 #pragma once
 
+#include <span>
+#include <string>
 #include <vector>
 
 #include "ecs/access.h"
@@ -19,6 +21,20 @@ class SystemGraph {
   // both being guarded (a parallel step that writes a component conflicts with itself).
   void Add(const AccessStep& step);
   [[nodiscard]] const std::vector<AccessStep>& steps() const { return steps_; }
+
+  // A lane the steps run on: one scheduler stage, running one step at a time unless parallel.
+  struct Lane {
+    std::string name;
+    bool parallel = false;
+  };
+  // The lanes the steps declared, in the order first declared; throws flatslam::Error when steps
+  // of one lane disagree on whether it is parallel.
+  [[nodiscard]] std::vector<Lane> Lanes() const;
+  // Checks the stages a scheduler built against the declared lanes: every declared lane has a
+  // stage of its kind (parallel or one at a time), and no stage runs a lane no step declared.
+  // Throws flatslam::Error naming the lane otherwise, so that a step is never declared on a
+  // lane that nothing runs, nor run where its declaration does not say.
+  void CheckStages(std::span<const Lane> stages) const;
 
  private:
   std::vector<AccessStep> steps_;

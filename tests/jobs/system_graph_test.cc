@@ -63,5 +63,37 @@ TEST(SystemGraph, TheSessionsStepsPassAndAnUnguardedTrackIsRefused) {
   EXPECT_NE(error.find("'track'"), std::string::npos) << error;
 }
 
+// The stages a scheduler builds must be the lanes the steps declare, of the same kind.
+TEST(SystemGraph, StagesMustRunTheDeclaredLanes) {
+  SystemGraph graph;
+  graph.Add({"extract", Access{}, "extract", true});
+  graph.Add({"track", Access::Of({}, {C::kMap}), "track", false, true});
+  graph.Add({"cull", Access::Of({}, {C::kMap}), "mapping", false, true});
+  const std::vector<SystemGraph::Lane> lanes = graph.Lanes();
+  ASSERT_EQ(lanes.size(), 3u);
+  EXPECT_EQ(lanes[0].name, "extract");
+  EXPECT_TRUE(lanes[0].parallel);
+  EXPECT_FALSE(lanes[2].parallel);
+  const SystemGraph::Lane all[] = {{"extract", true}, {"track", false}, {"mapping", false}};
+  EXPECT_NO_THROW(graph.CheckStages(all));
+  auto error = [&](std::span<const SystemGraph::Lane> stages) {
+    try {
+      graph.CheckStages(stages);
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  const SystemGraph::Lane no_mapping[] = {{"extract", true}, {"track", false}};
+  EXPECT_NE(error(no_mapping).find("lane mapping is declared by a step but no stage runs it"), std::string::npos);
+  const SystemGraph::Lane serial_extract[] = {{"extract", false}, {"track", false}, {"mapping", false}};
+  EXPECT_NE(error(serial_extract).find("lane extract is declared parallel"), std::string::npos);
+  const SystemGraph::Lane extra[] = {{"extract", true}, {"track", false}, {"mapping", false}, {"viewer", false}};
+  EXPECT_NE(error(extra).find("a stage runs lane viewer, which no step declares"), std::string::npos);
+  // Steps of one lane agree on its kind.
+  graph.Add({"read", Access{}, "track", true});
+  EXPECT_THROW((void)graph.Lanes(), Error);
+}
+
 }  // namespace
 }  // namespace flatslam
