@@ -16,6 +16,7 @@
 #include <Eigen/Geometry>
 
 #include "core/option_fields.h"
+#include "optimization/outlier_gates.h"
 #include "io/types.h"
 
 namespace flatslam {
@@ -52,10 +53,7 @@ struct BundleAdjustmentOptions {
   X(int, first_pass_iterations, 5, first_pass_iterations >= 1,                                                        \
     "robust pass before outlier classification (ORB-SLAM2: 5)")                                                       \
   X(int, second_pass_iterations, 10, second_pass_iterations >= 0, "pass on inliers only (ORB-SLAM2: 10); 0 skips it") \
-  X(double, chi2_mono, 5.991, chi2_mono > 0, "outlier gate, 2 DoF at 95%")                                            \
-  X(double, chi2_stereo, 7.815, chi2_stereo > 0, "outlier gate, 3 DoF at 95%")                                        \
-  X(double, huber_mono, std::sqrt(5.991), huber_mono > 0, "Huber delta on the whitened monocular residual")           \
-  X(double, huber_stereo, std::sqrt(7.815), huber_stereo > 0, "Huber delta on the whitened stereo residual")          \
+  FLATSLAM_OUTLIER_GATE_OPTIONS(X)                                                                                    \
   X(bool, robust_second_pass, false, true, "keep the robust kernel in the second pass (ORB-SLAM2 drops it)")          \
   X(int, dense_schur_max_poses, 40, dense_schur_max_poses >= 0,                                                       \
     "automatic linear solver: dense Schur up to this many free poses, else sparse")                                   \

@@ -12,6 +12,7 @@
 #include <Eigen/Geometry>
 
 #include "core/option_fields.h"
+#include "optimization/outlier_gates.h"
 
 #include "io/types.h"
 
@@ -30,14 +31,11 @@ struct PoseObservation {
 };
 
 // Pose optimization's options: X(type, name, default, requirement, description) (core/option_fields.h).
-#define FLATSLAM_POSE_OPTIONS(X)                                                                             \
-  X(int, rounds, 4, rounds >= 1, "optimize / classify rounds")                                               \
-  X(int, iterations_per_round, 10, iterations_per_round >= 1, "Levenberg-Marquardt iterations per round")    \
-  X(double, chi2_mono, 5.991, chi2_mono > 0, "outlier gate, 2 DoF at 95%")                                   \
-  X(double, chi2_stereo, 7.815, chi2_stereo > 0, "outlier gate, 3 DoF at 95%")                               \
-  X(double, huber_mono, std::sqrt(5.991), huber_mono > 0, "Huber delta on the whitened monocular residual")  \
-  X(double, huber_stereo, std::sqrt(7.815), huber_stereo > 0, "Huber delta on the whitened stereo residual") \
-  X(bool, robust_last_round, false, true, "keep the robust kernel in the last round (ORB-SLAM2 drops it)")   \
+#define FLATSLAM_POSE_OPTIONS(X)                                                                           \
+  X(int, rounds, 4, rounds >= 1, "optimize / classify rounds")                                             \
+  X(int, iterations_per_round, 10, iterations_per_round >= 1, "Levenberg-Marquardt iterations per round")  \
+  FLATSLAM_OUTLIER_GATE_OPTIONS(X)                                                                         \
+  X(bool, robust_last_round, false, true, "keep the robust kernel in the last round (ORB-SLAM2 drops it)") \
   X(int, min_observations, 3, min_observations >= 0, "fewer active observations = failure")
 
 struct PoseOptimizerOptions {
