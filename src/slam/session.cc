@@ -73,6 +73,7 @@ SlamSession::SlamSession(const Calibration& calibration, SlamOptions&& resolved)
       database_(resolved.vocabulary ? resolved.vocabulary->word_count() : 0),
       loops_(resolved.seed + 1) {
   if (context_.options.localization_only) tracker_.allow_new_segments = false;
+  frame_poses_.SpillToFile();  // a session of any length keeps two chunks of frame records in memory
 }
 
 void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
@@ -333,16 +334,16 @@ void SlamSession::CaptureState(State* out) const {
 }
 
 void SlamSession::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {
-  out->resize(frames.size());
-  for (size_t i = 0; i < frames.size(); ++i) {
-    AnchoredFramePose a = frames[i];
+  out->clear();
+  out->reserve(frames.size());
+  frames.ForEach([&](AnchoredFramePose a) {
     Eigen::Isometry3d T_cam_ref = a.T_cam_ref.isometry();
     if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref))
       a.T_cam_ref = CompactPose(T_cam_ref);
     else
       a.reference = KeyFrameHandle::null();
-    (*out)[i] = a;
-  }
+    out->push_back(a);
+  });
 }
 
 void SlamSession::Warn(const std::string& message) const {
@@ -356,13 +357,9 @@ Trajectory SlamSession::FrameTrajectory() const {
   const auto lease = access_.Acquire(SessionAccess::kFrameTrajectory);
   Trajectory out;
   out.reserve(frame_poses_.size());
-  for (size_t i = 0; i < frame_poses_.size(); ++i) {
-    const AnchoredFramePose& f = frame_poses_[i];
-    TimedPose p;
-    p.t_ns = f.t_ns;
-    p.T_world_cam = ResolveFramePose(map_, mapping_.culled, f).inverse();
-    out.push_back(p);
-  }
+  frame_poses_.ForEach([&](const AnchoredFramePose& f) {
+    out.push_back({f.t_ns, ResolveFramePose(map_, mapping_.culled, f).inverse()});
+  });
   return out;
 }
 

@@ -138,7 +138,8 @@ class SlamSession {
   LoopClosingState loops_;     // kLoops
   size_t next_frame_ = 0;      // kTrajectory: input index after the last frame tracked
   // One per tracked frame, for the trajectory. Fixed chunks that never move: no doubling's unused
-  // half in a long session, and a checkpoint reads them through a view without copying.
+  // half in a long session, and a checkpoint reads them through a view without copying. Older
+  // chunks spill to a temporary file, so a session of any length holds two chunks in memory.
   ChunkLog<AnchoredFramePose> frame_poses_;
   bool map_corrected_ = false;  // a loop correction moved keyframes: refresh the last frame's pose
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
