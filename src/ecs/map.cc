@@ -311,18 +311,14 @@ std::string Map::Validate() const {
 }
 
 void Map::AssignForSnapshot(const Map& other) {
-  const bool same_source = snapshot_source_ == &other;
-  snapshot_source_ = &other;
-  keyframes_.assign_from(other.keyframes_, [same_source](KeyFrame& dst, const KeyFrame& src) {
-    const bool same = same_source && dst.id == src.id && dst.size() == src.size() && dst.t_ns == src.t_ns;
-    if (!same) {
-      dst.uv = src.uv;
-      dst.right_u = src.right_u;
-      dst.depth = src.depth;
-      dst.angle = src.angle;
-      dst.octave = src.octave;
-      dst.descriptor = src.descriptor;
-    }
+  keyframes_.assign_from(other.keyframes_, [](KeyFrame& dst, const KeyFrame& src) {
+    // The per-keypoint columns are shared, not copied (SharedColumn).
+    dst.uv = src.uv;
+    dst.right_u = src.right_u;
+    dst.depth = src.depth;
+    dst.angle = src.angle;
+    dst.octave = src.octave;
+    dst.descriptor = src.descriptor;
     dst.id = src.id;
     dst.frame_index = src.frame_index;
     dst.t_ns = src.t_ns;

@@ -16,6 +16,7 @@
 #include "ecs/bow.h"
 #include "ecs/descriptor.h"
 #include "ecs/handle.h"
+#include "ecs/shared_column.h"
 
 namespace flatslam {
 
@@ -39,12 +40,13 @@ struct KeyFrame {
   Eigen::Isometry3d T_cam_world = Eigen::Isometry3d::Identity();
 
   // Per-keypoint struct-of-arrays, all of size() entries.
-  std::vector<Eigen::Vector2f> uv;  // undistorted pixel, level-0 coordinates
-  std::vector<float> right_u;       // stereo/RGB-D: x in the (virtual) right image, -1 none
-  std::vector<float> depth;         // metres, -1 none
-  std::vector<float> angle;         // keypoint orientation, radians
-  std::vector<uint8_t> octave;      // pyramid level
-  std::vector<Descriptor> descriptor;
+  // The keypoints as measured: written when the keyframe is made, shared by copies of the map.
+  SharedColumn<Eigen::Vector2f> uv;  // undistorted pixel, level-0 coordinates
+  SharedColumn<float> right_u;       // stereo/RGB-D: x in the (virtual) right image, -1 none
+  SharedColumn<float> depth;         // metres, -1 none
+  SharedColumn<float> angle;         // keypoint orientation, radians
+  SharedColumn<uint8_t> octave;      // pyramid level
+  SharedColumn<Descriptor> descriptor;
   std::vector<PointHandle> points;  // map point seen at the keypoint, null if none
 
   std::vector<std::pair<KeyFrameHandle, int>> covisible;  // shared points, strongest first
@@ -173,11 +175,8 @@ class Map {
   [[nodiscard]] std::string Validate() const;
 
   // Makes this map a copy of `other` for a snapshot (a checkpoint): same handles and values, but
-  // without bags of words. When the last AssignForSnapshot into this map had the same source
-  // object, a keyframe already here at the same position with the same id keeps its per-keypoint
-  // columns (they never change after creation, and ids are never reused within a map). Called
-  // again and again from one live map, it copies little more than what changed. Contract: the
-  // source is the same map as before, not another map assigned into the same object meanwhile.
+  // without bags of words. The keyframes' per-keypoint columns are shared with `other`, not
+  // copied; called again and again from one live map, it reuses this map's buffers.
   void AssignForSnapshot(const Map& other);
 
  private:
@@ -186,7 +185,6 @@ class Map {
   Arena<KeyFrame> keyframes_;
   Arena<MapPoint> points_;
   uint64_t next_keyframe_id_ = 0;
-  const Map* snapshot_source_ = nullptr;  // the source of the last AssignForSnapshot
 };
 
 }  // namespace flatslam

@@ -5,7 +5,7 @@
 
 namespace flatslam {
 
-void FeatureGrid::Build(const std::vector<Eigen::Vector2f>& uv, int width, int height, float cell_px) {
+void FeatureGrid::Build(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px) {
   inv_cell_ = 1.0f / cell_px;
   cols_ = std::max(1, static_cast<int>(std::ceil(width * inv_cell_)));
   rows_ = std::max(1, static_cast<int>(std::ceil(height * inv_cell_)));
@@ -24,7 +24,7 @@ void FeatureGrid::Build(const std::vector<Eigen::Vector2f>& uv, int width, int h
   for (size_t i = 0; i < uv.size(); ++i) indices_[fill[cell_of[i]]++] = static_cast<uint32_t>(i);
 }
 
-void FeatureGrid::Query(float u, float v, float r, const std::vector<Eigen::Vector2f>& uv,
+void FeatureGrid::Query(float u, float v, float r, std::span<const Eigen::Vector2f> uv,
                         std::vector<uint32_t>* out) const {
   if (cols_ == 0) return;
   const int c0 = std::max(0, static_cast<int>((u - r) * inv_cell_));

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include <Eigen/Geometry>
@@ -16,9 +17,9 @@ namespace flatslam {
 // Keypoint indices bucketed into square cells (compressed rows) for radius queries.
 class FeatureGrid {
  public:
-  void Build(const std::vector<Eigen::Vector2f>& uv, int width, int height, float cell_px = 24.0f);
+  void Build(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px = 24.0f);
   // Appends to out the keypoints within the square of half-size r around (u, v).
-  void Query(float u, float v, float r, const std::vector<Eigen::Vector2f>& uv, std::vector<uint32_t>* out) const;
+  void Query(float u, float v, float r, std::span<const Eigen::Vector2f> uv, std::vector<uint32_t>* out) const;
 
  private:
   int cols_ = 0, rows_ = 0;

@@ -117,7 +117,7 @@ int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOcta
 
 // Appends the keypoints within kStep pixels of the image segment from p to q (the epipolar
 // line of a depth range); stamp deduplicates across overlapping queries.
-void SegmentBand(Eigen::Vector2d p, Eigen::Vector2d q, const FeatureGrid& grid, const std::vector<Eigen::Vector2f>& uv,
+void SegmentBand(Eigen::Vector2d p, Eigen::Vector2d q, const FeatureGrid& grid, std::span<const Eigen::Vector2f> uv,
                  std::vector<uint32_t>* out, std::vector<uint32_t>* stamp, uint32_t stamp_value) {
   constexpr float kStep = 12.0f;
   const double length = (q - p).norm();

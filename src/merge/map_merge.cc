@@ -292,9 +292,11 @@ MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
     copy.uv = source.uv;
     copy.right_u = source.right_u;
     copy.depth = source.depth;
-    if (s != 1.0)
-      for (float& d : copy.depth)
-        if (d > 0) d = static_cast<float>(d * s);
+    if (s != 1.0) {
+      float* depth = copy.depth.mutable_data();
+      for (size_t k = 0; k < copy.depth.size(); ++k)
+        if (depth[k] > 0) depth[k] = static_cast<float>(depth[k] * s);
+    }
     copy.angle = source.angle;
     copy.octave = source.octave;
     copy.descriptor = source.descriptor;

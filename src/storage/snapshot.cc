@@ -147,10 +147,10 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
                    "map snapshot: keyframe ", kf.id, " of map ", ref.id, " has keypoint columns of different sizes");
     agents.push_back(kf.agent);
     const auto uv = builder.CreateVectorOfStructs(reinterpret_cast<const schema::Vec2f*>(kf.uv.data()), n);
-    const auto right_u = builder.CreateVector(kf.right_u);
-    const auto depth = builder.CreateVector(kf.depth);
-    const auto angle = builder.CreateVector(kf.angle);
-    const auto octave = builder.CreateVector(kf.octave);
+    const auto right_u = builder.CreateVector(kf.right_u.vector());
+    const auto depth = builder.CreateVector(kf.depth.vector());
+    const auto angle = builder.CreateVector(kf.angle.vector());
+    const auto octave = builder.CreateVector(kf.octave.vector());
     const auto descriptors =
         builder.CreateVectorOfStructs(reinterpret_cast<const schema::Descriptor256*>(kf.descriptor.data()), n);
     uint32_t* point_column = nullptr;
@@ -940,12 +940,14 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
       kf.t_ns = r.t_ns();
       kf.agent = r.agent();
       kf.T_cam_world = FromPose(r.cam_from_world());
-      kf.uv.resize(n);
-      kf.descriptor.resize(n);
+      std::vector<Eigen::Vector2f> uv(n);
+      std::vector<Descriptor> descriptors(n);
       if (n > 0) {
-        std::memcpy(static_cast<void*>(kf.uv.data()), Span(r.uv()).data(), n * sizeof(Eigen::Vector2f));
-        std::memcpy(kf.descriptor.data(), Span(r.descriptors()).data(), n * sizeof(Descriptor));
+        std::memcpy(static_cast<void*>(uv.data()), Span(r.uv()).data(), n * sizeof(Eigen::Vector2f));
+        std::memcpy(descriptors.data(), Span(r.descriptors()).data(), n * sizeof(Descriptor));
       }
+      kf.uv = std::move(uv);
+      kf.descriptor = std::move(descriptors);
       const auto right_u = Span(r.right_u()), depth = Span(r.depth()), angle = Span(r.angle());
       const auto octave = Span(r.octave());
       kf.right_u.assign(right_u.begin(), right_u.end());

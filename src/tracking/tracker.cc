@@ -341,12 +341,12 @@ bool ResumeTracking(const Map& map, const SystemContext& context, const Anchored
   frame.index = reference->frame_index;
   frame.t_ns = last.t_ns;
   frame.keypoints.resize(reference->size());
-  frame.keypoints.uv = reference->uv;
-  frame.keypoints.angle = reference->angle;
-  frame.keypoints.octave = reference->octave;
-  frame.keypoints.descriptor = reference->descriptor;
-  frame.keypoints.right_u = reference->right_u;
-  frame.keypoints.depth = reference->depth;
+  frame.keypoints.uv = reference->uv.vector();
+  frame.keypoints.angle = reference->angle.vector();
+  frame.keypoints.octave = reference->octave.vector();
+  frame.keypoints.descriptor = reference->descriptor.vector();
+  frame.keypoints.right_u = reference->right_u.vector();
+  frame.keypoints.depth = reference->depth.vector();
   frame.Prepare(context.calibration.camera.width, context.calibration.camera.height);
   frame.points = reference->points;
   frame.T_cam_world = last.T_cam_ref.isometry() * reference->T_cam_world;

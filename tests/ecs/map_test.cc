@@ -13,7 +13,7 @@ KeyFrame MakeKeyFrame(size_t keypoints, double x) {
   KeyFrame kf;
   kf.resize(keypoints);
   kf.T_cam_world.translation() = Eigen::Vector3d(-x, 0, 0);
-  for (size_t i = 0; i < keypoints; ++i) kf.descriptor[i] = {i, i * 3, ~i, i ^ 0xff};
+  for (size_t i = 0; i < keypoints; ++i) kf.descriptor.mutable_data()[i] = {i, i * 3, ~i, i ^ 0xff};
   return kf;
 }
 

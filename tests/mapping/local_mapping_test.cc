@@ -26,15 +26,13 @@ SystemContext MakeContext(Sensor sensor) {
 // A keyframe of n keypoints on a grid, at the origin.
 KeyFrame GridKeyFrame(size_t n) {
   KeyFrame kf;
+  kf.resize(n);
+  Eigen::Vector2f* uv = kf.uv.mutable_data();
+  Descriptor* descriptor = kf.descriptor.mutable_data();
   for (size_t i = 0; i < n; ++i) {
-    kf.uv.emplace_back(20.0f + 20.0f * (i % 30), 20.0f + 20.0f * (i / 30));
-    kf.right_u.push_back(-1);
-    kf.depth.push_back(-1);
-    kf.angle.push_back(0);
-    kf.octave.push_back(0);
-    kf.descriptor.push_back(Descriptor{i, 0, 0, 0});
+    uv[i] = Eigen::Vector2f(20.0f + 20.0f * (i % 30), 20.0f + 20.0f * (i / 30));
+    descriptor[i] = Descriptor{i, 0, 0, 0};
   }
-  kf.points.assign(n, PointHandle::null());
   return kf;
 }
 

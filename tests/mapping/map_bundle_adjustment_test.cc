@@ -35,11 +35,11 @@ struct Scene {
       kf.T_cam_world.translation() = Eigen::Vector3d(-static_cast<double>(i), 0, 0);
       for (size_t j = 0; j < points; ++j) {
         const Eigen::Vector3d X = kf.T_cam_world * Position(j);
-        kf.uv[j] = Eigen::Vector2f(static_cast<float>(g.camera.fx * X.x() / X.z() + g.camera.cx),
-                                   static_cast<float>(g.camera.fy * X.y() / X.z() + g.camera.cy));
-        kf.depth[j] = static_cast<float>(X.z());
-        kf.right_u[j] = static_cast<float>(kf.uv[j].x() - g.bf / X.z());
-        kf.octave[j] = static_cast<uint8_t>(j % 3);
+        kf.uv.mutable_data()[j] = Eigen::Vector2f(static_cast<float>(g.camera.fx * X.x() / X.z() + g.camera.cx),
+                                                  static_cast<float>(g.camera.fy * X.y() / X.z() + g.camera.cy));
+        kf.depth.mutable_data()[j] = static_cast<float>(X.z());
+        kf.right_u.mutable_data()[j] = static_cast<float>(kf.uv[j].x() - g.bf / X.z());
+        kf.octave.mutable_data()[j] = static_cast<uint8_t>(j % 3);
       }
       kfs.push_back(map.AddKeyFrame(std::move(kf)));
     }

@@ -54,9 +54,9 @@ struct Scene {
     for (int j = 0; j < kPoints; ++j) {
       const double z = 6 + 2 * u(rng);
       X.emplace_back(0.55 * z * u(rng), 0.4 * z * u(rng), z);
-      k.uv[j] = Pixel(Eigen::Isometry3d::Identity(), X.back());
+      k.uv.mutable_data()[j] = Pixel(Eigen::Isometry3d::Identity(), X.back());
       descriptors.push_back(RandomDescriptor(rng));
-      k.descriptor[j] = descriptors.back();
+      k.descriptor.mutable_data()[j] = descriptors.back();
     }
     kf = map.AddKeyFrame(std::move(k));
     for (int j = 0; j < kPoints; ++j) {

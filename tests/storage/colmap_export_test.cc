@@ -328,11 +328,11 @@ TEST(ColmapExport, ReprojectionErrorIsTheMeanPixelDistance) {
     kf.resize(world.size() + 1);  // one keypoint without a point
     for (size_t k = 0; k < world.size(); ++k) {
       const Eigen::Vector3d x = kf.T_cam_world * world[k];
-      kf.uv[k] = Eigen::Vector2f(cam.fx * x.x() / x.z() + cam.cx, cam.fy * x.y() / x.z() + cam.cy);
+      kf.uv.mutable_data()[k] = Eigen::Vector2f(cam.fx * x.x() / x.z() + cam.cx, cam.fy * x.y() / x.z() + cam.cy);
     }
     kfs.push_back(map.AddKeyFrame(std::move(kf)));
   }
-  map.keyframe(kfs[1]).uv[0] += Eigen::Vector2f(3, 4);
+  map.keyframe(kfs[1]).uv.mutable_data()[0] += Eigen::Vector2f(3, 4);
   for (size_t k = 0; k < world.size(); ++k) {
     const PointHandle p = map.AddPoint(world[k], kfs[0]);
     for (KeyFrameHandle kf : kfs) map.AddObservation(p, kf, static_cast<uint32_t>(k));

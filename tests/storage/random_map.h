@@ -40,12 +40,12 @@ inline Map RandomMap(const RandomMapOptions& o) {
                      Eigen::Quaterniond(1.0, unit(rng), unit(rng), unit(rng)).normalized();
     kf.resize(o.keypoints);
     for (size_t k = 0; k < o.keypoints; ++k) {
-      kf.uv[k] = {pixel(rng), pixel(rng)};
-      kf.right_u[k] = (k % 3 == 0) ? -1.0f : pixel(rng);
-      kf.depth[k] = (k % 3 == 0) ? -1.0f : 1.0f + 10.0f * std::abs(unit(rng));
-      kf.angle[k] = 3.14f * unit(rng);
-      kf.octave[k] = static_cast<uint8_t>(rng() % 8);
-      kf.descriptor[k] = {rng(), rng(), rng(), rng()};
+      kf.uv.mutable_data()[k] = {pixel(rng), pixel(rng)};
+      kf.right_u.mutable_data()[k] = (k % 3 == 0) ? -1.0f : pixel(rng);
+      kf.depth.mutable_data()[k] = (k % 3 == 0) ? -1.0f : 1.0f + 10.0f * std::abs(unit(rng));
+      kf.angle.mutable_data()[k] = 3.14f * unit(rng);
+      kf.octave.mutable_data()[k] = static_cast<uint8_t>(rng() % 8);
+      kf.descriptor.mutable_data()[k] = {rng(), rng(), rng(), rng()};
     }
     kfs.push_back(map.AddKeyFrame(std::move(kf)));
   }

@@ -246,6 +246,12 @@ TEST(MapSnapshot, SnapshotCopySerializesLikeItsSource) {
     copy.AssignForSnapshot(source);
     EXPECT_EQ(copy.Validate(), "");
     EXPECT_EQ(SerializeMapSnapshot({&b, 1}, metadata), SerializeMapSnapshot({&a, 1}, metadata)) << "round " << round;
+    // The copy shares every keyframe's measured columns with the source instead of copying them.
+    for (KeyFrameHandle h : source.keyframes().handles()) {
+      EXPECT_TRUE(copy.keyframe(h).uv.shares_with(source.keyframe(h).uv));
+      EXPECT_TRUE(copy.keyframe(h).descriptor.shares_with(source.keyframe(h).descriptor));
+      EXPECT_FALSE(copy.keyframe(h).points.data() == source.keyframe(h).points.data());
+    }
     // The source moves on: a keyframe goes (the last one moves into its dense position), one
     // comes, and a point changes.
     source.EraseKeyFrame(source.keyframes().handles()[2 + round]);
@@ -255,7 +261,10 @@ TEST(MapSnapshot, SnapshotCopySerializesLikeItsSource) {
     fresh.children.clear();
     fresh.loop_edges.clear();
     fresh.parent = KeyFrameHandle::null();
-    fresh.uv[0].x() += 1.0f;
+    const Eigen::Vector2f first = source.keyframes().values()[0].uv[0];
+    fresh.uv.mutable_data()[0].x() += 1.0f;  // a shared column is copied before it is written
+    EXPECT_EQ(source.keyframes().values()[0].uv[0], first);
+    EXPECT_FALSE(fresh.uv.shares_with(source.keyframes().values()[0].uv));
     (void)source.AddKeyFrame(std::move(fresh));
     source.points().values()[0].position.x() += 1.0;
     ASSERT_EQ(source.Validate(), "");
