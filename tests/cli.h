@@ -1,7 +1,9 @@
 // Running the flatslam executable from tests: exit code and combined output of one command line.
 #pragma once
 
+#include <fcntl.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <array>
 #include <cstdio>
@@ -9,6 +11,7 @@
 #include <fstream>
 #include <iterator>
 #include <string>
+#include <vector>
 
 #include "test_data.h"
 
@@ -36,6 +39,33 @@ inline CliResult RunCommand(const std::string& command_line) {
 // Runs `flatslam ARGUMENTS` through the shell (so arguments may hold quotes and redirections).
 inline CliResult RunApp(const std::string& arguments) {
   return RunCommand(AppPath() + " " + arguments);
+}
+
+// Starts `flatslam ARGS` in the background with stdout and stderr going to `log`.
+inline pid_t Spawn(const std::vector<std::string>& args, const std::filesystem::path& log) {
+  const std::string app = AppPath();
+  std::vector<std::string> all = {app};
+  all.insert(all.end(), args.begin(), args.end());
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    ::dup2(fd, STDOUT_FILENO);
+    ::dup2(fd, STDERR_FILENO);
+    std::vector<char*> argv;
+    for (std::string& a : all) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    ::execv(app.c_str(), argv.data());
+    ::_exit(127);
+  }
+  return pid;
+}
+
+// Exit code of a spawned child, or 128 + signal for one killed by a signal.
+inline int Wait(pid_t pid) {
+  int status = 0;
+  if (::waitpid(pid, &status, 0) != pid) return -1;
+  if (WIFEXITED(status)) return WEXITSTATUS(status);
+  return WIFSIGNALED(status) ? 128 + WTERMSIG(status) : -1;
 }
 
 inline bool Contains(const std::string& text, const std::string& part) {

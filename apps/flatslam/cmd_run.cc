@@ -15,6 +15,7 @@
 #include <fstream>
 #include <optional>
 
+#include "agent_link.h"
 #include "args.h"
 #include "commands.h"
 #include "stop_signals.h"
@@ -40,6 +41,7 @@ const char* const kRunUsage =
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
     "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n"
     "                    [--settings FILE] [--strict] [--checkpoint FILE [--checkpoint-every S]]\n"
+    "                    [--publish [--dds-domain D] [--dds-peers IP,...|multicast]]\n"
     "       flatslam run --resume CHECKPOINT [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
     "as fast as it can read, and prints a summary: frames, frames lost, keyframes, map points, ms per\n"
@@ -81,6 +83,12 @@ const char* const kRunUsage =
     "  --resume F       continue the run checkpointed in F: same dataset, options and outputs, from\n"
     "                   the frame after the checkpoint, relocalizing in its map; the trajectory\n"
     "                   covers the frames of both parts\n"
+    "  --publish        a live agent on DDS (what flatslam agent runs): each frame's pose as a ROS 2\n"
+    "                   geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose (N = --agent; best\n"
+    "                   effort), each mapped keyframe on flatslam/keyframes for flatslam server\n"
+    "                   (reliable; kept for a server that starts later); --dds-domain D (default 0),\n"
+    "                   --dds-peers: hosts found by unicast discovery (default 127.0.0.1) or\n"
+    "                   'multicast' for DDS's default discovery\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n"
     "The first SIGINT or SIGTERM stops reading: the frames in flight are tracked, mapping finishes, and\n"
     "the trajectory, stats, summary, map and checkpoint are written as at a normal end; the exit code\n"
@@ -122,12 +130,12 @@ std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, cons
 
 // Flags of `flatslam run` that take a value, and switches.
 const std::set<std::string> kRunFlags = {
-    "sensor",      "out",    "seed",    "max-frames", "features",   "mapping-lag",
-    "vocabulary",  "skip",   "lose-at", "save-map",   "agent",      "load-map",
-    "first-frame", "config", "set",     "settings",   "checkpoint", "checkpoint-every",
-    "resume"};
+    "sensor",      "out",        "seed",     "max-frames", "features",   "mapping-lag",
+    "vocabulary",  "skip",       "lose-at",  "save-map",   "agent",      "load-map",
+    "first-frame", "config",     "set",      "settings",   "checkpoint", "checkpoint-every",
+    "resume",      "dds-domain", "dds-peers"};
 const std::set<std::string> kRunSwitches = {"deterministic", "quiet",        "no-loop-closing", "no-global-ba",
-                                            "localize-only", "list-options", "strict"};
+                                            "localize-only", "list-options", "strict",          "publish"};
 
 // The run's command line as a checkpoint keeps it for --resume: one "--name=value" per flag,
 // paths made absolute (a resume may start elsewhere), without --load-map and --first-frame (the
@@ -349,7 +357,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
     run.checkpoint_every_s = args.get_double("checkpoint-every", 60);
     if (!(run.checkpoint_every_s > 0)) throw UsageError{"--checkpoint-every must be a positive number of seconds"};
     const std::vector<std::string> arguments = ResumableArguments(argv);
-    run.on_checkpoint = [&, arguments, inject = fault == "checkpoint"](const SlamSession::State& state, size_t next_frame) {
+    run.on_checkpoint = [&, arguments, inject = fault == "checkpoint"](const SlamSession::State& state,
+                                                                       size_t next_frame) {
       if (inject) Fail("injected failure in checkpoint write");
       SnapshotMetadata with_session = metadata;
       SnapshotSession session;
@@ -382,8 +391,23 @@ int RunRun(const std::vector<std::string>& original_argv) {
   const RunRecorder::Counts& counts = recorder.counts();
   run.keep_reports = false;
   const size_t to_do = frames - run.first_frame;
+  std::optional<AgentLink> link;
+  if (args.has("publish")) {
+    link.emplace(options.agent, ParseDdsOptions(args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1")),
+                 AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
+    run.on_keyframe_mapped = [&](const SlamSession& slam, KeyFrameHandle keyframe) {
+      link->OnKeyFrame(slam, keyframe);
+    };
+    run.on_finished = [&, save = run.on_finished](const SlamSession& slam) {
+      if (save) save(slam);
+      link->PublishFinalMap(slam);
+    };
+  } else if (args.has("dds-domain") || args.has("dds-peers")) {
+    throw UsageError{"--dds-domain and --dds-peers need --publish"};
+  }
   run.on_frame = [&](const FrameReport& r) {
     recorder.OnFrame(r);
+    if (link) link->OnFrame(r);
     if (!quiet && (counts.frames % 10 == 0 || counts.frames == to_do))
       std::fprintf(stderr, "\rframe %zu / %zu  %-16s keyframes made: %zu   ", counts.frames, to_do,
                    r.skipped ? "skipped" : TrackingStateName(r.state), counts.keyframes);
@@ -468,6 +492,12 @@ int RunRun(const std::vector<std::string>& original_argv) {
         "longest frame while checkpointing %.1f ms; all frames: median %.1f ms, longest %.1f ms\n",
         result.checkpoints, checkpoint->c_str(), last_checkpoint_frame, result.checkpoint_failures, capture.Median(),
         capture.Max(), longest, track_ms.Median(), track_ms.Max());
+  }
+  if (link) {
+    // Keyframes a server has not yet acknowledged are lost when the process ends: wait a little.
+    const bool delivered = link->Finish(10.0);
+    std::printf("published     %s%s\n", link->Summary().c_str(),
+                delivered ? "" : " (not every keyframe acknowledged within 10 s)");
   }
   if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());

@@ -21,6 +21,8 @@ int RunRun(const std::vector<std::string>& args);
 int RunVocab(const std::vector<std::string>& args);
 int RunMap(const std::vector<std::string>& args);
 int RunBatch(const std::vector<std::string>& args);
+int RunAgent(const std::vector<std::string>& args);
+int RunServer(const std::vector<std::string>& args);
 
 extern const char* const kSynthUsage;
 extern const char* const kEvalUsage;
@@ -29,5 +31,7 @@ extern const char* const kRunUsage;
 extern const char* const kVocabUsage;
 extern const char* const kMapUsage;
 extern const char* const kBatchUsage;
+extern const char* const kAgentUsage;
+extern const char* const kServerUsage;
 
 }  // namespace flatslam::app

@@ -31,6 +31,10 @@ const Command kCommands[] = {
      flatslam::app::RunVocab},
     {"map", "describe, verify or export a map snapshot (info, verify, export)", flatslam::app::kMapUsage,
      flatslam::app::RunMap},
+    {"agent", "SLAM as a live agent: poses and keyframes published on DDS", flatslam::app::kAgentUsage,
+     flatslam::app::RunAgent},
+    {"server", "collect live agents' keyframes over DDS and merge their maps", flatslam::app::kServerUsage,
+     flatslam::app::RunServer},
 };
 
 void PrintHelp(std::FILE* out) {

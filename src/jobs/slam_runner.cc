@@ -99,14 +99,17 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       }
     } notify{mapped_mutex, mapped};
     slam.MapKeyFrame(job.keyframe);
+    if (run.on_keyframe_mapped) run.on_keyframe_mapped(slam, job.keyframe);
   });
   // Checkpoint writes: one at a time, never queued behind each other (the track stage only copies
   // the session when the last copy has been written).
   std::atomic<bool> checkpoint_busy{false};
-  // One copy of the session, reused by every checkpoint (one is written at a time). The copy is
-  // taken by a job on the mapping queue (or, with mapping inline, by the checkpoint job), not by
-  // the track stage: tracking waits only while the copy reads the map (measured
-  // in the frames' track_ms).
+  // The copy of the session a checkpoint writes (one is written at a time), released once written:
+  // with the keyframes' keypoint columns shared (SharedColumn), a fresh copy costs about a
+  // millisecond, and a long session does not keep a second map in memory between checkpoints.
+  // The copy is taken by a job on the mapping queue (or, with mapping inline, by the checkpoint
+  // job), not by the track stage: tracking waits only while the copy reads the map (measured in
+  // the frames' track_ms).
   SlamSession::State checkpoint_state;
   // Held by the track stage from Track to on_frame, and by a checkpoint's copy: a checkpoint never
   // covers a frame whose report has not been handed out.
@@ -137,6 +140,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   auto checkpoints = pipeline.add_background_stage<CheckpointJob>("checkpoint", [&](CheckpointJob& job) {
     if (!job.captured) capture();
     write_checkpoint(false);
+    checkpoint_state = SlamSession::State{};
     checkpoint_busy = false;
   });
   capture_between_keyframes = [&] {
@@ -229,9 +233,10 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     FrameReport report = slam.Track(std::move(item.frame), &keyframe);
     report.extract_ms = item.extract_ms;
     if (keyframe) {
-      if (inline_mapping)
+      if (inline_mapping) {
         slam.MapKeyFrame(*keyframe);
-      else
+        if (run.on_keyframe_mapped) run.on_keyframe_mapped(slam, *keyframe);
+      } else
         mapping.post(MappingJob{*keyframe});
     }
     // Frames tracked while a checkpoint was copied or written: their tracking time includes any

@@ -39,6 +39,7 @@ constexpr Access kAdoptMap =
 constexpr Access kCapture = Access::Of({C::kMap, C::kLocalMapping, C::kTrajectory}, {});
 constexpr Access kFrameTrajectory = Access::Of({C::kMap, C::kLocalMapping, C::kTrajectory}, {});
 constexpr Access kKeyFrameTrajectory = Access::Of({C::kMap}, {});
+constexpr Access kReadMap = Access::Of({C::kMap}, {});
 }  // namespace SessionAccess
 
 std::span<const AccessStep> SlamSession::Steps() {
@@ -55,6 +56,7 @@ std::span<const AccessStep> SlamSession::Steps() {
       {"mapping.apply_local_ba", kApplyLocalBa, "mapping", false, true},
       {"mapping.cull", kCull, "mapping", false, true},
       {"place", kPlace, "mapping", false, true},
+      {"mapping.publish", kReadMap, "mapping", false, true},
       {"global_ba.build", kBuildGlobalBa, "background", false, true},
       {"global_ba.solve", Access{}, "background", false, false},
       {"global_ba.apply", kApplyGlobalBa, "background", false, true},
@@ -331,6 +333,11 @@ void SlamSession::CaptureState(State* out) const {
   frame_poses_.TakeView(&out->frames);
   out->culled = mapping_.culled;
   out->next_frame = next_frame_;
+}
+
+void SlamSession::ReadMap(const std::function<void(const Map&)>& read) const {
+  const auto lease = access_.Acquire(SessionAccess::kReadMap);
+  read(map_);
 }
 
 void SlamSession::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {

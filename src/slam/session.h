@@ -109,6 +109,9 @@ class SlamSession {
     void AnchoredToMap(std::vector<AnchoredFramePose>* out) const;
   };
   void CaptureState(State* out) const;
+  // Calls read(map) while holding read access to the map (the "mapping.publish" step: a
+  // keyframe's message for a map server, between two keyframes' mapping). Any thread.
+  void ReadMap(const std::function<void(const Map&)>& read) const;
 
  private:
   static_assert(sizeof(AnchoredFramePose) == 72);

@@ -23,6 +23,7 @@
 
 #include "core/error.h"
 #include "flatslam/schemas/map_generated.h"
+#include "storage/schema_records.h"
 
 namespace flatslam {
 namespace {
@@ -31,41 +32,17 @@ namespace fb = flatbuffers;
 
 // Columns are copied between arenas and files as raw bytes: the layouts must agree.
 static_assert(std::endian::native == std::endian::little, "snapshots are read in place: little-endian only");
-static_assert(sizeof(schema::Vec2f) == sizeof(Eigen::Vector2f));
-static_assert(sizeof(schema::Descriptor256) == sizeof(Descriptor));
 static_assert(sizeof(schema::ObservationRecord) == 8);
 static_assert(sizeof(schema::CovisibilityEdge) == 8);
 
 constexpr size_t kMaxBufferSize = (size_t{1} << 31) - 1;  // flatbuffers uses 32-bit offsets
 
-template <class T>
-size_t Size(const fb::Vector<T>* v) {
-  return v ? v->size() : 0;
-}
-// Absent vectors read as empty.
-template <class T>
-std::span<const T> Span(const fb::Vector<T>* v) {
-  return v ? std::span<const T>(v->data(), v->size()) : std::span<const T>();
-}
-template <class T>
-std::span<const T> Span(const fb::Vector<const T*>* v) {
-  return v ? std::span<const T>(reinterpret_cast<const T*>(v->Data()), v->size()) : std::span<const T>();
-}
-
-schema::Pose34 ToPose(const Eigen::Isometry3d& T) {
-  double m[12];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) m[r * 4 + c] = T.matrix()(r, c);
-  return schema::Pose34(fb::span<const double, 12>(m));
-}
-
-Eigen::Isometry3d FromPose(const schema::Pose34* pose) {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  if (!pose) return T;
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) T.matrix()(r, c) = pose->m()->Get(r * 4 + c);
-  return T;
-}
+using records::FromDescriptor;
+using records::FromPose;
+using records::FromVec;
+using records::Size;
+using records::Span;
+using records::ToPose;
 
 schema::CompactPose ToSchema(const CompactPose& pose) {
   return schema::CompactPose(fb::span<const float, 4>(pose.q), fb::span<const float, 3>(pose.t));
@@ -77,22 +54,6 @@ CompactPose FromSchema(const schema::CompactPose& pose) {
   for (int k = 0; k < 3; ++k) out.t[k] = pose.t()->Get(k);
   // A zero quaternion (a crafted record) reads as the identity rather than NaN.
   if (out.q[0] == 0 && out.q[1] == 0 && out.q[2] == 0 && out.q[3] == 0) out.q[3] = 1;
-  return out;
-}
-
-schema::Vec3d ToVec(const Eigen::Vector3d& v) {
-  return schema::Vec3d(v.x(), v.y(), v.z());
-}
-Eigen::Vector3d FromVec(const schema::Vec3d& v) {
-  return {v.x(), v.y(), v.z()};
-}
-
-schema::Descriptor256 ToDescriptor(const Descriptor& d) {
-  return schema::Descriptor256(fb::span<const uint64_t, 4>(d.data(), 4));
-}
-Descriptor FromDescriptor(const schema::Descriptor256& d) {
-  Descriptor out;
-  for (int i = 0; i < 4; ++i) out[i] = d.w()->Get(i);
   return out;
 }
 
@@ -138,60 +99,16 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
   std::vector<uint32_t> agents;
   std::vector<fb::Offset<schema::KeyFrameRecord>> kf_offsets;
   kf_offsets.reserve(keyframes.size());
-  std::vector<uint32_t> indices;
-  std::vector<schema::CovisibilityEdge> edges;
+  auto point_index = [&](PointHandle p) -> uint32_t {
+    return points.contains(p) ? static_cast<uint32_t>(points.dense_index(p)) : kNoIndex;
+  };
   for (const KeyFrame& kf : keyframes.values()) {
     const size_t n = kf.size();
     FLATSLAM_CHECK(kf.right_u.size() == n && kf.depth.size() == n && kf.angle.size() == n && kf.octave.size() == n &&
                        kf.descriptor.size() == n && kf.points.size() == n,
                    "map snapshot: keyframe ", kf.id, " of map ", ref.id, " has keypoint columns of different sizes");
     agents.push_back(kf.agent);
-    const auto uv = builder.CreateVectorOfStructs(reinterpret_cast<const schema::Vec2f*>(kf.uv.data()), n);
-    const auto right_u = builder.CreateVector(kf.right_u.vector());
-    const auto depth = builder.CreateVector(kf.depth.vector());
-    const auto angle = builder.CreateVector(kf.angle.vector());
-    const auto octave = builder.CreateVector(kf.octave.vector());
-    const auto descriptors =
-        builder.CreateVectorOfStructs(reinterpret_cast<const schema::Descriptor256*>(kf.descriptor.data()), n);
-    uint32_t* point_column = nullptr;
-    const auto point_indices = builder.CreateUninitializedVector<uint32_t>(n, &point_column);
-    for (size_t k = 0; k < n; ++k) {
-      const PointHandle p = kf.points[k];
-      point_column[k] = points.contains(p) ? static_cast<uint32_t>(points.dense_index(p)) : kNoIndex;
-    }
-    // Graph edges to erased keyframes carry no information: they are dropped.
-    indices.clear();
-    for (KeyFrameHandle c : kf.children)
-      if (keyframes.contains(c)) indices.push_back(kf_index(c));
-    const auto children = builder.CreateVector(indices);
-    indices.clear();
-    for (KeyFrameHandle l : kf.loop_edges)
-      if (keyframes.contains(l)) indices.push_back(kf_index(l));
-    const auto loop_edges = builder.CreateVector(indices);
-    edges.clear();
-    for (const auto& [other, weight] : kf.covisible)
-      if (keyframes.contains(other)) edges.emplace_back(kf_index(other), weight);
-    const auto covisible = builder.CreateVectorOfStructs(edges);
-
-    schema::KeyFrameRecordBuilder record(builder);
-    const schema::Pose34 pose = ToPose(kf.T_cam_world);
-    record.add_id(kf.id);
-    record.add_frame_index(kf.frame_index);
-    record.add_t_ns(kf.t_ns);
-    record.add_agent(kf.agent);
-    record.add_cam_from_world(&pose);
-    record.add_parent(kf_index(kf.parent));
-    record.add_children(children);
-    record.add_covisible(covisible);
-    record.add_loop_edges(loop_edges);
-    record.add_uv(uv);
-    record.add_right_u(right_u);
-    record.add_depth(depth);
-    record.add_angle(angle);
-    record.add_octave(octave);
-    record.add_descriptors(descriptors);
-    record.add_points(point_indices);
-    kf_offsets.push_back(record.Finish());
+    kf_offsets.push_back(records::BuildKeyFrameRecord(builder, kf, point_index, kf_index, /*graph=*/true));
     if (progress) progress(builder.GetSize());
   }
   const auto keyframe_vector = builder.CreateVector(kf_offsets);
@@ -219,8 +136,7 @@ fb::Offset<schema::MapSegment> BuildSegment(fb::FlatBufferBuilder& builder, cons
   std::vector<schema::PointRecord> records;
   records.reserve(point_values.size());
   for (const MapPoint& p : point_values) {
-    records.emplace_back(ToVec(p.position), ToVec(p.normal), ToDescriptor(p.descriptor), p.first_keyframe_id,
-                         p.min_distance, p.max_distance, kf_index(p.reference), p.visible, p.found);
+    records.push_back(records::ToPointRecord(p, kf_index(p.reference)));
   }
   const auto point_vector = builder.CreateVectorOfStructs(records);
   if (progress) progress(builder.GetSize());
@@ -362,11 +278,7 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
   for (const SnapshotMapRef& ref : maps) segments.push_back(BuildSegment(builder, ref, progress));
   const auto segment_vector = builder.CreateVector(segments);
 
-  const Calibration& calib = metadata.calibration;
-  const schema::Pose34 T_body_cam = ToPose(calib.T_body_cam);
-  const auto calibration = schema::CreateCalibration(
-      builder, static_cast<schema::Sensor>(calib.sensor), calib.camera.fx, calib.camera.fy, calib.camera.cx,
-      calib.camera.cy, calib.camera.width, calib.camera.height, calib.baseline_m, calib.frame_rate_hz, &T_body_cam);
+  const auto calibration = records::BuildCalibration(builder, metadata.calibration);
   const auto scales = schema::CreateScalePyramid(builder, metadata.scales.scale_factor, metadata.scales.levels);
   fb::Offset<schema::Session> session;
   if (const auto& s = metadata.session) {
@@ -819,19 +731,7 @@ uint64_t MapSnapshotView::content_hash() const {
 }
 
 Calibration MapSnapshotView::calibration() const {
-  const schema::Calibration& c = *root_->calibration();
-  Calibration out;
-  out.sensor = static_cast<Sensor>(c.sensor());
-  out.camera.fx = c.fx();
-  out.camera.fy = c.fy();
-  out.camera.cx = c.cx();
-  out.camera.cy = c.cy();
-  out.camera.width = c.width();
-  out.camera.height = c.height();
-  out.baseline_m = c.baseline_m();
-  out.frame_rate_hz = c.frame_rate_hz();
-  out.T_body_cam = FromPose(c.body_from_cam());
-  return out;
+  return records::CalibrationFromRecord(*root_->calibration());
 }
 
 MapScales MapSnapshotView::scales() const {
@@ -933,28 +833,7 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
     std::vector<KeyFrameHandle> kf_handles(nk);
     for (size_t k = 0; k < nk; ++k) {
       const schema::KeyFrameRecord& r = *seg.keyframes()->Get(static_cast<fb::uoffset_t>(k));
-      const size_t n = Size(r.uv());
-      KeyFrame kf;
-      kf.id = r.id();
-      kf.frame_index = r.frame_index();
-      kf.t_ns = r.t_ns();
-      kf.agent = r.agent();
-      kf.T_cam_world = FromPose(r.cam_from_world());
-      std::vector<Eigen::Vector2f> uv(n);
-      std::vector<Descriptor> descriptors(n);
-      if (n > 0) {
-        std::memcpy(static_cast<void*>(uv.data()), Span(r.uv()).data(), n * sizeof(Eigen::Vector2f));
-        std::memcpy(descriptors.data(), Span(r.descriptors()).data(), n * sizeof(Descriptor));
-      }
-      kf.uv = std::move(uv);
-      kf.descriptor = std::move(descriptors);
-      const auto right_u = Span(r.right_u()), depth = Span(r.depth()), angle = Span(r.angle());
-      const auto octave = Span(r.octave());
-      kf.right_u.assign(right_u.begin(), right_u.end());
-      kf.depth.assign(depth.begin(), depth.end());
-      kf.angle.assign(angle.begin(), angle.end());
-      kf.octave.assign(octave.begin(), octave.end());
-      kf.points.resize(n);
+      KeyFrame kf = records::KeyFrameFromRecord(r);
       kf_handles[k] = map.RestoreKeyFrame(std::move(kf));
     }
     kf_handles_of[m] = kf_handles;
@@ -964,16 +843,8 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
     const schema::ObservationRecord* observations = Span(seg.observations()).data();
     for (size_t i = 0; i < np; ++i) {
       const schema::PointRecord& r = records[i];
-      MapPoint p;
-      p.position = FromVec(r.position());
-      p.normal = FromVec(r.normal());
-      p.descriptor = FromDescriptor(r.descriptor());
-      p.first_keyframe_id = r.first_keyframe_id();
-      p.min_distance = r.min_distance();
-      p.max_distance = r.max_distance();
+      MapPoint p = records::FromPointRecord(r);
       p.reference = r.reference() == kNoIndex ? KeyFrameHandle::null() : kf_handles[r.reference()];
-      p.visible = r.visible();
-      p.found = r.found();
       p.observations.reserve(offsets[i + 1] - offsets[i]);
       for (uint32_t o = offsets[i]; o < offsets[i + 1]; ++o)
         p.observations.push_back({kf_handles[observations[o].keyframe()], observations[o].keypoint()});

@@ -34,32 +34,8 @@ using testing::Contains;
 using testing::FreshTempDir;
 using testing::RunApp;
 
-// Starts `flatslam ARGS` with stdout and stderr going to `log`.
-pid_t Spawn(const std::vector<std::string>& args, const fs::path& log) {
-  const std::string app = testing::AppPath();
-  std::vector<std::string> all = {app};
-  all.insert(all.end(), args.begin(), args.end());
-  const pid_t pid = ::fork();
-  if (pid == 0) {
-    const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    ::dup2(fd, STDOUT_FILENO);
-    ::dup2(fd, STDERR_FILENO);
-    std::vector<char*> argv;
-    for (std::string& a : all) argv.push_back(a.data());
-    argv.push_back(nullptr);
-    ::execv(app.c_str(), argv.data());
-    ::_exit(127);
-  }
-  return pid;
-}
-
-// Exit code, or 128 + signal for a child killed by a signal.
-int Wait(pid_t pid) {
-  int status = 0;
-  if (::waitpid(pid, &status, 0) != pid) return -1;
-  if (WIFEXITED(status)) return WEXITSTATUS(status);
-  return WIFSIGNALED(status) ? 128 + WTERMSIG(status) : -1;
-}
+using testing::Spawn;
+using testing::Wait;
 
 // Waits until `path` exists (false after the timeout or once the child has ended without it).
 bool WaitForFile(const fs::path& path, pid_t pid, double timeout_s) {

@@ -16,6 +16,7 @@
 #include "jobs/slam_runner.h"
 #include "frontend/orb_extractor.h"
 #include "place/vocabulary.h"
+#include "joint_ate.h"
 #include "trajectory/metrics.h"
 
 namespace flatslam {
@@ -65,8 +66,7 @@ AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment =
 // keyframes onto their ground truths. Agent k is the k-th run.
 std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vector<const AgentRun*>& agents,
                              Alignment kind = Alignment::kSE3) {
-  std::vector<Eigen::Vector3d> gt_positions, est_positions;
-  std::vector<std::vector<Eigen::Isometry3d>> gt(agents.size()), est(agents.size());
+  std::vector<Trajectory> gt, est;
   for (uint32_t k = 0; k < agents.size(); ++k) {
     Trajectory trajectory;
     for (const Map* map : maps) {
@@ -75,20 +75,10 @@ std::vector<double> JointAte(const std::vector<const Map*>& maps, const std::vec
     }
     std::sort(trajectory.begin(), trajectory.end(),
               [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
-    for (const IndexPair& p : AssociateByTime(agents[k]->gt, trajectory)) {
-      gt[k].push_back(agents[k]->gt[p.gt_index].T_world_cam);
-      est[k].push_back(trajectory[p.est_index].T_world_cam);
-      gt_positions.push_back(gt[k].back().translation());
-      est_positions.push_back(est[k].back().translation());
-    }
+    gt.push_back(agents[k]->gt);
+    est.push_back(std::move(trajectory));
   }
-  const AlignmentResult alignment = AlignUmeyama(gt_positions, est_positions, kind);
-  std::vector<double> ate;
-  for (size_t k = 0; k < agents.size(); ++k) {
-    for (Eigen::Isometry3d& T : est[k]) T = alignment.Apply(T);
-    ate.push_back(ComputeAte(gt[k], est[k]).rmse);
-  }
-  return ate;
+  return testing::JointAte(gt, est, kind);
 }
 
 MergeCamera CameraOf(const AgentRun& run) {

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "ecs/map.h"
+#include "storage/keyframe_message.h"
 
 namespace flatslam::testing {
 
@@ -22,6 +23,17 @@ struct RandomMapOptions {
   bool erase_some = true;  // erase and re-add a few entities: generations and reordered dense arrays
   uint64_t seed = 7;
 };
+
+// A stereo camera for keyframe messages of random maps.
+inline AgentCamera TestAgentCamera() {
+  AgentCamera camera;
+  camera.calibration.sensor = Sensor::kStereo;
+  camera.calibration.camera = PinholeCamera{480, 480, 319.5, 239.5, 640, 480};
+  camera.calibration.baseline_m = 0.12;
+  camera.calibration.frame_rate_hz = 20;
+  camera.scales = MapScales{1.2f, 8};
+  return camera;
+}
 
 inline Map RandomMap(const RandomMapOptions& o) {
   std::mt19937_64 rng(o.seed);

@@ -1,0 +1,112 @@
+#include "agent_link.h"
+
+#include <cstdio>
+#include <random>
+
+#include <Eigen/Geometry>
+
+#include "args.h"
+
+namespace flatslam::app {
+
+DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers) {
+  DdsOptions options;
+  try {
+    size_t used = 0;
+    const unsigned long d = std::stoul(domain, &used);
+    if (used != domain.size() || d > 232) throw std::invalid_argument(domain);
+    options.domain = static_cast<uint32_t>(d);
+  } catch (const std::exception&) {
+    throw UsageError{"--dds-domain: expected a DDS domain id 0..232, got '" + domain + "'"};
+  }
+  options.peers.clear();
+  if (peers != "multicast") {
+    for (size_t pos = 0; pos <= peers.size();) {
+      const size_t comma = std::min(peers.find(',', pos), peers.size());
+      if (comma > pos) options.peers.push_back(peers.substr(pos, comma - pos));
+      pos = comma + 1;
+    }
+    if (options.peers.empty()) throw UsageError{"--dds-peers: expected IPv4 addresses or 'multicast'"};
+  }
+  return options;
+}
+
+AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera)
+    : agent_(agent),
+      // A new id per process: a restarted agent's keyframes and points never collide with the
+      // ids of its earlier run on the server.
+      session_(std::random_device{}() * uint64_t{0x100000000} ^ std::random_device{}()),
+      camera_(camera),
+      node_(dds, "flatslam agent " + std::to_string(agent)),
+      poses_(node_.PoseWriter(AgentPoseTopic(agent))),
+      keyframes_(node_.PayloadWriter(kKeyFrameTopic)) {}
+
+void AgentLink::OnFrame(const FrameReport& report) {
+  if (!report.T_world_cam) return;
+  PoseStamped pose;
+  pose.sec = static_cast<int32_t>(report.t_ns / 1'000'000'000);
+  pose.nanosec = static_cast<uint32_t>(report.t_ns % 1'000'000'000);
+  pose.frame_id = "flatslam_agent_" + std::to_string(agent_) + "_map";
+  const Eigen::Vector3d t = report.T_world_cam->translation();
+  const Eigen::Quaterniond q(report.T_world_cam->linear());
+  pose.position = {t.x(), t.y(), t.z()};
+  pose.orientation = {q.x(), q.y(), q.z(), q.w()};
+  if (poses_->Write(pose))
+    ++poses_sent_;
+  else
+    ++failed_;
+}
+
+size_t AgentLink::Send(const Map& map, KeyFrameHandle keyframe) {
+  if (!map.keyframes().contains(keyframe)) return 0;  // culled meanwhile
+  Payload payload;
+  payload.agent = agent_;
+  payload.kind = PayloadKind::kKeyFrame;
+  payload.sequence = sequence_++;
+  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_);
+  if (!keyframes_->Write(payload)) {
+    ++failed_;
+    return 0;
+  }
+  return payload.bytes.size();
+}
+
+void AgentLink::OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) {
+  slam.ReadMap([&](const Map& map) {
+    if (const size_t bytes = Send(map, keyframe); bytes > 0) {
+      ++keyframes_sent_;
+      keyframe_bytes_ += bytes;
+    }
+  });
+}
+
+void AgentLink::PublishFinalMap(const SlamSession& slam) {
+  slam.ReadMap([&](const Map& map) {
+    for (KeyFrameHandle h : map.keyframes().handles()) {
+      if (const size_t bytes = Send(map, h); bytes > 0) {
+        ++updates_sent_;
+        update_bytes_ += bytes;
+      }
+    }
+  });
+}
+
+bool AgentLink::Finish(double seconds) {
+  return keyframes_->matched() == 0 || keyframes_->WaitForAcknowledgments(seconds);
+}
+
+std::string AgentLink::Summary() const {
+  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  const uint64_t n = keyframes_sent_, bytes = keyframe_bytes_;
+  char line[480];
+  std::snprintf(line, sizeof(line),
+                "%llu keyframes to %s (%.1f KiB, %.1f KiB per keyframe, %.1f KiB/s over %.1f s), final map update "
+                "%llu keyframes (%.1f KiB), %llu poses to %s; %d server(s) matched, %llu writes failed",
+                static_cast<unsigned long long>(n), kKeyFrameTopic, bytes / 1024.0, n ? bytes / 1024.0 / n : 0.0,
+                s > 0 ? bytes / 1024.0 / s : 0.0, s, static_cast<unsigned long long>(updates_sent_.load()),
+                update_bytes_ / 1024.0, static_cast<unsigned long long>(poses_sent_.load()),
+                AgentPoseTopic(agent_).c_str(), keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
+  return line;
+}
+
+}  // namespace flatslam::app

@@ -1,0 +1,52 @@
+// A running SLAM session as a live agent on DDS (`flatslam agent`, `flatslam run --publish`):
+// every tracked frame's pose as a ROS 2 geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose
+// (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable,
+// kept for servers that join later), with byte counts for the bandwidth report.
+// Concurrency: OnFrame from the track stage, OnKeyFrame from the mapping lane; the counters are
+// atomic; Finish and Summary after the run.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "net/dds.h"
+#include "slam/session.h"
+#include "storage/keyframe_message.h"
+
+namespace flatslam::app {
+
+// Options shared by the commands that join DDS: --dds-domain D and --dds-peers A,B (IPv4
+// addresses for unicast discovery; "multicast" for DDS's default discovery).
+DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers);
+
+class AgentLink {
+ public:
+  AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera);
+  void OnFrame(const FrameReport& report);
+  void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe);
+  // At the end of the run: every keyframe again, as loop closures and bundle adjustment left it,
+  // so the server's copy ends as the agent's map does.
+  void PublishFinalMap(const SlamSession& slam);
+  // Waits up to `seconds` for every matched server to acknowledge every keyframe; false on timeout.
+  bool Finish(double seconds);
+  // Keyframes and bytes sent (per keyframe, per second), the final update, poses, servers matched.
+  [[nodiscard]] std::string Summary() const;
+
+ private:
+  uint32_t agent_;
+  uint64_t session_;
+  AgentCamera camera_;
+  DdsNode node_;
+  std::unique_ptr<DdsNode::Writer<PoseStamped>> poses_;
+  std::unique_ptr<DdsNode::Writer<Payload>> keyframes_;
+  // Writes one keyframe message; its size in bytes, 0 when nothing was written.
+  size_t Send(const Map& map, KeyFrameHandle keyframe);
+  std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
+      failed_{0}, sequence_{0};
+  std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
+};
+
+}  // namespace flatslam::app

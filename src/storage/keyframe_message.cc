@@ -1,0 +1,97 @@
+#include "storage/keyframe_message.h"
+
+#include <cmath>
+#include <unordered_map>
+
+#include "core/error.h"
+#include "flatslam/schemas/agent_generated.h"
+#include "storage/schema_records.h"
+
+namespace flatslam {
+namespace {
+
+constexpr uint32_t kFormatVersion = 1;
+
+bool Finite(const Eigen::Vector3d& v) {
+  return std::isfinite(v.x()) && std::isfinite(v.y()) && std::isfinite(v.z());
+}
+
+}  // namespace
+
+std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyframe, uint32_t agent, uint64_t session,
+                                           const AgentCamera& camera) {
+  const KeyFrame& kf = map.keyframe(keyframe);
+  // The keyframe's live points, in the order its keypoints first see them.
+  std::unordered_map<PointHandle, uint32_t> index;
+  std::vector<uint64_t> ids;
+  std::vector<schema::PointRecord> points;
+  for (PointHandle p : kf.points) {
+    const MapPoint* point = map.points().try_get(p);
+    if (!point || index.count(p)) continue;
+    index.emplace(p, static_cast<uint32_t>(ids.size()));
+    ids.push_back(p.packed());
+    points.push_back(records::ToPointRecord(*point, records::kNone));
+  }
+  flatbuffers::FlatBufferBuilder builder(kf.size() * 80 + points.size() * sizeof(schema::PointRecord) + 1024);
+  auto point_index = [&](PointHandle p) {
+    const auto it = index.find(p);
+    return it == index.end() ? records::kNone : it->second;
+  };
+  const auto record = records::BuildKeyFrameRecord(
+      builder, kf, point_index, [](KeyFrameHandle) { return records::kNone; }, /*graph=*/false);
+  const auto id_vector = builder.CreateVector(ids);
+  const auto point_vector = builder.CreateVectorOfStructs(points);
+  const auto calibration = records::BuildCalibration(builder, camera.calibration);
+  const auto pyramid = schema::CreateScalePyramid(builder, camera.scales.scale_factor, camera.scales.levels);
+  agent::FinishKeyFrameMessageBuffer(
+      builder, agent::CreateKeyFrameMessage(builder, kFormatVersion, agent, session, calibration, pyramid,
+                                            camera.rgbd_virtual_baseline_m, record, id_vector, point_vector));
+  return {builder.GetBufferPointer(), builder.GetBufferPointer() + builder.GetSize()};
+}
+
+KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std::string& what) {
+  FLATSLAM_CHECK(
+      bytes.size() >= 8 && flatbuffers::BufferHasIdentifier(bytes.data(), agent::KeyFrameMessageIdentifier()), what,
+      ": not a keyframe message (", bytes.size(), " bytes)");
+  flatbuffers::Verifier verifier(bytes.data(), bytes.size());
+  FLATSLAM_CHECK(agent::VerifyKeyFrameMessageBuffer(verifier), what, ": corrupt (flatbuffers verification failed)");
+  const agent::KeyFrameMessage& root = *agent::GetKeyFrameMessage(bytes.data());
+  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= kFormatVersion, what, ": format version ",
+                 root.format_version(), " (this build reads 1 to ", kFormatVersion, ")");
+  FLATSLAM_CHECK(root.keyframe() != nullptr, what, ": no keyframe");
+  const schema::KeyFrameRecord& r = *root.keyframe();
+  FLATSLAM_CHECK(records::KeyFrameColumnsAgree(r), what, ": keypoint columns differ in size");
+  const size_t np = records::Size(root.points());
+  FLATSLAM_CHECK(records::Size(root.point_ids()) == np, what, ": ", records::Size(root.point_ids()), " point ids for ",
+                 np, " points");
+
+  FLATSLAM_CHECK(root.calibration() && root.scales(), what, ": no calibration");
+  KeyFrameMessage out;
+  out.agent = root.agent();
+  out.session = root.session();
+  AgentCamera& camera = out.camera;
+  camera.calibration = records::CalibrationFromRecord(*root.calibration());
+  camera.scales = MapScales{root.scales()->scale_factor(), root.scales()->levels()};
+  camera.rgbd_virtual_baseline_m = root.rgbd_virtual_baseline_m();
+  FLATSLAM_CHECK(camera.calibration.camera.fx > 0 && camera.calibration.camera.width > 0 && camera.scales.levels >= 1 &&
+                     camera.scales.levels <= 32 && camera.scales.scale_factor >= 1,
+                 what, ": calibration out of range");
+  out.keyframe = records::KeyFrameFromRecord(r);
+  FLATSLAM_CHECK(out.keyframe.T_cam_world.matrix().allFinite(), what, ": the keyframe's pose is not finite");
+  const auto point_index = records::Span(r.points());
+  out.keypoint_point.assign(point_index.begin(), point_index.end());
+  for (size_t k = 0; k < out.keypoint_point.size(); ++k) {
+    const uint32_t i = out.keypoint_point[k];
+    FLATSLAM_CHECK(i == KeyFrameMessage::kNoPoint || i < np, what, ": keypoint ", k, " names point ", i, " of ", np);
+  }
+  const auto ids = records::Span(root.point_ids());
+  out.point_ids.assign(ids.begin(), ids.end());
+  out.points.reserve(np);
+  for (const schema::PointRecord& record : records::Span(root.points())) {
+    out.points.push_back(records::FromPointRecord(record));
+    FLATSLAM_CHECK(Finite(out.points.back().position), what, ": point ", out.points.size() - 1, " is not finite");
+  }
+  return out;
+}
+
+}  // namespace flatslam

@@ -1,0 +1,44 @@
+// An agent's keyframe as a message for the map server (schemas/agent.fbs): the keyframe (pose,
+// keypoints, descriptors) and the map points it sees, with their positions as the agent has them
+// when it sends, each point named by the agent's stable id so that the server joins the
+// observations of one point from several keyframes. Decoding verifies everything before it
+// returns: a malformed message is an error, never a crash.
+// Concurrency: pure functions; EncodeKeyFrameMessage reads the map (hold read access to it).
+#pragma once
+
+#include <cstdint>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "ecs/map.h"
+#include "io/calibration.h"
+
+namespace flatslam {
+
+// An agent's camera, as map snapshots record it (SnapshotMetadata).
+struct AgentCamera {
+  Calibration calibration;
+  MapScales scales;
+  double rgbd_virtual_baseline_m = 0;  // RGB-D: the virtual baseline of the keyframes' right_u
+};
+
+struct KeyFrameMessage {
+  uint32_t agent = 0;
+  uint64_t session = 0;  // the agent process's run (a restarted agent sends under a new one)
+  AgentCamera camera;
+  KeyFrame keyframe;                     // identity, pose and keypoint columns; points null, no graph
+  std::vector<uint32_t> keypoint_point;  // per keypoint: index into points, or kNoPoint
+  std::vector<uint64_t> point_ids;       // per point: the agent's id (its packed handle)
+  std::vector<MapPoint> points;          // position, normal, descriptor, distances; no observations
+  static constexpr uint32_t kNoPoint = 0xffffffffu;
+};
+
+[[nodiscard]] std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyframe, uint32_t agent,
+                                                         uint64_t session, const AgentCamera& camera);
+// Throws flatslam::Error naming `what` (e.g. "keyframe message 12 from agent 1") and the first
+// problem: not a keyframe message, a newer format, corrupt, columns of different sizes, a point
+// index out of range, non-finite values.
+[[nodiscard]] KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std::string& what);
+
+}  // namespace flatslam

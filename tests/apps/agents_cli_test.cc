@@ -1,0 +1,97 @@
+// Live agents: one `flatslam server` and three `flatslam agent` processes on one machine (DDS over
+// loopback), with an independent DDS subscriber in the test, as a ROS 2 node would be.
+#include <unistd.h>
+
+#include <array>
+#include <atomic>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "cli.h"
+#include "joint_ate.h"
+#include "net/dds.h"
+#include "test_data.h"
+#include "trajectory/trajectory_io.h"
+
+namespace flatslam {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::Contains;
+using testing::ReadBytes;
+using testing::RunApp;
+using testing::Spawn;
+using testing::Wait;
+
+// The town agents of the merge tests (tests/merge/map_merge_test.cc): agents 0 and 1 share two
+// stretches of road, agent 2 shares the top road with both.
+std::string Town(int agent) {
+  return "synth:town:agent=" + std::to_string(agent) +
+         ",width=480,height=360,fps=10,duration=" + (agent == 0 ? "36" : "55");
+}
+
+TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
+  const fs::path dir = testing::FreshTempDir("agents_cli");
+  const uint32_t domain = 150 + static_cast<uint32_t>(getpid() % 50);  // apart from other test processes
+  const std::string d = std::to_string(domain);
+
+  DdsOptions dds;
+  dds.domain = domain;
+  DdsNode subscriber(dds, "test subscriber");
+  std::array<std::atomic<int>, 3> poses{};
+  std::vector<std::unique_ptr<DdsNode::Reader<PoseStamped>>> readers;
+  for (int k = 0; k < 3; ++k) {
+    const std::string frame = "flatslam_agent_" + std::to_string(k) + "_map";
+    readers.push_back(subscriber.PoseReader(AgentPoseTopic(k), [&poses, k, frame](const PoseStamped& p) {
+      if (p.frame_id == frame && p.orientation[3] * p.orientation[3] <= 1.0 + 1e-9) ++poses[k];
+    }));
+  }
+
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "3", "--idle", "10", "--dds-domain", d},
+            dir / "server.log");
+  std::vector<pid_t> agents;
+  for (int k = 0; k < 3; ++k)
+    agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--dds-domain", d, "--out",
+                            (dir / ("agent" + std::to_string(k))).string()},
+                           dir / ("agent" + std::to_string(k) + ".log")));
+  for (int k = 0; k < 3; ++k)
+    ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string server_log = ReadBytes(dir / "server.log");
+  EXPECT_TRUE(Contains(server_log, "0 dropped as malformed")) << server_log;
+  // The three agents end in one map: one frame.
+  EXPECT_TRUE(Contains(server_log, "agents [0,1,2]")) << server_log;
+  for (int k = 0; k < 3; ++k) {
+    const std::string log = ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+    EXPECT_TRUE(Contains(log, "1 server(s) matched, 0 writes failed")) << log;
+    EXPECT_GT(poses[k].load(), 0) << "the subscriber heard no pose of agent " << k;
+  }
+
+  // Each agent's keyframes in the server's map, under ONE alignment for all three, against the
+  // keyframes of its own run (its own alignment): within 1.5x.
+  std::vector<Trajectory> gt, merged;
+  for (int k = 0; k < 3; ++k) {
+    const fs::path agent_dir = dir / ("agent" + std::to_string(k));
+    const fs::path exported = dir / ("merged" + std::to_string(k) + ".tum");
+    const auto r = RunApp("map export " + (dir / "server" / "map.fsmap").string() + " --trajectory " +
+                          exported.string() + " --agent " + std::to_string(k));
+    ASSERT_EQ(r.exit_code, 0) << r.output;
+    gt.push_back(ReadTum(agent_dir / "groundtruth.tum"));
+    merged.push_back(ReadTum(exported));
+    EXPECT_EQ(merged.back().size(), ReadTum(agent_dir / "keyframes.tum").size());
+  }
+  const std::vector<double> joint = testing::JointAte(gt, merged);
+  for (int k = 0; k < 3; ++k) {
+    const double own = testing::JointAte({gt[k]}, {ReadTum(dir / ("agent" + std::to_string(k)) / "keyframes.tum")})[0];
+    std::printf("agent %d: keyframe ATE own %.3f m, in the server's map (one alignment) %.3f m\n", k, own, joint[k]);
+    EXPECT_LE(joint[k], 1.5 * own) << "agent " << k;
+  }
+  fs::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace flatslam

@@ -1,0 +1,88 @@
+#include "storage/keyframe_message.h"
+
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+#include "storage/random_map.h"
+
+namespace flatslam {
+namespace {
+
+std::string ErrorOf(std::span<const uint8_t> bytes) {
+  try {
+    (void)DecodeKeyFrameMessage(bytes, "message 7 from agent 3");
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// A keyframe goes out with its camera and the points it sees, and comes back the same.
+TEST(KeyFrameMessage, RoundTripsAKeyFrameWithItsPoints) {
+  const Map map = testing::RandomMap({});
+  const KeyFrameHandle h = map.keyframes().handles()[5];
+  const KeyFrame& kf = map.keyframe(h);
+  const std::vector<uint8_t> bytes = EncodeKeyFrameMessage(map, h, 3, 0xabcdef, testing::TestAgentCamera());
+  const KeyFrameMessage m = DecodeKeyFrameMessage(bytes, "test");
+  EXPECT_EQ(m.agent, 3u);
+  EXPECT_EQ(m.session, 0xabcdefu);
+  EXPECT_EQ(m.camera.calibration.camera.width, 640);
+  EXPECT_DOUBLE_EQ(m.camera.calibration.baseline_m, 0.12);
+  EXPECT_EQ(m.camera.scales.levels, 8);
+  EXPECT_EQ(m.keyframe.id, kf.id);
+  EXPECT_EQ(m.keyframe.t_ns, kf.t_ns);
+  EXPECT_TRUE(m.keyframe.T_cam_world.isApprox(kf.T_cam_world, 1e-12));
+  EXPECT_EQ(m.keyframe.uv, kf.uv);
+  EXPECT_EQ(m.keyframe.descriptor, kf.descriptor);
+  EXPECT_EQ(m.keyframe.depth, kf.depth);
+  ASSERT_EQ(m.keypoint_point.size(), kf.size());
+  size_t bound = 0;
+  for (size_t k = 0; k < kf.size(); ++k) {
+    if (kf.points[k].is_null()) {
+      EXPECT_EQ(m.keypoint_point[k], KeyFrameMessage::kNoPoint);
+      continue;
+    }
+    ++bound;
+    const uint32_t i = m.keypoint_point[k];
+    ASSERT_LT(i, m.points.size());
+    EXPECT_EQ(m.point_ids[i], kf.points[k].packed());
+    EXPECT_EQ(m.points[i].position, map.point(kf.points[k]).position);
+    EXPECT_EQ(m.points[i].descriptor, map.point(kf.points[k]).descriptor);
+  }
+  EXPECT_GT(bound, 0u);
+}
+
+// Whatever arrives, decoding either returns a verified message or throws naming the message.
+TEST(KeyFrameMessage, MalformedMessagesAreRefusedWithTheirName) {
+  const Map map = testing::RandomMap({});
+  const std::vector<uint8_t> bytes =
+      EncodeKeyFrameMessage(map, map.keyframes().handles()[2], 1, 1, testing::TestAgentCamera());
+  EXPECT_NE(ErrorOf({}).find("message 7 from agent 3: not a keyframe message"), std::string::npos);
+  std::vector<uint8_t> other = bytes;
+  other[4] = 'X';  // another file identifier
+  EXPECT_NE(ErrorOf(other).find("not a keyframe message"), std::string::npos);
+  // Every truncation is refused (or, where only padding is cut, decodes whole).
+  for (size_t n = 0; n < bytes.size(); n += 97) {
+    const std::string error = ErrorOf(std::span(bytes).first(n));
+    EXPECT_NE(error.find("message 7 from agent 3"), std::string::npos) << n;
+  }
+  // Flipped bytes anywhere: never a crash; an error names the message.
+  std::mt19937_64 rng(5);
+  size_t refused = 0;
+  for (int trial = 0; trial < 300; ++trial) {
+    std::vector<uint8_t> bad = bytes;
+    bad[rng() % bad.size()] ^= static_cast<uint8_t>(1 + rng() % 255);
+    const std::string error = ErrorOf(bad);
+    if (!error.empty()) {
+      ++refused;
+      EXPECT_NE(error.find("message 7 from agent 3"), std::string::npos) << error;
+    }
+  }
+  EXPECT_GT(refused, 0u);
+}
+
+}  // namespace
+}  // namespace flatslam
