@@ -109,4 +109,14 @@ std::string AgentLink::Summary() const {
   return line;
 }
 
+int RunServerLive(const std::vector<std::string>& args);  // cmd_server.cc
+
+void EnableLive() {
+  g_make_agent_publisher = [](uint32_t agent, const LiveOptions& options,
+                              const AgentCamera& camera) -> std::unique_ptr<AgentPublisher> {
+    return std::make_unique<AgentLink>(agent, ParseDdsOptions(options.domain, options.peers), camera);
+  };
+  g_run_server = &RunServerLive;
+}
+
 }  // namespace flatslam::app

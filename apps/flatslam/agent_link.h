@@ -1,4 +1,5 @@
-// A running SLAM session as a live agent on DDS (`flatslam agent`, `flatslam run --publish`):
+// A running SLAM session as a live agent on DDS (`flatslam agent`, `flatslam run --publish`; in
+// flatslam-live only, see live.h):
 // every tracked frame's pose as a ROS 2 geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose
 // (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable,
 // kept for servers that join later), with byte counts for the bandwidth report.
@@ -12,6 +13,7 @@
 #include <memory>
 #include <string>
 
+#include "live.h"
 #include "net/dds.h"
 #include "slam/session.h"
 #include "storage/keyframe_message.h"
@@ -22,18 +24,16 @@ namespace flatslam::app {
 // addresses for unicast discovery; "multicast" for DDS's default discovery).
 DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers);
 
-class AgentLink {
+class AgentLink : public AgentPublisher {
  public:
   AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera);
-  void OnFrame(const FrameReport& report);
-  void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe);
+  void OnFrame(const FrameReport& report) override;
+  void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) override;
   // At the end of the run: every keyframe again, as loop closures and bundle adjustment left it,
   // so the server's copy ends as the agent's map does.
-  void PublishFinalMap(const SlamSession& slam);
-  // Waits up to `seconds` for every matched server to acknowledge every keyframe; false on timeout.
-  bool Finish(double seconds);
-  // Keyframes and bytes sent (per keyframe, per second), the final update, poses, servers matched.
-  [[nodiscard]] std::string Summary() const;
+  void PublishFinalMap(const SlamSession& slam) override;
+  bool Finish(double seconds) override;
+  [[nodiscard]] std::string Summary() const override;
 
  private:
   uint32_t agent_;

@@ -15,9 +15,9 @@
 #include <fstream>
 #include <optional>
 
-#include "agent_link.h"
 #include "args.h"
 #include "commands.h"
+#include "live.h"
 #include "stop_signals.h"
 #include "core/atomic_write.h"
 #include "core/error.h"
@@ -391,10 +391,12 @@ int RunRun(const std::vector<std::string>& original_argv) {
   const RunRecorder::Counts& counts = recorder.counts();
   run.keep_reports = false;
   const size_t to_do = frames - run.first_frame;
-  std::optional<AgentLink> link;
+  std::unique_ptr<AgentPublisher> link;
   if (args.has("publish")) {
-    link.emplace(options.agent, ParseDdsOptions(args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1")),
-                 AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
+    FLATSLAM_CHECK(g_make_agent_publisher != nullptr, "--publish: this executable has no DDS support (flatslam-live)");
+    link = g_make_agent_publisher(options.agent,
+                                  LiveOptions{args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1")},
+                                  AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
     run.on_keyframe_mapped = [&](const SlamSession& slam, KeyFrameHandle keyframe) {
       link->OnKeyFrame(slam, keyframe);
     };

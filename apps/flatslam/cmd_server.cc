@@ -1,4 +1,4 @@
-// flatslam agent and flatslam server: live agents over DDS and the map server that joins them.
+// flatslam server (in flatslam-live, see live.h): the map server that joins live agents' maps.
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
@@ -21,68 +21,8 @@
 
 namespace flatslam::app {
 
-const char* const kAgentUsage =
-    "usage: flatslam agent DATASET --id N [--dds-domain D] [--dds-peers IP,...|multicast] [run options]\n\n"
-    "Runs SLAM over DATASET as live agent N: flatslam run DATASET --agent N --publish (see flatslam run\n"
-    "--help for the other options). Each frame's pose goes out as a ROS 2 geometry_msgs/PoseStamped on\n"
-    "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable,\n"
-    "kept for a server that starts later), where flatslam server collects them. The summary adds the bytes\n"
-    "sent per keyframe and per second.\n";
-
-const char* const kServerUsage =
-    "usage: flatslam server --out DIR [--vocabulary FILE] [--dds-domain D] [--dds-peers IP,...|multicast]\n"
-    "                       [--agents N --idle S]\n\n"
-    "Collects the keyframes that live agents publish (flatslam agent) into one map per agent run. It\n"
-    "stops on SIGINT or SIGTERM, or with --agents N --idle S once N agents were heard from and no keyframe\n"
-    "came for S seconds; it then merges the maps where place recognition finds them overlapping (as\n"
-    "flatslam map merge does) and writes DIR/map.fsmap atomically: one map per group of agents that met.\n"
-    "A malformed message is dropped with a warning naming its agent and sequence number.\n"
-    "Exit code: 0, or 130/143 when stopped by SIGINT/SIGTERM (the map is written either way).\n";
-
-namespace {
-
-// One --id N out of the arguments (also --id=N).
-std::string TakeId(std::vector<std::string>* argv) {
-  for (size_t i = 0; i < argv->size(); ++i) {
-    const std::string& a = (*argv)[i];
-    if (a.rfind("--id=", 0) == 0) {
-      std::string id = a.substr(5);
-      argv->erase(argv->begin() + static_cast<std::ptrdiff_t>(i));
-      return id;
-    }
-    if (a == "--id" && i + 1 < argv->size()) {
-      std::string id = (*argv)[i + 1];
-      argv->erase(argv->begin() + static_cast<std::ptrdiff_t>(i), argv->begin() + static_cast<std::ptrdiff_t>(i) + 2);
-      return id;
-    }
-  }
-  throw UsageError{"agent needs --id N"};
-}
-
-}  // namespace
-
-int RunAgent(const std::vector<std::string>& original) {
-  for (const std::string& a : original)
-    if (a == "--help" || a == "-h") {
-      std::fputs(kAgentUsage, stdout);
-      return 0;
-    }
-  std::vector<std::string> argv = original;
-  const std::string id = TakeId(&argv);
-  for (const std::string& a : argv)
-    if (a == "--agent" || a.rfind("--agent=", 0) == 0 || a == "--publish")
-      throw UsageError{"agent sets --agent and --publish itself (from --id)"};
-  argv.push_back("--agent=" + id);
-  argv.push_back("--publish");
-  return RunRun(argv);
-}
-
-int RunServer(const std::vector<std::string>& argv) {
+int RunServerLive(const std::vector<std::string>& argv) {
   const Args args(argv, {"out", "vocabulary", "dds-domain", "dds-peers", "agents", "idle"}, {});
-  if (args.help()) {
-    std::fputs(kServerUsage, stdout);
-    return 0;
-  }
   if (!args.positional().empty()) throw UsageError{"server takes no positional argument"};
   const auto out = args.get("out");
   if (!out) throw UsageError{"server needs --out DIR"};

@@ -1,5 +1,7 @@
 #include "merge/agent_maps.h"
 
+#include <algorithm>
+
 #include "place/vocabulary.h"
 
 namespace flatslam {
@@ -66,6 +68,10 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
 }
 
 std::vector<Map> AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
+  // By agent, then in the order each run was first heard: the merge keeps the first map's frame,
+  // so the result does not depend on which agent happened to send first.
+  std::stable_sort(sessions_.begin(), sessions_.end(),
+                   [](const Session& a, const Session& b) { return a.agent < b.agent; });
   std::vector<Map> maps;
   for (Session& session : sessions_) {
     for (KeyFrameHandle h : session.map.keyframes().handles()) {

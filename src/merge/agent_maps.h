@@ -38,7 +38,8 @@ class AgentMaps {
   [[nodiscard]] const std::vector<Session>& sessions() const { return sessions_; }
   // The camera of the first message (the agents of one server share a camera model).
   [[nodiscard]] const std::optional<AgentCamera>& camera() const { return camera_; }
-  // The maps with their keyframes' bags of words, ready for MergeAllMaps; the sessions are left empty.
+  // The maps, by agent, with their keyframes' bags of words, ready for MergeAllMaps; the sessions
+  // are left empty.
   [[nodiscard]] std::vector<Map> TakeMaps(const Vocabulary& vocabulary);
 
  private:

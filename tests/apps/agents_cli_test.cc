@@ -2,10 +2,14 @@
 // loopback), with an independent DDS subscriber in the test, as a ROS 2 node would be.
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
+#include <chrono>
+#include <csignal>
 #include <atomic>
 #include <filesystem>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -55,11 +59,10 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
             dir / "server.log");
   std::vector<pid_t> agents;
   for (int k = 0; k < 3; ++k)
-    agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--dds-domain", d, "--out",
-                            (dir / ("agent" + std::to_string(k))).string()},
+    agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--deterministic", "--dds-domain",
+                            d, "--out", (dir / ("agent" + std::to_string(k))).string()},
                            dir / ("agent" + std::to_string(k) + ".log")));
-  for (int k = 0; k < 3; ++k)
-    ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+  for (int k = 0; k < 3; ++k) ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   const std::string server_log = ReadBytes(dir / "server.log");
   EXPECT_TRUE(Contains(server_log, "0 dropped as malformed")) << server_log;
@@ -90,6 +93,58 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
     std::printf("agent %d: keyframe ATE own %.3f m, in the server's map (one alignment) %.3f m\n", k, own, joint[k]);
     EXPECT_LE(joint[k], 1.5 * own) << "agent " << k;
   }
+  fs::remove_all(dir);
+}
+
+// Lines of a file (0 when it cannot be read).
+size_t LineCount(const fs::path& path) {
+  const std::string text = ReadBytes(path);
+  return static_cast<size_t>(std::count(text.begin(), text.end(), '\n'));
+}
+
+// An agent killed mid-run (SIGKILL: no goodbye) and started again from a later frame: the server
+// keeps the keyframes of the killed run, and the restarted run's keyframes join the same map.
+TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_restart");
+  const std::string d = std::to_string(200 + getpid() % 30);
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--idle", "8", "--dds-domain", d},
+            dir / "server.log");
+  const pid_t agent0 =
+      Spawn({"agent", Town(0), "--id", "0", "--quiet", "--deterministic", "--dds-domain", d}, dir / "agent0.log");
+  const fs::path first_out = dir / "agent1_first";
+  const pid_t killed = Spawn(
+      {"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d, "--out", first_out.string()},
+      dir / "agent1_first.log");
+  // Killed once it has tracked 150 frames (stats.csv grows by a line a frame).
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (LineCount(first_out / "stats.csv") < 151 && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  ::kill(killed, SIGKILL);
+  EXPECT_EQ(Wait(killed), 128 + SIGKILL);
+  const size_t restart_at = LineCount(first_out / "stats.csv") - 1;
+  ASSERT_GE(restart_at, 150u);
+  const pid_t restarted = Spawn({"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d,
+                                 "--first-frame", std::to_string(restart_at)},
+                                dir / "agent1_again.log");
+  ASSERT_EQ(Wait(restarted), 0) << ReadBytes(dir / "agent1_again.log");
+  ASSERT_EQ(Wait(agent0), 0) << ReadBytes(dir / "agent0.log");
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string log = ReadBytes(dir / "server.log");
+  // Two runs of agent 1, both with keyframes, and one map holding every keyframe of all three runs.
+  size_t runs = 0, keyframes = 0;
+  for (size_t pos = log.find("\nagent "); pos != std::string::npos; pos = log.find("\nagent ", pos + 1)) {
+    const std::string line = log.substr(pos + 1, log.find('\n', pos + 1) - pos - 1);
+    const size_t colon = line.find(": ");
+    ASSERT_NE(colon, std::string::npos) << line;
+    const size_t n = std::stoul(line.substr(colon + 2));
+    EXPECT_GT(n, 0u) << line;
+    keyframes += n;
+    runs += Contains(line, "agent 1 ");
+  }
+  EXPECT_EQ(runs, 2u) << log;
+  EXPECT_TRUE(Contains(log, "agents [0,1], " + std::to_string(keyframes) + " keyframes")) << log;
+  EXPECT_TRUE(Contains(log, ": 1 map (")) << log;
   fs::remove_all(dir);
 }
 

@@ -1,0 +1,113 @@
+#include "live.h"
+
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <string_view>
+
+#include "args.h"
+#include "commands.h"
+#include "core/error.h"
+
+namespace flatslam::app {
+
+std::unique_ptr<AgentPublisher> (*g_make_agent_publisher)(uint32_t, const LiveOptions&, const AgentCamera&) = nullptr;
+int (*g_run_server)(const std::vector<std::string>&) = nullptr;
+
+const char* const kAgentUsage =
+    "usage: flatslam agent DATASET --id N [--dds-domain D] [--dds-peers IP,...|multicast] [run options]\n\n"
+    "Runs SLAM over DATASET as live agent N: flatslam run DATASET --agent N --publish (see flatslam run\n"
+    "--help for the other options). Each frame's pose goes out as a ROS 2 geometry_msgs/PoseStamped on\n"
+    "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable,\n"
+    "kept for a server that starts later), and at the end every keyframe again as the agent's final map;\n"
+    "flatslam server collects them. The summary adds the bytes sent per keyframe and per second.\n";
+
+const char* const kServerUsage =
+    "usage: flatslam server --out DIR [--vocabulary FILE] [--dds-domain D] [--dds-peers IP,...|multicast]\n"
+    "                       [--agents N --idle S]\n\n"
+    "Collects the keyframes that live agents publish (flatslam agent) into one map per agent run. It\n"
+    "stops on SIGINT or SIGTERM, or with --agents N --idle S once N agents were heard from and no keyframe\n"
+    "came for S seconds; it then merges the maps where place recognition finds them overlapping (as\n"
+    "flatslam map merge does) and writes DIR/map.fsmap atomically: one map per group of agents that met.\n"
+    "A malformed message is dropped with a warning naming its agent and sequence number.\n"
+    "Exit code: 0, or 130/143 when stopped by SIGINT/SIGTERM (the map is written either way).\n";
+
+namespace {
+
+// One --id N out of the arguments (also --id=N).
+std::string TakeId(std::vector<std::string>* argv) {
+  for (size_t i = 0; i < argv->size(); ++i) {
+    const std::string& a = (*argv)[i];
+    if (a.rfind("--id=", 0) == 0) {
+      std::string id = a.substr(5);
+      argv->erase(argv->begin() + static_cast<std::ptrdiff_t>(i));
+      return id;
+    }
+    if (a == "--id" && i + 1 < argv->size()) {
+      std::string id = (*argv)[i + 1];
+      argv->erase(argv->begin() + static_cast<std::ptrdiff_t>(i), argv->begin() + static_cast<std::ptrdiff_t>(i) + 2);
+      return id;
+    }
+  }
+  throw UsageError{"agent needs --id N"};
+}
+
+}  // namespace
+
+int RunAgent(const std::vector<std::string>& original) {
+  for (const std::string& a : original)
+    if (a == "--help" || a == "-h") {
+      std::fputs(kAgentUsage, stdout);
+      return 0;
+    }
+  std::vector<std::string> argv = original;
+  const std::string id = TakeId(&argv);
+  for (const std::string& a : argv)
+    if (a == "--agent" || a.rfind("--agent=", 0) == 0 || a == "--publish")
+      throw UsageError{"agent sets --agent and --publish itself (from --id)"};
+  argv.push_back("--agent=" + id);
+  argv.push_back("--publish");
+  return RunRun(argv);
+}
+
+int RunServer(const std::vector<std::string>& args) {
+  for (const std::string& a : args)
+    if (a == "--help" || a == "-h") {
+      std::fputs(kServerUsage, stdout);
+      return 0;
+    }
+  FLATSLAM_CHECK(g_run_server != nullptr, "this executable has no DDS support (run flatslam-live)");
+  return g_run_server(args);
+}
+
+bool NeedsLive(int argc, char** argv) {
+  if (argc < 2) return false;
+  const std::string_view command = argv[1];
+  bool help = false, publish = false;
+  for (int i = 2; i < argc; ++i) {
+    const std::string_view a = argv[i];
+    help = help || a == "--help" || a == "-h";
+    publish = publish || a == "--publish";
+  }
+  if (help) return false;  // the usage text is here too
+  return command == "agent" || command == "server" || (command == "run" && publish);
+}
+
+void ExecLive(int argc, char** argv) {
+  std::error_code ec;
+  const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);
+  const std::filesystem::path live = (ec ? std::filesystem::path(argv[0]) : self).parent_path() / "flatslam-live";
+  std::vector<char*> args(argv, argv + argc);
+  args[0] = const_cast<char*>(live.c_str());
+  args.push_back(nullptr);
+  ::execv(live.c_str(), args.data());
+  std::fprintf(stderr, "flatslam %s: cannot start %s (%s): this build has no DDS support\n", argv[1], live.c_str(),
+               std::strerror(errno));
+  std::exit(1);
+}
+
+}  // namespace flatslam::app

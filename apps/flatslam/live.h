@@ -1,0 +1,52 @@
+// Live agents on DDS in the command line. Fast DDS's libraries cost every process that maps them
+// about 7.6 MiB of resident memory and their start-up work, so only the flatslam-live executable
+// links them: flatslam hands `agent`, `server` and `run --publish` to it (ExecLive), and
+// flatslam-live fills in the hooks below (EnableLive) that those commands call.
+// Concurrency: the hooks are set once in main, before any command runs.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "slam/session.h"
+#include "storage/keyframe_message.h"
+
+namespace flatslam::app {
+
+// A session publishing as a live agent (agent_link.cc): OnFrame from the track stage, OnKeyFrame
+// from the mapping lane, then PublishFinalMap, Finish and Summary after the run.
+class AgentPublisher {
+ public:
+  virtual ~AgentPublisher() = default;
+  virtual void OnFrame(const FrameReport& report) = 0;
+  virtual void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) = 0;
+  // Every keyframe again, as loop closures and bundle adjustment left it.
+  virtual void PublishFinalMap(const SlamSession& slam) = 0;
+  // Waits up to `seconds` for every matched server to acknowledge every keyframe; false on timeout.
+  virtual bool Finish(double seconds) = 0;
+  // Keyframes and bytes sent (per keyframe, per second), the final update, poses, servers matched.
+  [[nodiscard]] virtual std::string Summary() const = 0;
+};
+
+// --dds-domain and --dds-peers as given (validated by the publisher).
+struct LiveOptions {
+  std::string domain = "0";
+  std::string peers = "127.0.0.1";
+};
+
+// Set by EnableLive in flatslam-live; null in flatslam.
+extern std::unique_ptr<AgentPublisher> (*g_make_agent_publisher)(uint32_t agent, const LiveOptions& options,
+                                                                 const AgentCamera& camera);
+extern int (*g_run_server)(const std::vector<std::string>& args);
+
+// flatslam-live's main: fills in the hooks.
+void EnableLive();
+// Whether this command line needs flatslam-live (agent, server, or run with --publish).
+[[nodiscard]] bool NeedsLive(int argc, char** argv);
+// Replaces this process by flatslam-live (next to this executable) with the same arguments;
+// returns only to print why it could not, then exits with 1.
+[[noreturn]] void ExecLive(int argc, char** argv);
+
+}  // namespace flatslam::app
