@@ -8,7 +8,8 @@
 // to those hosts, which works where multicast does not (a container's loopback); an empty list
 // uses DDS's default multicast discovery.
 // Concurrency: a DdsNode and its writers may be used from any thread; a reader's callback runs
-// on a Fast DDS listener thread, one sample at a time per reader.
+// on a Fast DDS listener thread, one sample at a time per reader. Writers and readers are
+// destroyed before the node that made them.
 #pragma once
 
 #include <atomic>
