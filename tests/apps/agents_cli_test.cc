@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -103,7 +104,7 @@ size_t LineCount(const fs::path& path) {
 }
 
 // An agent killed mid-run (SIGKILL: no goodbye) and started again from a later frame: the server
-// keeps the keyframes of the killed run, and the restarted run's keyframes join the same map.
+// keeps the keyframes of the killed run, and the restarted run's keyframes join agent 0's map.
 TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const fs::path dir = testing::FreshTempDir("agents_cli_restart");
   const std::string d = std::to_string(200 + getpid() % 30);
@@ -131,20 +132,36 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   ASSERT_EQ(Wait(agent0), 0) << ReadBytes(dir / "agent0.log");
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   const std::string log = ReadBytes(dir / "server.log");
-  // Two runs of agent 1, both with keyframes, and one map holding every keyframe of all three runs.
-  size_t runs = 0, keyframes = 0;
+  // Two runs of agent 1, both with keyframes (in the order first heard: the killed run first).
+  std::vector<std::pair<std::string, size_t>> runs;  // "agent N" line, keyframes
+  size_t keyframes = 0;
   for (size_t pos = log.find("\nagent "); pos != std::string::npos; pos = log.find("\nagent ", pos + 1)) {
     const std::string line = log.substr(pos + 1, log.find('\n', pos + 1) - pos - 1);
     const size_t colon = line.find(": ");
     ASSERT_NE(colon, std::string::npos) << line;
-    const size_t n = std::stoul(line.substr(colon + 2));
-    EXPECT_GT(n, 0u) << line;
-    keyframes += n;
-    runs += Contains(line, "agent 1 ");
+    runs.emplace_back(line, std::stoul(line.substr(colon + 2)));
+    EXPECT_GT(runs.back().second, 0u) << line;
+    keyframes += runs.back().second;
   }
-  EXPECT_EQ(runs, 2u) << log;
-  EXPECT_TRUE(Contains(log, "agents [0,1], " + std::to_string(keyframes) + " keyframes")) << log;
-  EXPECT_TRUE(Contains(log, ": 1 map (")) << log;
+  size_t agent0_keyframes = 0, restarted_keyframes = 0, agent1_runs = 0;
+  for (const auto& [line, n] : runs) {
+    if (Contains(line, "agent 0 ")) agent0_keyframes = n;
+    if (Contains(line, "agent 1 ") && ++agent1_runs == 2) restarted_keyframes = n;
+  }
+  ASSERT_EQ(agent1_runs, 2u) << log;
+  // Nothing is lost: the output maps hold every keyframe of the three runs; the restarted run's
+  // keyframes are in agent 0's map (the killed run's first frames may overlap nothing and stay apart).
+  size_t written = 0, joined = 0;
+  for (size_t pos = log.find("\noutput map "); pos != std::string::npos; pos = log.find("\noutput map ", pos + 1)) {
+    const std::string line = log.substr(pos + 1, log.find('\n', pos + 1) - pos - 1);
+    const size_t agents = line.find("agents [");
+    ASSERT_NE(agents, std::string::npos) << line;
+    const size_t n = std::stoul(line.substr(line.find("], ", agents) + 3));
+    written += n;
+    if (Contains(line, "agents [0,1]")) joined = n;
+  }
+  EXPECT_EQ(written, keyframes) << log;
+  EXPECT_GE(joined, agent0_keyframes + restarted_keyframes) << log;
   fs::remove_all(dir);
 }
 
