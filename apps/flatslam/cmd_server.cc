@@ -55,7 +55,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const StopSignals stop_signals("flatslam server");
   AgentMaps maps;
   std::set<uint32_t> heard;
-  size_t received = 0, dropped = 0, duplicates = 0;
+  size_t received = 0, dropped = 0, updates = 0;
   uint64_t bytes = 0;
   auto last = std::chrono::steady_clock::now();
   const auto start = last;
@@ -85,7 +85,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
                          what, ": its camera differs from the first agent's (one server merges one camera model)");
         }
         heard.insert(message.agent);
-        if (!maps.Add(std::move(message))) ++duplicates;
+        if (!maps.Add(std::move(message))) ++updates;
       } catch (const Error& e) {
         ++dropped;
         std::fprintf(stderr, "warning: dropped %s\n", e.what());
@@ -96,8 +96,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
   }
   reader.reset();
   const double listen_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  std::printf("received      %zu keyframe messages (%.1f MiB in %.1f s), %zu dropped as malformed, %zu repeated\n",
-              received, bytes / 1048576.0, listen_s, dropped, duplicates);
+  std::printf(
+      "received      %zu keyframe messages (%.1f MiB in %.1f s), %zu dropped as malformed, %zu updates of keyframes "
+      "held\n",
+      received, bytes / 1048576.0, listen_s, dropped, updates);
   for (const AgentMaps::Session& s : maps.sessions())
     std::printf("agent %-7u run %016llx: %zu keyframes, %zu map points\n", s.agent,
                 static_cast<unsigned long long>(s.session), s.map.keyframes().size(), s.map.points().size());

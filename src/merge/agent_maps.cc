@@ -10,14 +10,13 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
   const auto key = std::make_pair(message.agent, message.session);
   auto [it, inserted] = by_session_.emplace(key, sessions_.size());
   if (inserted) {
-    sessions_.push_back(Session{message.agent, message.session, Map(), 0});
+    sessions_.push_back(Session{message.agent, message.session, Map()});
     index_.emplace_back();
   }
   Session& session = sessions_[it->second];
   Index& index = index_[it->second];
   if (!camera_) camera_ = message.camera;
   Map& map = session.map;
-  ++session.messages;
   // A keyframe sent again carries the agent's latest estimate of its pose and of its points, and
   // the points fused into it since.
   const auto known = index.keyframes.find(message.keyframe.id);

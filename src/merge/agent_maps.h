@@ -29,7 +29,6 @@ class AgentMaps {
     uint32_t agent = 0;
     uint64_t session = 0;
     Map map;
-    size_t messages = 0;
   };
 
   // Applies one message: true when it added a keyframe, false when it updated one already there
