@@ -55,7 +55,7 @@ const char* const kRunUsage =
     "  --features N     ORB features per image (default: from the camera, see --list-options)\n"
     "  --deterministic  run local mapping inline after each keyframe: same input, same output\n"
     "  --mapping-lag N  keyframes tracking may run ahead of local mapping (default 0: wait for\n"
-    "                   it, repeatable); 3 is about 10x faster on monocular KITTI, less accurate,\n"
+    "                   it, repeatable); 3 is about 1.2x faster on monocular KITTI, less accurate,\n"
     "                   and varies from run to run\n"
     "  --max-frames N   stop after N frames\n"
     "  --vocabulary F   bag-of-words vocabulary for relocalization and loop closing (default: the\n"

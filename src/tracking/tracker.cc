@@ -262,7 +262,8 @@ struct Tracking {
     const bool need_close =
         tracked_close < options.keyframe_close_tracked && untracked_close > options.keyframe_close_untracked;
     const size_t since = frame.index - s.last_keyframe_frame;
-    const bool idle = pending_keyframes == 0 && since >= static_cast<size_t>(options.min_frames_between_keyframes);
+    const bool due = since >= static_cast<size_t>(options.min_frames_between_keyframes);
+    const bool idle = pending_keyframes == 0 && due;
     const bool timeout = since >= static_cast<size_t>(options.max_frames_between_keyframes);
     const bool weak = !monocular() && (inliers < options.keyframe_weak_ratio * reference_points || need_close);
     const double ratio = monocular() ? options.keyframe_track_ratio_mono : options.keyframe_track_ratio;
@@ -272,7 +273,11 @@ struct Tracking {
     const bool fading = monocular() && (inliers < options.keyframe_fading_ratio * reference_points ||
                                         inliers < options.keyframe_fading_inliers);
     const bool wanted = thin && !idle && (timeout || weak || fading);
-    const bool make = (timeout || idle || weak) && thin;
+    // Monocular keyframes wait for idle mapping (ORB-SLAM2's rule), except a fading frame: one frame
+    // later its matches may be gone (KITTI 07 with mapping behind and the cores shared: 111, 71, 42
+    // inliers, then lost). It is queued like a weak stereo frame, and tracking waits for mapping
+    // to take it. While mapping keeps up (waiting or inline) the queue is empty and nothing changes.
+    const bool make = (timeout || idle || weak || (fading && due)) && thin;
     // A revisit with healthy tracking makes no keyframe (the geometric test only runs when one
     // would otherwise be made or asked for).
     if ((wanted || make) && inliers >= options.revisit_healthy_ratio * reference_points &&

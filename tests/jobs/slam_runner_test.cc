@@ -249,7 +249,9 @@ TEST(SlamRun, KittiMonocularSnippet) {
 
 // Local mapping running behind tracking (up to 3 keyframes): tracking outruns mapping on this
 // snippet and used to lose the map around frame 40 in some runs. Tracking now waits while it
-// wants a keyframe that mapping is too busy to take, and local BA ends early for it. The timing
+// wants a keyframe that mapping is too busy to take, and local BA ends early for it. With the
+// cores shared (ctest -j2), a fading frame that waited for idle mapping before becoming a
+// keyframe lost the map in 3 of 63 runs (frame 47 or 147); it is now queued at once. The timing
 // differs from run to run, so the bound on the error is looser than in the waiting mode.
 TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
   const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "07";
