@@ -2,8 +2,10 @@
 # Live agents over DDS on one machine: a map server and three town agents at once (loopback),
 # then the same three runs at once without publishing or server. Prints, per agent: keyframes and
 # bytes sent (per keyframe and per second), the final map update, and the tracking time with and
-# without publishing (both beside the two other agents on the same cores); for the server: messages received, the merge and save time after the agents
-# stopped, and the output maps.
+# without publishing (both beside the two other agents on the same cores), and the last correction
+# the agent received; for the server: each live merge while the agents ran (time, keyframes, maps
+# joined), when agents met and how long after their first overlap the merged map was ready,
+# messages received, the merge and save time after the agents stopped, and the output maps.
 # usage: bench/agents_bench.sh [BUILD_DIR] [OUT_DIR]
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
@@ -36,4 +38,4 @@ for k in 0 1 2; do
   grep -E "^time " "$out/alone$k.log" | sed 's/^/  no DDS /'
 done
 echo "server"
-grep -E "^(received|agent|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'
+grep -E "^(live merge|met|received|agent|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'

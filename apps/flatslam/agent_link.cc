@@ -39,16 +39,44 @@ AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& c
       camera_(camera),
       node_(dds, "flatslam agent " + std::to_string(agent)),
       poses_(node_.PoseWriter(AgentPoseTopic(agent))),
-      keyframes_(node_.PayloadWriter(kKeyFrameTopic)) {}
+      keyframes_(node_.PayloadWriter(kKeyFrameTopic)),
+      corrections_(node_.PayloadReader(kCorrectionTopic, [this](const Payload& p) { OnCorrection(p); })) {}
+
+void AgentLink::OnCorrection(const Payload& payload) {
+  if (payload.kind != PayloadKind::kCorrection || payload.agent != agent_) return;  // another agent's
+  try {
+    CorrectionMessage c = DecodeCorrectionMessage(
+        payload.bytes, "correction " + std::to_string(payload.sequence) + " for agent " + std::to_string(agent_));
+    if (c.session != session_) return;  // for an earlier run of this agent
+    const std::lock_guard<std::mutex> lock(correction_mutex_);
+    ++corrections_received_;
+    if (!correction_ || c.revision > correction_->revision) correction_ = std::move(c);
+  } catch (const Error& e) {
+    std::fprintf(stderr, "warning: dropped %s\n", e.what());
+  }
+}
 
 void AgentLink::OnFrame(const FrameReport& report) {
   if (!report.T_world_cam) return;
   PoseStamped pose;
   pose.sec = static_cast<int32_t>(report.t_ns / 1'000'000'000);
   pose.nanosec = static_cast<uint32_t>(report.t_ns % 1'000'000'000);
-  pose.frame_id = "flatslam_agent_" + std::to_string(agent_) + "_map";
-  const Eigen::Vector3d t = report.T_world_cam->translation();
-  const Eigen::Quaterniond q(report.T_world_cam->linear());
+  Eigen::Vector3d t = report.T_world_cam->translation();
+  Eigen::Matrix3d R = report.T_world_cam->linear();
+  std::optional<CorrectionMessage> correction;
+  {
+    const std::lock_guard<std::mutex> lock(correction_mutex_);
+    correction = correction_;
+  }
+  if (correction) {
+    // The camera centre and orientation in the merged map: X_merged = s R_c X + t_c.
+    t = correction->scale * (correction->rotation * t) + correction->translation;
+    R = correction->rotation * R;
+    pose.frame_id = MergedFrameId(correction->frame_session);
+  } else {
+    pose.frame_id = "flatslam_agent_" + std::to_string(agent_) + "_map";
+  }
+  const Eigen::Quaterniond q(R);
   pose.position = {t.x(), t.y(), t.z()};
   pose.orientation = {q.x(), q.y(), q.z(), q.w()};
   if (poses_->Write(pose))
@@ -95,6 +123,12 @@ bool AgentLink::Finish(double seconds) {
   return keyframes_->matched() == 0 || keyframes_->WaitForAcknowledgments(seconds);
 }
 
+std::string MergedFrameId(uint64_t frame_session) {
+  char id[48];
+  std::snprintf(id, sizeof(id), "flatslam_map_%016llx", static_cast<unsigned long long>(frame_session));
+  return id;
+}
+
 std::string AgentLink::Summary() const {
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
   const uint64_t n = keyframes_sent_, bytes = keyframe_bytes_;
@@ -106,7 +140,21 @@ std::string AgentLink::Summary() const {
                 s > 0 ? bytes / 1024.0 / s : 0.0, s, static_cast<unsigned long long>(updates_sent_.load()),
                 update_bytes_ / 1024.0, static_cast<unsigned long long>(poses_sent_.load()),
                 AgentPoseTopic(agent_).c_str(), keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
-  return line;
+  std::string summary = line;
+  const std::lock_guard<std::mutex> lock(correction_mutex_);
+  if (correction_) {
+    std::snprintf(line, sizeof(line),
+                  "; %llu corrections from the server, the last (merge %llu): in the map of agent %u's run %016llx "
+                  "with %u runs, scale %.4f, fitted on %u keyframes (rms %.3f)",
+                  static_cast<unsigned long long>(corrections_received_),
+                  static_cast<unsigned long long>(correction_->revision), correction_->frame_agent,
+                  static_cast<unsigned long long>(correction_->frame_session), correction_->runs, correction_->scale,
+                  correction_->keyframes, correction_->rms_m);
+    summary += line;
+  } else {
+    summary += "; no correction from a server (its map joined no other agent's yet)";
+  }
+  return summary;
 }
 
 int RunServerLive(const std::vector<std::string>& args);  // cmd_server.cc

@@ -2,20 +2,28 @@
 // flatslam-live only, see live.h):
 // every tracked frame's pose as a ROS 2 geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose
 // (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable,
-// kept for servers that join later), with byte counts for the bandwidth report.
-// Concurrency: OnFrame from the track stage, OnKeyFrame from the mapping lane; the counters are
-// atomic; Finish and Summary after the run.
+// kept for servers that join later), with byte counts for the bandwidth report. It listens on
+// flatslam/corrections for the server's corrections of its run: once its map has been merged with
+// others', the poses it publishes are in the merged map's frame (frame_id flatslam_map_<run of
+// that frame>) instead of its own (flatslam_agent_N_map), as a ROS map -> odom correction would
+// place them; its own map is not changed.
+// Concurrency: OnFrame from the track stage, OnKeyFrame from the mapping lane, corrections on
+// the DDS listener thread (the latest one is kept under a mutex); the counters are atomic; Finish
+// and Summary after the run.
 #pragma once
 
 #include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <mutex>
+#include <optional>
 #include <string>
 
 #include "live.h"
 #include "net/dds.h"
 #include "slam/session.h"
+#include "storage/correction_message.h"
 #include "storage/keyframe_message.h"
 
 namespace flatslam::app {
@@ -23,6 +31,9 @@ namespace flatslam::app {
 // Options shared by the commands that join DDS: --dds-domain D and --dds-peers A,B (IPv4
 // addresses for unicast discovery; "multicast" for DDS's default discovery).
 DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers);
+
+// The frame_id of poses in a merged map: the run whose frame that map keeps.
+[[nodiscard]] std::string MergedFrameId(uint64_t frame_session);
 
 class AgentLink : public AgentPublisher {
  public:
@@ -42,6 +53,11 @@ class AgentLink : public AgentPublisher {
   DdsNode node_;
   std::unique_ptr<DdsNode::Writer<PoseStamped>> poses_;
   std::unique_ptr<DdsNode::Writer<Payload>> keyframes_;
+  mutable std::mutex correction_mutex_;
+  std::optional<CorrectionMessage> correction_;  // the newest for this run
+  uint64_t corrections_received_ = 0;
+  std::unique_ptr<DdsNode::Reader<Payload>> corrections_;  // last: stops before the rest goes
+  void OnCorrection(const Payload& payload);
   // Writes one keyframe message; its size in bytes, 0 when nothing was written.
   size_t Send(const Map& map, KeyFrameHandle keyframe);
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},

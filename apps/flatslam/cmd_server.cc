@@ -1,10 +1,13 @@
 // flatslam server (in flatslam-live, see live.h): the map server that joins live agents' maps.
+#include <algorithm>
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
 #include <deque>
 #include <filesystem>
+#include <memory>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <thread>
 
@@ -12,17 +15,58 @@
 #include "args.h"
 #include "commands.h"
 #include "core/error.h"
+#include "jobs/background_worker.h"
 #include "merge/agent_maps.h"
 #include "merge_and_save.h"
 #include "net/dds.h"
 #include "place/vocabulary.h"
 #include "stop_signals.h"
+#include "storage/correction_message.h"
 #include "storage/keyframe_message.h"
 
 namespace flatslam::app {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// An agent's correction is fitted on its newest keyframes: about the local map its tracking works
+// in (ORB-SLAM's local window is the 10 to 20 keyframes sharing the most points with the current).
+constexpr size_t kCorrectionKeyFrames = 10;
+
+double Seconds(Clock::time_point from, Clock::time_point to) {
+  return std::chrono::duration<double>(to - from).count();
+}
+
+// One merge of the maps as they were at `cut`, made while messages keep arriving.
+struct LiveMerge {
+  Clock::time_point cut, ready;
+  Clock::time_point first_new;                      // the first message after the previous merge's cut
+  std::vector<std::pair<uint32_t, uint64_t>> runs;  // agent, session of each input
+  std::vector<std::vector<size_t>> members;         // inputs of each output map, first = its frame
+  std::vector<std::optional<RunFrame>> frames;      // per input
+  size_t keyframes = 0;
+  double weld_ms = 0;  // of it, the weld bundle adjustments
+};
+
+SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabulary) {
+  SnapshotMetadata metadata;
+  metadata.calibration = camera.calibration;
+  metadata.scales = camera.scales;
+  metadata.rgbd_virtual_baseline_m = camera.rgbd_virtual_baseline_m;
+  metadata.vocabulary_checksum = vocabulary.checksum();
+  return metadata;
+}
+
+std::string RunName(const std::pair<uint32_t, uint64_t>& run) {
+  char name[64];
+  std::snprintf(name, sizeof(name), "agent %u run %016llx", run.first, static_cast<unsigned long long>(run.second));
+  return name;
+}
+
+}  // namespace
 
 int RunServerLive(const std::vector<std::string>& argv) {
-  const Args args(argv, {"out", "vocabulary", "dds-domain", "dds-peers", "agents", "idle"}, {});
+  const Args args(argv, {"out", "vocabulary", "dds-domain", "dds-peers", "agents", "idle", "live-merge"}, {});
   if (!args.positional().empty()) throw UsageError{"server takes no positional argument"};
   const auto out = args.get("out");
   if (!out) throw UsageError{"server needs --out DIR"};
@@ -31,6 +75,8 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const int64_t agents_expected = args.get_int("agents", 0);
   const double idle_s = args.get_double("idle", 0);
   if ((agents_expected > 0) != (idle_s > 0)) throw UsageError{"--agents N and --idle S go together (both positive)"};
+  const double live_merge_s = args.get_double("live-merge", 2);
+  if (!(live_merge_s >= 0)) throw UsageError{"--live-merge: seconds between live merges (0: none)"};
   const std::filesystem::path vocabulary_path =
       args.get("vocabulary") ? std::filesystem::path(*args.get("vocabulary")) : DefaultVocabularyPath();
   const Vocabulary vocabulary = Vocabulary::Load(vocabulary_path);
@@ -48,17 +94,134 @@ int RunServerLive(const std::vector<std::string>& argv) {
     }
     arrived.notify_one();
   });
+  auto corrections = node.PayloadWriter(kCorrectionTopic);
   std::printf("listening     %s on DDS domain %u (%s)\n", kKeyFrameTopic, dds.domain,
               dds.peers.empty() ? "multicast discovery" : "unicast discovery");
   std::fflush(stdout);
 
   const StopSignals stop_signals("flatslam server");
+  const auto start = Clock::now();
   AgentMaps maps;
+  MapMergeOptions merge_options;
+  merge_options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  // Live merges leave the other cores to the receive loop (and, on one machine, to the agents).
+  MapMergeOptions live_options = merge_options;
+  live_options.bundle_adjustment.num_threads = 1;
+  BackgroundWorker merger;
+  std::mutex merged_mutex;
+  std::optional<LiveMerge> merged_result;  // handed from the merge thread
+  bool merging = false;
+  uint64_t revision = 0;
+  size_t merged_messages = 0;  // messages held by the maps the last merge started from
+  double last_merge_s = 0;
+  Clock::time_point last_merge_end{}, previous_cut{}, first_after_cut{};
+  std::set<std::pair<size_t, size_t>> together;  // run index pairs (by `runs_seen`) in one map
+  std::vector<std::pair<uint32_t, uint64_t>> runs_seen;
+  auto run_index = [&](const std::pair<uint32_t, uint64_t>& run) {
+    const auto it = std::find(runs_seen.begin(), runs_seen.end(), run);
+    if (it != runs_seen.end()) return static_cast<size_t>(it - runs_seen.begin());
+    runs_seen.push_back(run);
+    return runs_seen.size() - 1;
+  };
+  // A finished live merge: which runs met since the last one, and each run's correction.
+  auto take_merge = [&](LiveMerge& m) {
+    ++revision;
+    size_t joined_maps = 0;
+    for (const auto& group : m.members) joined_maps += group.size() > 1;
+    std::printf(
+        "live merge %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
+        "(weld %.0f)\n",
+        static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), joined_maps,
+        m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.weld_ms);
+    for (const auto& group : m.members) {
+      for (size_t a = 0; a < group.size(); ++a) {
+        for (size_t b = a + 1; b < group.size(); ++b) {
+          const size_t ra = run_index(m.runs[group[a]]), rb = run_index(m.runs[group[b]]);
+          if (!together.insert({std::min(ra, rb), std::max(ra, rb)}).second) continue;
+          // The overlap that joined them was not in the maps of the previous merge (that merge
+          // kept them apart) and was in these: it came with a message between the two cuts.
+          std::printf(
+              "met           %s and %s: merged map ready %.1f s after their first overlap at most "
+              "(%.1f s after this merge's cut)\n",
+              RunName(m.runs[group[a]]).c_str(), RunName(m.runs[group[b]]).c_str(), Seconds(m.first_new, m.ready),
+              Seconds(m.cut, m.ready));
+        }
+      }
+    }
+    for (size_t i = 0; i < m.runs.size(); ++i) {
+      if (!m.frames[i]) continue;
+      const RunFrame& f = *m.frames[i];
+      CorrectionMessage c;
+      c.revision = revision;
+      c.agent = m.runs[i].first;
+      c.session = m.runs[i].second;
+      const auto& frame_run = m.runs[m.members[f.output].front()];
+      c.frame_agent = frame_run.first;
+      c.frame_session = frame_run.second;
+      c.rotation = f.S_output_input.R;
+      c.translation = f.S_output_input.t;
+      c.scale = f.S_output_input.s;
+      c.keyframes = static_cast<uint32_t>(f.keyframes);
+      c.rms_m = f.rms;
+      c.runs = static_cast<uint32_t>(m.members[f.output].size());
+      Payload payload;
+      payload.agent = c.agent;
+      payload.kind = PayloadKind::kCorrection;
+      payload.sequence = revision;
+      payload.bytes = EncodeCorrectionMessage(c);
+      if (!corrections->Write(payload))
+        std::fprintf(stderr, "warning: could not publish the correction of %s\n", RunName(m.runs[i]).c_str());
+    }
+    std::fflush(stdout);
+  };
+  // Starts a merge of copies of the maps as they are now (the receive loop goes on meanwhile).
+  auto start_merge = [&](Clock::time_point now) {
+    AgentMaps::Copies copies = maps.CopyMaps(vocabulary);
+    auto job = std::make_shared<LiveMerge>();
+    job->cut = now;
+    job->runs = copies.runs;
+    std::vector<uint32_t> agents;
+    std::vector<KeyFramePoses> centres;
+    for (size_t i = 0; i < copies.maps.size(); ++i) {
+      agents.push_back(copies.runs[i].first);
+      centres.push_back(PosesOf(copies.maps[i]));
+      job->keyframes += copies.maps[i].keyframes().size();
+    }
+    job->first_new = first_after_cut;
+    const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
+    const MergeCamera camera =
+        MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
+    {
+      const std::lock_guard<std::mutex> lock(merged_mutex);
+      merging = true;
+    }
+    merger.Start([&, job, camera, agents = std::move(agents), centres = std::move(centres),
+                  inputs = std::move(copies.maps)]() mutable {
+      std::optional<LiveMerge> done;
+      try {
+        const MultiMapMerge merged = MergeAllMaps(std::move(inputs), vocabulary, camera, live_options);
+        job->members = merged.members;
+        for (const MergeAttempt& a : merged.attempts) {
+          job->weld_ms += a.report.weld_ms;
+        }
+        job->frames = FitRunFrames(merged, agents, centres, !camera.monocular, kCorrectionKeyFrames);
+        job->ready = Clock::now();
+        done = std::move(*job);
+      } catch (const Error& e) {
+        std::fprintf(stderr, "warning: live merge failed: %s\n", e.what());
+      }
+      {
+        const std::lock_guard<std::mutex> lock(merged_mutex);
+        merged_result = std::move(done);
+        merging = false;
+      }
+      arrived.notify_one();
+    });
+  };
   std::set<uint32_t> heard;
   size_t received = 0, dropped = 0, updates = 0;
   uint64_t bytes = 0;
-  auto last = std::chrono::steady_clock::now();
-  const auto start = last;
+  auto last = start;
   while (!g_stop) {
     std::deque<Payload> batch;
     {
@@ -66,10 +229,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
       arrived.wait_for(lock, std::chrono::milliseconds(200), [&] { return !queue.empty(); });
       batch.swap(queue);
     }
+    if (!batch.empty() && first_after_cut <= previous_cut) first_after_cut = Clock::now();
     for (Payload& payload : batch) {
       ++received;
       bytes += payload.bytes.size();
-      last = std::chrono::steady_clock::now();
+      last = Clock::now();
       const std::string what =
           "keyframe message " + std::to_string(payload.sequence) + " from agent " + std::to_string(payload.agent);
       try {
@@ -91,11 +255,34 @@ int RunServerLive(const std::vector<std::string>& argv) {
         std::fprintf(stderr, "warning: dropped %s\n", e.what());
       }
     }
-    const double idle = std::chrono::duration<double>(std::chrono::steady_clock::now() - last).count();
+    const auto now = Clock::now();
+    std::optional<LiveMerge> finished;
+    bool busy;
+    {
+      const std::lock_guard<std::mutex> lock(merged_mutex);
+      finished.swap(merged_result);
+      busy = merging;
+    }
+    if (finished) {
+      last_merge_s = Seconds(finished->cut, finished->ready);
+      last_merge_end = finished->ready;
+      take_merge(*finished);
+    }
+    // A live merge starts when keyframes arrived since the last one, at most every --live-merge
+    // seconds and never sooner after one ends than it took: merging takes at most half a core.
+    if (live_merge_s > 0 && !busy && maps.sessions().size() >= 2 && received - dropped > merged_messages &&
+        Seconds(last_merge_end, now) >= std::max(live_merge_s, last_merge_s)) {
+      merged_messages = received - dropped;
+      previous_cut = now;
+      start_merge(now);
+    }
+    const double idle = Seconds(last, now);
     if (agents_expected > 0 && static_cast<int64_t>(heard.size()) >= agents_expected && idle >= idle_s) break;
   }
   reader.reset();
-  const double listen_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  merger.Wait();
+  if (merged_result) take_merge(*merged_result);
+  const double listen_s = Seconds(start, Clock::now());
   std::printf(
       "received      %zu keyframe messages (%.1f MiB in %.1f s), %zu dropped as malformed, %zu updates of keyframes "
       "held\n",
@@ -106,15 +293,9 @@ int RunServerLive(const std::vector<std::string>& argv) {
   FLATSLAM_CHECK(maps.camera().has_value(), "no keyframe received on ", kKeyFrameTopic, " (DDS domain ", dds.domain,
                  "): no map written");
 
-  SnapshotMetadata metadata;
-  metadata.calibration = maps.camera()->calibration;
-  metadata.scales = maps.camera()->scales;
-  metadata.rgbd_virtual_baseline_m = maps.camera()->rgbd_virtual_baseline_m;
-  metadata.vocabulary_checksum = vocabulary.checksum();
-  MapMergeOptions options;
-  options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
   const MergeTimes times =
-      MergeAndSave(maps.TakeMaps(vocabulary), vocabulary, metadata, options, out_dir / "map.fsmap");
+      MergeAndSave(maps.TakeMaps(vocabulary), vocabulary, metadata, merge_options, out_dir / "map.fsmap");
   std::printf("time          merge %.0f ms, save %.0f ms\n", times.merge_ms, times.save_ms);
   if (g_signal != 0) return 128 + static_cast<int>(g_signal);
   return 0;

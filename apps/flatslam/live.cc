@@ -24,12 +24,19 @@ const char* const kAgentUsage =
     "--help for the other options). Each frame's pose goes out as a ROS 2 geometry_msgs/PoseStamped on\n"
     "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable,\n"
     "kept for a server that starts later), and at the end every keyframe again as the agent's final map;\n"
-    "flatslam server collects them. The summary adds the bytes sent per keyframe and per second.\n";
+    "flatslam server collects them. Once the server has merged the agent's map with others', it sends\n"
+    "corrections on flatslam/corrections and the agent publishes its poses in the merged map's frame\n"
+    "(frame_id flatslam_map_<run>) instead of its own (flatslam_agent_N_map); its own map is not changed.\n"
+    "The summary adds the bytes sent per keyframe and per second and the last correction.\n";
 
 const char* const kServerUsage =
     "usage: flatslam server --out DIR [--vocabulary FILE] [--dds-domain D] [--dds-peers IP,...|multicast]\n"
-    "                       [--agents N --idle S]\n\n"
-    "Collects the keyframes that live agents publish (flatslam agent) into one map per agent run. It\n"
+    "                       [--agents N --idle S] [--live-merge S]\n\n"
+    "Collects the keyframes that live agents publish (flatslam agent) into one map per agent run.\n"
+    "While they arrive it merges copies of the maps in the background (at most every --live-merge S\n"
+    "seconds, default 2, never sooner after a merge than it took; 0: only at the end), prints when\n"
+    "agents' maps meet and how long after their first overlap, and sends each merged agent a correction:\n"
+    "where its map frame sits in the merged map, fitted on its 10 newest keyframes. It\n"
     "stops on SIGINT or SIGTERM, or with --agents N --idle S once N agents were heard from and no keyframe\n"
     "came for S seconds; it then merges the maps where place recognition finds them overlapping (as\n"
     "flatslam map merge does) and writes DIR/map.fsmap atomically: one map per group of agents that met.\n"

@@ -1,6 +1,10 @@
 #include "merge/agent_maps.h"
 
 #include <algorithm>
+#include <cmath>
+#include <map>
+
+#include <Eigen/SVD>
 
 #include "place/vocabulary.h"
 
@@ -66,23 +70,98 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
   return added;
 }
 
-std::vector<Map> AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
-  // By agent, then in the order each run was first heard: the merge keeps the first map's frame,
-  // so the result does not depend on which agent happened to send first.
-  std::stable_sort(sessions_.begin(), sessions_.end(),
-                   [](const Session& a, const Session& b) { return a.agent < b.agent; });
-  std::vector<Map> maps;
+std::vector<size_t> AgentMaps::MergeOrder() const {
+  std::vector<size_t> order(sessions_.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::stable_sort(order.begin(), order.end(),
+                   [&](size_t a, size_t b) { return sessions_[a].agent < sessions_[b].agent; });
+  return order;
+}
+
+void AgentMaps::ComputeBow(const Vocabulary& vocabulary) {
+  // Descriptors never change once a keyframe is here (an update moves pose and points only).
   for (Session& session : sessions_) {
     for (KeyFrameHandle h : session.map.keyframes().handles()) {
       KeyFrame& kf = session.map.keyframe(h);
-      vocabulary.Transform(kf.descriptor, &kf.bow, &kf.bow_features);
+      if (kf.bow.empty()) vocabulary.Transform(kf.descriptor, &kf.bow, &kf.bow_features);
     }
-    maps.push_back(std::move(session.map));
   }
+}
+
+std::vector<Map> AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
+  ComputeBow(vocabulary);
+  std::vector<Map> maps;
+  for (size_t i : MergeOrder()) maps.push_back(std::move(sessions_[i].map));
   sessions_.clear();
   index_.clear();
   by_session_.clear();
   return maps;
+}
+
+AgentMaps::Copies AgentMaps::CopyMaps(const Vocabulary& vocabulary) {
+  ComputeBow(vocabulary);
+  Copies copies;
+  for (size_t i : MergeOrder()) {
+    copies.maps.push_back(sessions_[i].map);
+    copies.runs.emplace_back(sessions_[i].agent, sessions_[i].session);
+  }
+  return copies;
+}
+
+KeyFramePoses PosesOf(const Map& map) {
+  KeyFramePoses poses;
+  for (const KeyFrame& kf : map.keyframes().values()) poses[kf.t_ns] = kf.T_cam_world.inverse();
+  return poses;
+}
+
+std::vector<std::optional<RunFrame>> FitRunFrames(const MultiMapMerge& merged, const std::vector<uint32_t>& agents,
+                                                  const std::vector<KeyFramePoses>& poses, bool fix_scale,
+                                                  size_t newest) {
+  std::vector<std::optional<RunFrame>> frames(poses.size());
+  for (size_t g = 0; g < merged.maps.size(); ++g) {
+    if (merged.members[g].size() < 2) continue;
+    // Each agent's keyframes in this output map by timestamp; a timestamp seen twice is ambiguous.
+    std::map<std::pair<uint32_t, int64_t>, std::optional<Eigen::Isometry3d>> out;
+    for (const KeyFrame& kf : merged.maps[g].keyframes().values()) {
+      auto [it, inserted] = out.try_emplace({kf.agent, kf.t_ns}, kf.T_cam_world.inverse());
+      if (!inserted) it->second.reset();
+    }
+    for (size_t input : merged.members[g]) {
+      std::vector<std::pair<Eigen::Isometry3d, Eigen::Isometry3d>> pairs;  // input, output; newest first
+      for (auto it = poses[input].rbegin(); it != poses[input].rend(); ++it) {
+        const auto found = out.find({agents[input], it->first});
+        if (found == out.end() || !found->second) continue;
+        pairs.emplace_back(it->second, *found->second);
+        if (newest > 0 && pairs.size() == newest) break;
+      }
+      if (pairs.size() < 2) continue;
+      const double n = static_cast<double>(pairs.size());
+      Eigen::Matrix3d M = Eigen::Matrix3d::Zero();
+      Eigen::Vector3d mean_in = Eigen::Vector3d::Zero(), mean_out = Eigen::Vector3d::Zero();
+      for (const auto& [in, o] : pairs) {
+        M += o.linear() * in.linear().transpose();
+        mean_in += in.translation() / n;
+        mean_out += o.translation() / n;
+      }
+      // The rotation nearest the mean of the rotation changes (chordal mean).
+      const Eigen::JacobiSVD<Eigen::Matrix3d> svd(M, Eigen::ComputeFullU | Eigen::ComputeFullV);
+      Eigen::Matrix3d D = Eigen::Matrix3d::Identity();
+      D(2, 2) = (svd.matrixU() * svd.matrixV().transpose()).determinant() < 0 ? -1 : 1;
+      Similarity3 S;
+      S.R = svd.matrixU() * D * svd.matrixV().transpose();
+      double spread_in = 0, spread_out = 0;
+      for (const auto& [in, o] : pairs) {
+        spread_in += (in.translation() - mean_in).squaredNorm();
+        spread_out += (o.translation() - mean_out).squaredNorm();
+      }
+      S.s = fix_scale || spread_in <= 0 ? 1.0 : std::sqrt(spread_out / spread_in);
+      S.t = mean_out - S.s * (S.R * mean_in);
+      double sum = 0;
+      for (const auto& [in, o] : pairs) sum += (S * in.translation() - o.translation()).squaredNorm();
+      frames[input] = RunFrame{g, S, pairs.size(), std::sqrt(sum / n)};
+    }
+  }
+  return frames;
 }
 
 }  // namespace flatslam

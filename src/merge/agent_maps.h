@@ -15,8 +15,12 @@
 #include <utility>
 #include <vector>
 
+#include <Eigen/Core>
+
 #include "ecs/map.h"
+#include "geometry/similarity.h"
 #include "io/calibration.h"
+#include "merge/map_merge.h"
 #include "storage/keyframe_message.h"
 
 namespace flatslam {
@@ -40,16 +44,54 @@ class AgentMaps {
   // The maps, by agent, with their keyframes' bags of words, ready for MergeAllMaps; the sessions
   // are left empty.
   [[nodiscard]] std::vector<Map> TakeMaps(const Vocabulary& vocabulary);
+  // Copies of the maps in TakeMaps' order, for a merge while messages keep arriving; the agent
+  // run of each. Bags of words are computed once per keyframe and kept.
+  struct Copies {
+    std::vector<Map> maps;
+    std::vector<std::pair<uint32_t, uint64_t>> runs;  // agent, session
+  };
+  [[nodiscard]] Copies CopyMaps(const Vocabulary& vocabulary);
 
  private:
   struct Index {
     std::unordered_map<uint64_t, PointHandle> points;        // the agent's point id -> this map's point
     std::unordered_map<uint64_t, KeyFrameHandle> keyframes;  // the agent's keyframe id -> this map's
   };
+  // Session indices by agent, then in the order each run was first heard: the merge keeps the
+  // first map's frame, so the result does not depend on which agent happened to send first.
+  [[nodiscard]] std::vector<size_t> MergeOrder() const;
+  void ComputeBow(const Vocabulary& vocabulary);
   std::vector<Session> sessions_;
   std::vector<Index> index_;
   std::map<std::pair<uint32_t, uint64_t>, size_t> by_session_;
   std::optional<AgentCamera> camera_;
 };
+
+// A map's keyframe poses (T_world_cam) by frame timestamp (one agent run never keyframes a frame
+// twice): taken from each input before a merge, to find the same keyframes after it.
+using KeyFramePoses = std::map<int64_t, Eigen::Isometry3d>;
+[[nodiscard]] KeyFramePoses PosesOf(const Map& map);
+
+// Where one input map's frame sits in the output map that holds it: X_out = S * X_in, from the
+// input's keyframes found in both (by agent and timestamp; a timestamp two runs of the agent
+// share in one output map is ambiguous and left out): the rotation is the mean of the keyframes'
+// rotation changes, the scale the ratio of their centres' spreads (1 when fixed), the translation
+// what brings the centroids together. From orientations, not centres alone, so that a window of
+// keyframes on a straight road still fixes the rotation about it.
+struct RunFrame {
+  size_t output = 0;  // index into MultiMapMerge::maps
+  Similarity3 S_output_input;
+  size_t keyframes = 0;  // used in the fit
+  double rms = 0;        // of their centres after it, output units
+};
+// For every input of `merged` (agents[i] and poses[i] taken from input i before the merge): its
+// frame in its output map, or nullopt when it stays alone in a map of its own or fewer than 2 of
+// its keyframes are found. newest > 0 fits on the input's newest keyframes only: where the input's
+// camera is now, what a live agent's correction is for (its older keyframes carry drift the
+// merged map took out). fix_scale: stereo, RGB-D.
+[[nodiscard]] std::vector<std::optional<RunFrame>> FitRunFrames(const MultiMapMerge& merged,
+                                                                const std::vector<uint32_t>& agents,
+                                                                const std::vector<KeyFramePoses>& poses, bool fix_scale,
+                                                                size_t newest = 0);
 
 }  // namespace flatslam

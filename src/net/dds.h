@@ -33,6 +33,7 @@ enum class DdsQuality { kReliable, kBestEffort };
 // The topics: ROS 2 maps a topic /flatslam/agent_N/pose to the DDS topic rt/flatslam/agent_N/pose.
 [[nodiscard]] std::string AgentPoseTopic(uint32_t agent);
 inline constexpr const char* kKeyFrameTopic = "flatslam/keyframes";
+inline constexpr const char* kCorrectionTopic = "flatslam/corrections";
 
 class DdsNode {
  public:

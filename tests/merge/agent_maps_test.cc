@@ -1,6 +1,9 @@
 // The map server's maps of live agents, grown from keyframe messages.
 #include "merge/agent_maps.h"
 
+#include <iterator>
+
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
 #include "storage/keyframe_message.h"
@@ -62,6 +65,79 @@ TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
   EXPECT_EQ(maps.sessions().size(), 2u);
   ASSERT_TRUE(maps.camera().has_value());
   EXPECT_EQ(maps.camera()->calibration.camera.width, 640);
+}
+
+// Corrections: each input's frame in the output map that holds it, fitted on its keyframes found
+// there by agent and timestamp. An input that stays alone gets none.
+TEST(AgentMaps, RunFramesRecoverWhereEachInputWentInTheMergedMap) {
+  testing::RandomMapOptions o;
+  o.erase_some = false;
+  o.agents = 1;
+  Map a = testing::RandomMap(o);
+  o.seed = 8;
+  Map b = testing::RandomMap(o);
+  for (KeyFrameHandle h : b.keyframes().handles()) b.keyframe(h).agent = 1;
+  Map c = testing::RandomMap(o);
+  for (KeyFrameHandle h : c.keyframes().handles()) c.keyframe(h).agent = 2;
+  const std::vector<KeyFramePoses> centres = {PosesOf(a), PosesOf(b), PosesOf(c)};
+  const std::vector<uint32_t> agents = {0, 1, 2};
+  Similarity3 S;
+  S.R = Eigen::AngleAxisd(0.4, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  S.t = Eigen::Vector3d(3, 0.5, -1);
+  S.s = 1.7;
+  MultiMapMerge merged;
+  merged.maps.push_back(a);
+  (void)AppendMap(merged.maps[0], b, S);
+  merged.maps.push_back(c);
+  merged.members = {{0, 1}, {2}};
+  const auto frames = FitRunFrames(merged, agents, centres, /*fix_scale=*/false);
+  ASSERT_EQ(frames.size(), 3u);
+  ASSERT_TRUE(frames[0] && frames[1]);
+  EXPECT_FALSE(frames[2]) << "alone in its own map: no correction";
+  EXPECT_EQ(frames[0]->output, 0u);
+  EXPECT_EQ(frames[0]->keyframes, a.keyframes().size());
+  EXPECT_TRUE(frames[0]->S_output_input.R.isApprox(Eigen::Matrix3d::Identity(), 1e-9));
+  EXPECT_LT(frames[0]->S_output_input.t.norm(), 1e-9);
+  EXPECT_NEAR(frames[0]->S_output_input.s, 1.0, 1e-9);
+  EXPECT_EQ(frames[1]->keyframes, b.keyframes().size());
+  EXPECT_TRUE(frames[1]->S_output_input.R.isApprox(S.R, 1e-9));
+  EXPECT_TRUE(frames[1]->S_output_input.t.isApprox(S.t, 1e-9));
+  EXPECT_NEAR(frames[1]->S_output_input.s, 1.7, 1e-9);
+  EXPECT_LT(frames[1]->rms, 1e-9);
+  // Stereo: the rigid part only (scale held at 1).
+  const auto rigid = FitRunFrames(merged, agents, centres, /*fix_scale=*/true);
+  ASSERT_TRUE(rigid[1]);
+  EXPECT_EQ(rigid[1]->S_output_input.s, 1.0);
+  EXPECT_TRUE(rigid[1]->S_output_input.R.isApprox(S.R, 1e-6));
+  // Two runs of one agent in one map with the same frames: their keyframes are ambiguous and no
+  // run gets a fit from them.
+  // The newest keyframes moved again (the merged map corrected drift there): a fit on the newest
+  // follows them.
+  const Eigen::Isometry3d D(Eigen::Translation3d(0.3, -0.2, 0.1) * Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
+  const int64_t newest_five = std::prev(centres[1].end(), 5)->first;
+  for (KeyFrameHandle h : merged.maps[0].keyframes().handles()) {
+    KeyFrame& kf = merged.maps[0].keyframe(h);
+    if (kf.agent == 1 && kf.t_ns >= newest_five) kf.T_cam_world = kf.T_cam_world * D.inverse();
+  }
+  const auto recent = FitRunFrames(merged, agents, centres, /*fix_scale=*/false, 5);
+  ASSERT_TRUE(recent[1]);
+  EXPECT_EQ(recent[1]->keyframes, 5u);
+  const Similarity3 expected = Similarity3::FromIsometry(D) * S;
+  EXPECT_TRUE(recent[1]->S_output_input.R.isApprox(expected.R, 1e-9));
+  EXPECT_TRUE(recent[1]->S_output_input.t.isApprox(expected.t, 1e-9));
+  EXPECT_NEAR(recent[1]->S_output_input.s, 1.7, 1e-9);
+  const auto all = FitRunFrames(merged, agents, centres, /*fix_scale=*/false);
+  EXPECT_GT(all[1]->rms, 0.01) << "the whole run no longer fits one similarity";
+
+  Map b0 = b;
+  for (KeyFrameHandle h : b0.keyframes().handles()) b0.keyframe(h).agent = 0;
+  MultiMapMerge restarted;
+  restarted.maps.push_back(a);
+  (void)AppendMap(restarted.maps[0], b0, S);
+  restarted.members = {{0, 1}};
+  const auto ambiguous = FitRunFrames(restarted, {0, 0}, {centres[0], centres[1]}, false);
+  EXPECT_FALSE(ambiguous[0]);
+  EXPECT_FALSE(ambiguous[1]);
 }
 
 }  // namespace
