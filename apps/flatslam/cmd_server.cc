@@ -57,6 +57,30 @@ SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabul
   return metadata;
 }
 
+// What fitting corrections after a merge needs of its inputs: each one's agent and keyframe poses.
+struct MergeInputs {
+  std::vector<uint32_t> agents;
+  std::vector<KeyFramePoses> poses;
+};
+
+MergeInputs InputsOf(const AgentMaps::RunMaps& maps, LiveMerge* job) {
+  MergeInputs inputs;
+  job->runs = maps.runs;
+  for (size_t i = 0; i < maps.maps.size(); ++i) {
+    inputs.agents.push_back(maps.runs[i].first);
+    inputs.poses.push_back(PosesOf(maps.maps[i]));
+    job->keyframes += maps.maps[i].keyframes().size();
+  }
+  return inputs;
+}
+
+void Record(const MultiMapMerge& merged, const MergeInputs& inputs, bool monocular, LiveMerge* job) {
+  job->members = merged.members;
+  for (const MergeAttempt& a : merged.attempts) job->weld_ms += a.report.weld_ms;
+  job->frames = FitRunFrames(merged, inputs.agents, inputs.poses, !monocular, kCorrectionKeyFrames);
+  job->ready = Clock::now();
+}
+
 std::string RunName(const std::pair<uint32_t, uint64_t>& run) {
   char name[64];
   std::snprintf(name, sizeof(name), "agent %u run %016llx", run.first, static_cast<unsigned long long>(run.second));
@@ -124,14 +148,14 @@ int RunServerLive(const std::vector<std::string>& argv) {
     return runs_seen.size() - 1;
   };
   // A finished live merge: which runs met since the last one, and each run's correction.
-  auto take_merge = [&](LiveMerge& m) {
+  auto take_merge = [&](LiveMerge& m, const char* what) {
     ++revision;
     size_t joined_maps = 0;
     for (const auto& group : m.members) joined_maps += group.size() > 1;
     std::printf(
-        "live merge %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
+        "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
         "(weld %.0f)\n",
-        static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), joined_maps,
+        what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), joined_maps,
         m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.weld_ms);
     for (const auto& group : m.members) {
       for (size_t a = 0; a < group.size(); ++a) {
@@ -176,18 +200,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
   };
   // Starts a merge of copies of the maps as they are now (the receive loop goes on meanwhile).
   auto start_merge = [&](Clock::time_point now) {
-    AgentMaps::Copies copies = maps.CopyMaps(vocabulary);
     auto job = std::make_shared<LiveMerge>();
     job->cut = now;
-    job->runs = copies.runs;
-    std::vector<uint32_t> agents;
-    std::vector<KeyFramePoses> centres;
-    for (size_t i = 0; i < copies.maps.size(); ++i) {
-      agents.push_back(copies.runs[i].first);
-      centres.push_back(PosesOf(copies.maps[i]));
-      job->keyframes += copies.maps[i].keyframes().size();
-    }
     job->first_new = first_after_cut;
+    AgentMaps::RunMaps copies = maps.CopyMaps(vocabulary);
+    MergeInputs inputs = InputsOf(copies, job.get());
     const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
     const MergeCamera camera =
         MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
@@ -195,17 +212,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
       const std::lock_guard<std::mutex> lock(merged_mutex);
       merging = true;
     }
-    merger.Start([&, job, camera, agents = std::move(agents), centres = std::move(centres),
-                  inputs = std::move(copies.maps)]() mutable {
+    merger.Start([&, job, camera, inputs = std::move(inputs), maps = std::move(copies.maps)]() mutable {
       std::optional<LiveMerge> done;
       try {
-        const MultiMapMerge merged = MergeAllMaps(std::move(inputs), vocabulary, camera, live_options);
-        job->members = merged.members;
-        for (const MergeAttempt& a : merged.attempts) {
-          job->weld_ms += a.report.weld_ms;
-        }
-        job->frames = FitRunFrames(merged, agents, centres, !camera.monocular, kCorrectionKeyFrames);
-        job->ready = Clock::now();
+        Record(MergeAllMaps(std::move(maps), vocabulary, camera, live_options), inputs, camera.monocular, job.get());
         done = std::move(*job);
       } catch (const Error& e) {
         std::fprintf(stderr, "warning: live merge failed: %s\n", e.what());
@@ -266,7 +276,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
     if (finished) {
       last_merge_s = Seconds(finished->cut, finished->ready);
       last_merge_end = finished->ready;
-      take_merge(*finished);
+      take_merge(*finished, "live merge");
     }
     // A live merge starts when keyframes arrived since the last one, at most every --live-merge
     // seconds and never sooner after one ends than it took: merging takes at most half a core.
@@ -281,7 +291,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   }
   reader.reset();
   merger.Wait();
-  if (merged_result) take_merge(*merged_result);
+  if (merged_result) take_merge(*merged_result, "live merge");
   const double listen_s = Seconds(start, Clock::now());
   std::printf(
       "received      %zu keyframe messages (%.1f MiB in %.1f s), %zu dropped as malformed, %zu updates of keyframes "
@@ -294,8 +304,21 @@ int RunServerLive(const std::vector<std::string>& argv) {
                  "): no map written");
 
   const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
+  const MergeCamera camera =
+      MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
+  // The final merge, of every keyframe: its corrections go out too (agents still running, and
+  // any other subscriber, get them) before the server exits.
+  LiveMerge final_merge;
+  final_merge.cut = Clock::now();
+  final_merge.first_new = first_after_cut;
+  AgentMaps::RunMaps all = maps.TakeMaps(vocabulary);
+  const MergeInputs inputs = InputsOf(all, &final_merge);
   const MergeTimes times =
-      MergeAndSave(maps.TakeMaps(vocabulary), vocabulary, metadata, merge_options, out_dir / "map.fsmap");
+      MergeAndSave(std::move(all.maps), vocabulary, metadata, merge_options, out_dir / "map.fsmap",
+                   [&](const MultiMapMerge& merged) { Record(merged, inputs, camera.monocular, &final_merge); });
+  take_merge(final_merge, "final merge");
+  if (!corrections->WaitForAcknowledgments(5))
+    std::fprintf(stderr, "warning: not every subscriber acknowledged the final corrections within 5 s\n");
   std::printf("time          merge %.0f ms, save %.0f ms\n", times.merge_ms, times.save_ms);
   if (g_signal != 0) return 128 + static_cast<int>(g_signal);
   return 0;

@@ -28,7 +28,8 @@ std::string Agents(const Map& map) {
 }
 
 MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, const SnapshotMetadata& metadata,
-                        const MapMergeOptions& options, const std::filesystem::path& out_path) {
+                        const MapMergeOptions& options, const std::filesystem::path& out_path,
+                        const std::function<void(const MultiMapMerge&)>& on_merged) {
   const MergeCamera camera =
       MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
   const auto merge_start = std::chrono::steady_clock::now();
@@ -69,6 +70,7 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
         r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes,
         r.refined ? " (refine: all)" : "", r.weld_outliers, r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
   }
+  if (on_merged) on_merged(merged);
   std::vector<SnapshotMapRef> refs;
   for (size_t g = 0; g < merged.maps.size(); ++g) {
     const std::string problem = merged.maps[g].Validate();

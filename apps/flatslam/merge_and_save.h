@@ -5,6 +5,7 @@
 #pragma once
 
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -25,7 +26,9 @@ struct MergeTimes {
   size_t output_maps = 0;
 };
 // Throws flatslam::Error when a merged map is inconsistent or the snapshot cannot be written.
+// on_merged, when given, sees the merge before the snapshot is written.
 MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, const SnapshotMetadata& metadata,
-                        const MapMergeOptions& options, const std::filesystem::path& out_path);
+                        const MapMergeOptions& options, const std::filesystem::path& out_path,
+                        const std::function<void(const MultiMapMerge&)>& on_merged = {});
 
 }  // namespace flatslam::app

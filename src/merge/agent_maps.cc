@@ -88,19 +88,22 @@ void AgentMaps::ComputeBow(const Vocabulary& vocabulary) {
   }
 }
 
-std::vector<Map> AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
+AgentMaps::RunMaps AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
   ComputeBow(vocabulary);
-  std::vector<Map> maps;
-  for (size_t i : MergeOrder()) maps.push_back(std::move(sessions_[i].map));
+  RunMaps taken;
+  for (size_t i : MergeOrder()) {
+    taken.maps.push_back(std::move(sessions_[i].map));
+    taken.runs.emplace_back(sessions_[i].agent, sessions_[i].session);
+  }
   sessions_.clear();
   index_.clear();
   by_session_.clear();
-  return maps;
+  return taken;
 }
 
-AgentMaps::Copies AgentMaps::CopyMaps(const Vocabulary& vocabulary) {
+AgentMaps::RunMaps AgentMaps::CopyMaps(const Vocabulary& vocabulary) {
   ComputeBow(vocabulary);
-  Copies copies;
+  RunMaps copies;
   for (size_t i : MergeOrder()) {
     copies.maps.push_back(sessions_[i].map);
     copies.runs.emplace_back(sessions_[i].agent, sessions_[i].session);

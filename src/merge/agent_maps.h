@@ -41,16 +41,16 @@ class AgentMaps {
   [[nodiscard]] const std::vector<Session>& sessions() const { return sessions_; }
   // The camera of the first message (the agents of one server share a camera model).
   [[nodiscard]] const std::optional<AgentCamera>& camera() const { return camera_; }
-  // The maps, by agent, with their keyframes' bags of words, ready for MergeAllMaps; the sessions
-  // are left empty.
-  [[nodiscard]] std::vector<Map> TakeMaps(const Vocabulary& vocabulary);
-  // Copies of the maps in TakeMaps' order, for a merge while messages keep arriving; the agent
-  // run of each. Bags of words are computed once per keyframe and kept.
-  struct Copies {
+  // The maps, by agent, with their keyframes' bags of words (computed once per keyframe), ready
+  // for MergeAllMaps, and the agent run of each.
+  struct RunMaps {
     std::vector<Map> maps;
     std::vector<std::pair<uint32_t, uint64_t>> runs;  // agent, session
   };
-  [[nodiscard]] Copies CopyMaps(const Vocabulary& vocabulary);
+  // Moves them out: the sessions are left empty.
+  [[nodiscard]] RunMaps TakeMaps(const Vocabulary& vocabulary);
+  // Copies, for a merge while messages keep arriving.
+  [[nodiscard]] RunMaps CopyMaps(const Vocabulary& vocabulary);
 
  private:
   struct Index {
