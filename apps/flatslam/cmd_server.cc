@@ -212,10 +212,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
       const std::lock_guard<std::mutex> lock(merged_mutex);
       merging = true;
     }
-    merger.Start([&, job, camera, inputs = std::move(inputs), maps = std::move(copies.maps)]() mutable {
+    merger.Start([&, job, camera, inputs = std::move(inputs), copied = std::move(copies.maps)]() mutable {
       std::optional<LiveMerge> done;
       try {
-        Record(MergeAllMaps(std::move(maps), vocabulary, camera, live_options), inputs, camera.monocular, job.get());
+        Record(MergeAllMaps(std::move(copied), vocabulary, camera, live_options), inputs, camera.monocular, job.get());
         done = std::move(*job);
       } catch (const Error& e) {
         std::fprintf(stderr, "warning: live merge failed: %s\n", e.what());
