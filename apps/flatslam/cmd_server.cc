@@ -45,7 +45,9 @@ struct LiveMerge {
   std::vector<std::vector<size_t>> members;         // inputs of each output map, first = its frame
   std::vector<std::optional<RunFrame>> frames;      // per input
   size_t keyframes = 0;
-  double weld_ms = 0;  // of it, the weld bundle adjustments
+  // Of it: place recognition of the steps (the overlap graph's is the rest), append and fuse,
+  // essential graph, weld bundle adjustments.
+  double place_ms = 0, fuse_ms = 0, graph_ms = 0, weld_ms = 0;
 };
 
 SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabulary) {
@@ -76,7 +78,12 @@ MergeInputs InputsOf(const AgentMaps::RunMaps& maps, LiveMerge* job) {
 
 void Record(const MultiMapMerge& merged, const MergeInputs& inputs, bool monocular, LiveMerge* job) {
   job->members = merged.members;
-  for (const MergeAttempt& a : merged.attempts) job->weld_ms += a.report.weld_ms;
+  for (const MergeAttempt& a : merged.attempts) {
+    job->place_ms += a.report.place_ms;
+    job->fuse_ms += a.report.fuse_ms;
+    job->graph_ms += a.report.graph_ms;
+    job->weld_ms += a.report.weld_ms;
+  }
   job->frames = FitRunFrames(merged, inputs.agents, inputs.poses, !monocular, kCorrectionKeyFrames);
   job->ready = Clock::now();
 }
@@ -154,9 +161,9 @@ int RunServerLive(const std::vector<std::string>& argv) {
     for (const auto& group : m.members) joined_maps += group.size() > 1;
     std::printf(
         "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
-        "(weld %.0f)\n",
+        "(merge steps: place recognition %.0f, fuse %.0f, essential graph %.0f, weld %.0f)\n",
         what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), joined_maps,
-        m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.weld_ms);
+        m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.place_ms, m.fuse_ms, m.graph_ms, m.weld_ms);
     for (const auto& group : m.members) {
       for (size_t a = 0; a < group.size(); ++a) {
         for (size_t b = a + 1; b < group.size(); ++b) {
