@@ -80,12 +80,7 @@ std::vector<size_t> AgentMaps::MergeOrder() const {
 
 void AgentMaps::ComputeBow(const Vocabulary& vocabulary) {
   // Descriptors never change once a keyframe is here (an update moves pose and points only).
-  for (Session& session : sessions_) {
-    for (KeyFrameHandle h : session.map.keyframes().handles()) {
-      KeyFrame& kf = session.map.keyframe(h);
-      if (kf.bow.empty()) vocabulary.Transform(kf.descriptor, &kf.bow, &kf.bow_features);
-    }
-  }
+  for (Session& session : sessions_) ComputeKeyFrameBow(session.map, vocabulary, /*missing_only=*/true);
 }
 
 AgentMaps::RunMaps AgentMaps::TakeMaps(const Vocabulary& vocabulary) {

@@ -144,8 +144,9 @@ std::string MapMergeOptions::Problem() const {
   return r.first();
 }
 
-void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary) {
+void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary, bool missing_only) {
   for (KeyFrame& kf : map.keyframes().values()) {
+    if (missing_only && !kf.bow.empty()) continue;
     kf.bow.clear();
     kf.bow_features.clear();
     vocabulary.Transform(kf.descriptor, &kf.bow, &kf.bow_features);
@@ -582,7 +583,7 @@ std::vector<MergeStep> PlanMergeOrder(size_t count, const std::vector<OverlapEdg
 MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
                            const MapMergeOptions& options) {
   MultiMapMerge out;
-  for (Map& map : maps) ComputeKeyFrameBow(map, vocabulary);
+  for (Map& map : maps) ComputeKeyFrameBow(map, vocabulary, /*missing_only=*/true);
   // The overlap graph: every pair measured once, the lower input as the into side.
   std::vector<MapOverlap> found;
   std::vector<double> place_ms;

@@ -73,7 +73,9 @@ struct MapMergeOptions {
 };
 
 // Bag of words of every keyframe, from its descriptors (snapshots do not store them).
-void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary);
+// missing_only: only keyframes without one (a map whose bags were computed with this vocabulary,
+// as a live map server's are).
+void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary, bool missing_only = false);
 
 // A keyframe of the `from` map and a keyframe of the `into` map that see the same place.
 struct MergePair {
@@ -184,7 +186,8 @@ struct MultiMapMerge {
   std::vector<MergeAttempt> attempts;        // in the order they were made
 };
 
-// Merges several maps: place recognition between every pair of inputs (the overlap graph), then
+// Merges several maps (bags of words are computed where a keyframe has none; one it has must come
+// from this vocabulary): place recognition between every pair of inputs (the overlap graph), then
 // the merges of PlanMergeOrder. A step whose group has grown since the pair was measured finds
 // the overlap again against the whole group. An input whose merge fails, or that overlaps
 // nothing, is kept as its own map in its own frame.
