@@ -190,6 +190,24 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   fs::remove_all(dir);
 }
 
+// Options a server cannot run with are refused before it joins DDS, naming the option.
+TEST(AgentsCli, ServerRefusesBadOptionsNamingThem) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_usage");
+  const std::string out = " --out " + (dir / "server").string();
+  struct Case {
+    std::string arguments, message;
+  };
+  for (const Case& c : {Case{"server --live-merge 2", "server needs --out DIR"},
+                        Case{"server" + out + " --live-merge -1", "--live-merge: seconds between live merges"},
+                        Case{"server" + out + " --live-merge soon", "--live-merge"},
+                        Case{"server" + out + " --agents 3", "--agents N and --idle S go together"}}) {
+    const auto r = RunApp(c.arguments);
+    EXPECT_EQ(r.exit_code, 2) << c.arguments << "\n" << r.output;
+    EXPECT_TRUE(Contains(r.output, c.message)) << c.arguments << "\n" << r.output;
+  }
+  fs::remove_all(dir);
+}
+
 // Lines of a file (0 when it cannot be read).
 size_t LineCount(const fs::path& path) {
   const std::string text = ReadBytes(path);
