@@ -99,17 +99,41 @@ size_t AgentLink::Send(const Map& map, KeyFrameHandle keyframe) {
   return payload.bytes.size();
 }
 
+void AgentLink::SendCulled(const Map& map) {
+  KeyFramesCulled culled;
+  culled.agent = agent_;
+  culled.session = session_;
+  std::erase_if(sent_, [&](const std::pair<KeyFrameHandle, uint64_t>& s) {
+    if (map.keyframes().contains(s.first)) return false;
+    culled.keyframes.push_back(s.second);
+    return true;
+  });
+  if (culled.keyframes.empty()) return;
+  Payload payload;
+  payload.agent = agent_;
+  payload.kind = PayloadKind::kCulled;
+  payload.sequence = sequence_++;
+  payload.bytes = EncodeKeyFramesCulled(culled);
+  if (keyframes_->Write(payload))
+    culled_sent_ += culled.keyframes.size();
+  else
+    ++failed_;
+}
+
 void AgentLink::OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) {
   slam.ReadMap([&](const Map& map) {
+    SendCulled(map);
     if (const size_t bytes = Send(map, keyframe); bytes > 0) {
       ++keyframes_sent_;
       keyframe_bytes_ += bytes;
+      sent_.emplace_back(keyframe, map.keyframe(keyframe).id);
     }
   });
 }
 
 void AgentLink::PublishFinalMap(const SlamSession& slam) {
   slam.ReadMap([&](const Map& map) {
+    SendCulled(map);
     for (KeyFrameHandle h : map.keyframes().handles()) {
       if (const size_t bytes = Send(map, h); bytes > 0) {
         ++updates_sent_;
@@ -134,12 +158,14 @@ std::string AgentLink::Summary() const {
   const uint64_t n = keyframes_sent_, bytes = keyframe_bytes_;
   char line[480];
   std::snprintf(line, sizeof(line),
-                "%llu keyframes to %s (%.1f KiB, %.1f KiB per keyframe, %.1f KiB/s over %.1f s), final map update "
-                "%llu keyframes (%.1f KiB), %llu poses to %s; %d server(s) matched, %llu writes failed",
+                "%llu keyframes to %s (%.1f KiB, %.1f KiB per keyframe, %.1f KiB/s over %.1f s), %llu culled "
+                "after sending, final map update %llu keyframes (%.1f KiB), %llu poses to %s; %d server(s) matched, "
+                "%llu writes failed",
                 static_cast<unsigned long long>(n), kKeyFrameTopic, bytes / 1024.0, n ? bytes / 1024.0 / n : 0.0,
-                s > 0 ? bytes / 1024.0 / s : 0.0, s, static_cast<unsigned long long>(updates_sent_.load()),
-                update_bytes_ / 1024.0, static_cast<unsigned long long>(poses_sent_.load()),
-                AgentPoseTopic(agent_).c_str(), keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
+                s > 0 ? bytes / 1024.0 / s : 0.0, s, static_cast<unsigned long long>(culled_sent_.load()),
+                static_cast<unsigned long long>(updates_sent_.load()), update_bytes_ / 1024.0,
+                static_cast<unsigned long long>(poses_sent_.load()), AgentPoseTopic(agent_).c_str(),
+                keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
   std::string summary = line;
   const std::lock_guard<std::mutex> lock(correction_mutex_);
   if (correction_) {

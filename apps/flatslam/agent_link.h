@@ -19,6 +19,8 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "live.h"
 #include "net/dds.h"
@@ -60,8 +62,12 @@ class AgentLink : public AgentPublisher {
   void OnCorrection(const Payload& payload);
   // Writes one keyframe message; its size in bytes, 0 when nothing was written.
   size_t Send(const Map& map, KeyFrameHandle keyframe);
+  // Keyframes sent and still in the map, with their ids (the mapping lane's, then the final
+  // update's): one mapping culled since is reported to the server.
+  std::vector<std::pair<KeyFrameHandle, uint64_t>> sent_;
+  void SendCulled(const Map& map);
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
-      failed_{0}, sequence_{0};
+      failed_{0}, sequence_{0}, culled_sent_{0};
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
 };
 

@@ -236,7 +236,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
     });
   };
   std::set<uint32_t> heard;
-  size_t received = 0, dropped = 0, updates = 0;
+  size_t received = 0, dropped = 0, updates = 0, culled = 0;
   uint64_t bytes = 0;
   auto last = start;
   while (!g_stop) {
@@ -254,6 +254,12 @@ int RunServerLive(const std::vector<std::string>& argv) {
       const std::string what =
           "keyframe message " + std::to_string(payload.sequence) + " from agent " + std::to_string(payload.agent);
       try {
+        if (payload.kind == PayloadKind::kCulled) {
+          const KeyFramesCulled message = DecodeKeyFramesCulled(payload.bytes, what);
+          FLATSLAM_CHECK(message.agent == payload.agent, what, ": names agent ", message.agent, " inside");
+          culled += maps.Cull(message);
+          continue;
+        }
         FLATSLAM_CHECK(payload.kind == PayloadKind::kKeyFrame, what, ": unknown kind ",
                        static_cast<uint32_t>(payload.kind));
         KeyFrameMessage message = DecodeKeyFrameMessage(payload.bytes, what);
@@ -302,8 +308,8 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const double listen_s = Seconds(start, Clock::now());
   std::printf(
       "received      %zu keyframe messages (%.1f MiB in %.1f s), %zu dropped as malformed, %zu updates of keyframes "
-      "held\n",
-      received, bytes / 1048576.0, listen_s, dropped, updates);
+      "held, %zu keyframes removed as their agents culled them\n",
+      received, bytes / 1048576.0, listen_s, dropped, updates, culled);
   for (const AgentMaps::Session& s : maps.sessions())
     std::printf("agent %-7u run %016llx: %zu keyframes, %zu map points\n", s.agent,
                 static_cast<unsigned long long>(s.session), s.map.keyframes().size(), s.map.points().size());

@@ -70,6 +70,28 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
   return added;
 }
 
+size_t AgentMaps::Cull(const KeyFramesCulled& message) {
+  const auto it = by_session_.find({message.agent, message.session});
+  if (it == by_session_.end()) return 0;
+  Map& map = sessions_[it->second].map;
+  auto& keyframes = index_[it->second].keyframes;
+  size_t removed = 0;
+  for (uint64_t id : message.keyframes) {
+    const auto found = keyframes.find(id);
+    if (found == keyframes.end()) continue;
+    const KeyFrameHandle kf = found->second;
+    keyframes.erase(found);
+    if (!map.keyframes().contains(kf)) continue;
+    // A point the culled keyframe alone saw goes with it; one that others see stays.
+    const std::vector<PointHandle> seen = map.keyframe(kf).points;
+    for (PointHandle p : seen)
+      if (!p.is_null()) map.EraseObservation(p, kf, /*min_observations=*/1);
+    map.EraseKeyFrame(kf);
+    ++removed;
+  }
+  return removed;
+}
+
 std::vector<size_t> AgentMaps::MergeOrder() const {
   std::vector<size_t> order(sessions_.size());
   for (size_t i = 0; i < order.size(); ++i) order[i] = i;

@@ -38,6 +38,9 @@ class AgentMaps {
   // Applies one message: true when it added a keyframe, false when it updated one already there
   // (same agent, session and keyframe id).
   bool Add(KeyFrameMessage&& message);
+  // Removes the keyframes the agent culled (unknown ids are skipped: never sent, or gone already),
+  // and points no keyframe sees any more. Returns how many were removed.
+  size_t Cull(const KeyFramesCulled& message);
   [[nodiscard]] const std::vector<Session>& sessions() const { return sessions_; }
   // The camera of the first message (the agents of one server share a camera model).
   [[nodiscard]] const std::optional<AgentCamera>& camera() const { return camera_; }

@@ -5,6 +5,7 @@
 
 #include "core/error.h"
 #include "flatslam/schemas/agent_generated.h"
+#include "flatslam/schemas/culled_generated.h"
 #include "storage/schema_records.h"
 
 namespace flatslam {
@@ -91,6 +92,31 @@ KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std:
     out.points.push_back(records::FromPointRecord(record));
     FLATSLAM_CHECK(Finite(out.points.back().position), what, ": point ", out.points.size() - 1, " is not finite");
   }
+  return out;
+}
+
+std::vector<uint8_t> EncodeKeyFramesCulled(const KeyFramesCulled& message) {
+  flatbuffers::FlatBufferBuilder builder(64 + 8 * message.keyframes.size());
+  const auto ids = builder.CreateVector(message.keyframes);
+  agent::FinishKeyFramesCulledBuffer(
+      builder, agent::CreateKeyFramesCulled(builder, kFormatVersion, message.agent, message.session, ids));
+  return {builder.GetBufferPointer(), builder.GetBufferPointer() + builder.GetSize()};
+}
+
+KeyFramesCulled DecodeKeyFramesCulled(std::span<const uint8_t> bytes, const std::string& what) {
+  FLATSLAM_CHECK(
+      bytes.size() >= 8 && flatbuffers::BufferHasIdentifier(bytes.data(), agent::KeyFramesCulledIdentifier()), what,
+      ": not a culled-keyframes message (", bytes.size(), " bytes)");
+  flatbuffers::Verifier verifier(bytes.data(), bytes.size());
+  FLATSLAM_CHECK(agent::VerifyKeyFramesCulledBuffer(verifier), what, ": corrupt (flatbuffers verification failed)");
+  const agent::KeyFramesCulled& root = *agent::GetKeyFramesCulled(bytes.data());
+  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= kFormatVersion, what, ": format version ",
+                 root.format_version(), " (this build reads 1 to ", kFormatVersion, ")");
+  KeyFramesCulled out;
+  out.agent = root.agent();
+  out.session = root.session();
+  const auto ids = records::Span(root.keyframes());
+  out.keyframes.assign(ids.begin(), ids.end());
   return out;
 }
 

@@ -41,4 +41,15 @@ struct KeyFrameMessage {
 // index out of range, non-finite values.
 [[nodiscard]] KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std::string& what);
 
+// Keyframes an agent's local mapping culled after it had sent them.
+struct KeyFramesCulled {
+  uint32_t agent = 0;
+  uint64_t session = 0;
+  std::vector<uint64_t> keyframes;  // the agent's keyframe ids
+};
+
+[[nodiscard]] std::vector<uint8_t> EncodeKeyFramesCulled(const KeyFramesCulled& message);
+// Throws flatslam::Error naming `what` and the problem: not such a message, a newer format, corrupt.
+[[nodiscard]] KeyFramesCulled DecodeKeyFramesCulled(std::span<const uint8_t> bytes, const std::string& what);
+
 }  // namespace flatslam

@@ -190,6 +190,35 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   fs::remove_all(dir);
 }
 
+// A long session culls keyframes (the room's second lap revisits the first): the server removes
+// each one the agent culled after sending it, so the server's map ends with the agent's keyframes.
+TEST(AgentsCli, KeyFramesAnAgentCullsLeaveTheServersMap) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_cull");
+  const std::string d = std::to_string(20 + getpid() % 60);
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "4", "--dds-domain", d},
+            dir / "server.log");
+  const auto r = RunApp(
+      "agent synth:room:duration=40,width=480,height=360 --id 0 --quiet --deterministic "
+      "--dds-domain " +
+      d + " --out " + (dir / "agent").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string log = ReadBytes(dir / "server.log");
+  auto number_before = [](const std::string& text, const std::string& what) {
+    const size_t at = text.find(what);
+    if (at == std::string::npos) return -1L;
+    const size_t start = text.rfind(' ', at - 1) + 1;  // the number ends where `what` starts
+    return std::stol(text.substr(start, at - start));
+  };
+  const long culled = number_before(r.output, " culled after sending");
+  EXPECT_GT(culled, 0) << r.output;
+  EXPECT_EQ(number_before(log, " keyframes removed as their agents culled them"), culled) << log;
+  const size_t agent_keyframes = ReadTum(dir / "agent" / "keyframes.tum").size();
+  EXPECT_TRUE(Contains(log, "agents [0], " + std::to_string(agent_keyframes) + " keyframes")) << log;
+  fs::remove_all(dir);
+}
+
 // Options a server cannot run with are refused before it joins DDS, naming the option.
 TEST(AgentsCli, ServerRefusesBadOptionsNamingThem) {
   const fs::path dir = testing::FreshTempDir("agents_cli_usage");

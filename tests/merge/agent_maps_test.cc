@@ -67,6 +67,36 @@ TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
   EXPECT_EQ(maps.camera()->calibration.camera.width, 640);
 }
 
+// Keyframes the agent culled leave the server's map too, with the points only they saw; ids it
+// does not hold and other runs are left alone.
+TEST(AgentMaps, CulledKeyFramesLeaveTheMap) {
+  testing::RandomMapOptions o;
+  o.erase_some = false;
+  o.agents = 1;
+  const Map map = testing::RandomMap(o);
+  AgentMaps maps;
+  for (KeyFrameHandle h : map.keyframes().handles())
+    ASSERT_TRUE(maps.Add(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, 0, 11, testing::TestAgentCamera()), "m")));
+  const size_t keyframes = map.keyframes().size(), points = maps.sessions()[0].map.points().size();
+  KeyFramesCulled culled;
+  culled.agent = 0;
+  culled.session = 11;
+  for (size_t i : {3, 4, 5, 6}) culled.keyframes.push_back(map.keyframes().values()[i].id);
+  culled.keyframes.push_back(999999);  // never sent
+  EXPECT_EQ(maps.Cull(DecodeKeyFramesCulled(EncodeKeyFramesCulled(culled), "culled")), 4u);
+  const Map& got = maps.sessions()[0].map;
+  EXPECT_EQ(got.keyframes().size(), keyframes - 4);
+  EXPECT_LT(got.points().size(), points);  // points seen by those four alone went with them
+  for (const MapPoint& p : got.points().values()) EXPECT_FALSE(p.observations.empty());
+  for (const KeyFrame& kf : got.keyframes().values())
+    for (uint64_t id : culled.keyframes) EXPECT_NE(kf.id, id);
+  EXPECT_EQ(got.Validate(), "");
+  // Again, or for another run: nothing to do.
+  EXPECT_EQ(maps.Cull(culled), 0u);
+  culled.session = 12;
+  EXPECT_EQ(maps.Cull(culled), 0u);
+}
+
 // Corrections: each input's frame in the output map that holds it, fitted on its keyframes found
 // there by agent and timestamp. An input that stays alone gets none.
 TEST(AgentMaps, RunFramesRecoverWhereEachInputWentInTheMergedMap) {

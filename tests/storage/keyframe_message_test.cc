@@ -84,5 +84,32 @@ TEST(KeyFrameMessage, MalformedMessagesAreRefusedWithTheirName) {
   EXPECT_GT(refused, 0u);
 }
 
+TEST(KeyFramesCulled, RoundTripsAndRefusesWhatIsNotOne) {
+  KeyFramesCulled culled;
+  culled.agent = 4;
+  culled.session = 0xfeedULL;
+  culled.keyframes = {3, 17, 1ull << 40};
+  const std::vector<uint8_t> bytes = EncodeKeyFramesCulled(culled);
+  const KeyFramesCulled back = DecodeKeyFramesCulled(bytes, "culled 2 from agent 4");
+  EXPECT_EQ(back.agent, 4u);
+  EXPECT_EQ(back.session, 0xfeedULL);
+  EXPECT_EQ(back.keyframes, culled.keyframes);
+  auto error_of = [](std::span<const uint8_t> b) {
+    try {
+      (void)DecodeKeyFramesCulled(b, "culled 2 from agent 4");
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  // A keyframe message is not a culled-keyframes message, and no truncation decodes.
+  const Map map = testing::RandomMap({});
+  EXPECT_NE(error_of(EncodeKeyFrameMessage(map, map.keyframes().handles()[0], 1, 1, testing::TestAgentCamera()))
+                .find("culled 2 from agent 4: not a culled-keyframes message"),
+            std::string::npos);
+  for (size_t n = 0; n < bytes.size(); n += 5)
+    EXPECT_NE(error_of(std::span(bytes).first(n)).find("culled 2 from agent 4"), std::string::npos) << n;
+}
+
 }  // namespace
 }  // namespace flatslam
