@@ -12,16 +12,27 @@
 namespace flatslam {
 namespace {
 
-// The server's maps: keyframes join their points by the agent's ids, a keyframe sent again updates
-// what is there (the agent's final map), and a restarted agent (a new session) gets a map of its own.
-TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
+// A random map of one agent, nothing erased: every point keeps all its observations.
+Map OneAgentMap() {
   testing::RandomMapOptions o;
   o.erase_some = false;
   o.agents = 1;
-  const Map map = testing::RandomMap(o);
-  AgentMaps maps;
+  return testing::RandomMap(o);
+}
+
+// Every keyframe of `map` as agent 0's run 11 sends it (each one new to the server).
+void SendEveryKeyFrame(const Map& map, AgentMaps* maps) {
   for (KeyFrameHandle h : map.keyframes().handles())
-    EXPECT_TRUE(maps.Add(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, 0, 11, testing::TestAgentCamera()), "m")));
+    EXPECT_TRUE(
+        maps->Add(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, 0, 11, testing::TestAgentCamera()), "m")));
+}
+
+// The server's maps: keyframes join their points by the agent's ids, a keyframe sent again updates
+// what is there (the agent's final map), and a restarted agent (a new session) gets a map of its own.
+TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
+  const Map map = OneAgentMap();
+  AgentMaps maps;
+  SendEveryKeyFrame(map, &maps);
   // A keyframe sent twice is applied once.
   EXPECT_FALSE(maps.Add(DecodeKeyFrameMessage(
       EncodeKeyFrameMessage(map, map.keyframes().handles()[0], 0, 11, testing::TestAgentCamera()), "repeated")));
@@ -70,13 +81,9 @@ TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
 // Keyframes the agent culled leave the server's map too, with the points only they saw; ids it
 // does not hold and other runs are left alone.
 TEST(AgentMaps, CulledKeyFramesLeaveTheMap) {
-  testing::RandomMapOptions o;
-  o.erase_some = false;
-  o.agents = 1;
-  const Map map = testing::RandomMap(o);
+  const Map map = OneAgentMap();
   AgentMaps maps;
-  for (KeyFrameHandle h : map.keyframes().handles())
-    ASSERT_TRUE(maps.Add(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, 0, 11, testing::TestAgentCamera()), "m")));
+  SendEveryKeyFrame(map, &maps);
   const size_t keyframes = map.keyframes().size(), points = maps.sessions()[0].map.points().size();
   KeyFramesCulled culled;
   culled.agent = 0;
