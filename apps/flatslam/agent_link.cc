@@ -123,6 +123,13 @@ void AgentLink::SendCulled(const Map& map) {
 void AgentLink::OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) {
   slam.ReadMap([&](const Map& map) {
     SendCulled(map);
+    // A server that matched since the last keyframe (one that started late, or came back) has
+    // none of the map yet: the writer keeps no history for it.
+    if (const int matches = keyframes_->matches_ever(); matches > answered_matches_) {
+      answered_matches_ = matches;
+      for (const auto& [h, id] : sent_)
+        if (Send(map, h) > 0) ++resent_;
+    }
     if (const size_t bytes = Send(map, keyframe); bytes > 0) {
       ++keyframes_sent_;
       keyframe_bytes_ += bytes;
@@ -156,16 +163,16 @@ std::string MergedFrameId(uint64_t frame_session) {
 std::string AgentLink::Summary() const {
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
   const uint64_t n = keyframes_sent_, bytes = keyframe_bytes_;
-  char line[480];
+  char line[640];
   std::snprintf(line, sizeof(line),
                 "%llu keyframes to %s (%.1f KiB, %.1f KiB per keyframe, %.1f KiB/s over %.1f s), %llu culled "
-                "after sending, final map update %llu keyframes (%.1f KiB), %llu poses to %s; %d server(s) matched, "
-                "%llu writes failed",
+                "after sending, %llu sent again to servers that joined later, final map update %llu keyframes "
+                "(%.1f KiB), %llu poses to %s; %d server(s) matched, %llu writes failed",
                 static_cast<unsigned long long>(n), kKeyFrameTopic, bytes / 1024.0, n ? bytes / 1024.0 / n : 0.0,
                 s > 0 ? bytes / 1024.0 / s : 0.0, s, static_cast<unsigned long long>(culled_sent_.load()),
-                static_cast<unsigned long long>(updates_sent_.load()), update_bytes_ / 1024.0,
-                static_cast<unsigned long long>(poses_sent_.load()), AgentPoseTopic(agent_).c_str(),
-                keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
+                static_cast<unsigned long long>(resent_.load()), static_cast<unsigned long long>(updates_sent_.load()),
+                update_bytes_ / 1024.0, static_cast<unsigned long long>(poses_sent_.load()),
+                AgentPoseTopic(agent_).c_str(), keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
   std::string summary = line;
   const std::lock_guard<std::mutex> lock(correction_mutex_);
   if (correction_) {

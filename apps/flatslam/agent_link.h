@@ -1,8 +1,9 @@
 // A running SLAM session as a live agent on DDS (`flatslam agent`, `flatslam run --publish`; in
 // flatslam-live only, see live.h):
 // every tracked frame's pose as a ROS 2 geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose
-// (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable,
-// kept for servers that join later), with byte counts for the bandwidth report. It listens on
+// (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable;
+// when a server joins later, every keyframe of the map again before the next one), with byte
+// counts for the bandwidth report. It listens on
 // flatslam/corrections for the server's corrections of its run: once its map has been merged with
 // others', the poses it publishes are in the merged map's frame (frame_id flatslam_map_<run of
 // that frame>) instead of its own (flatslam_agent_N_map), as a ROS map -> odom correction would
@@ -66,8 +67,10 @@ class AgentLink : public AgentPublisher {
   // update's): one mapping culled since is reported to the server.
   std::vector<std::pair<KeyFrameHandle, uint64_t>> sent_;
   void SendCulled(const Map& map);
+  // Matches of the keyframe writer already answered with the whole map (mapping lane).
+  int answered_matches_ = 0;
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
-      failed_{0}, sequence_{0}, culled_sent_{0};
+      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0};
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
 };
 

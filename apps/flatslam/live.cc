@@ -22,11 +22,12 @@ const char* const kAgentUsage =
     "usage: flatslam agent DATASET --id N [--dds-domain D] [--dds-peers IP,...|multicast] [run options]\n\n"
     "Runs SLAM over DATASET as live agent N: flatslam run DATASET --agent N --publish (see flatslam run\n"
     "--help for the other options). Each frame's pose goes out as a ROS 2 geometry_msgs/PoseStamped on\n"
-    "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable,\n"
-    "kept for a server that starts later), and at the end every keyframe again as the agent's final map;\n"
-    "flatslam server collects them. Once the server has merged the agent's map with others', it sends\n"
-    "corrections on flatslam/corrections and the agent publishes its poses in the merged map's frame\n"
-    "(frame_id flatslam_map_<run>) instead of its own (flatslam_agent_N_map); its own map is not changed.\n"
+    "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable;\n"
+    "a server that starts later gets the whole map again), and at the end every keyframe again as the\n"
+    "agent's final map; flatslam server collects them. Once the server has merged the agent's map with\n"
+    "others', it sends corrections on flatslam/corrections and the agent publishes its poses in the merged\n"
+    "map's frame (frame_id flatslam_map_<run>) instead of its own (flatslam_agent_N_map); its own map is\n"
+    "not changed.\n"
     "The summary adds the bytes sent per keyframe and per second and the last correction.\n";
 
 const char* const kServerUsage =

@@ -36,7 +36,11 @@ Qos WithQuality(Qos qos, DdsQuality quality) {
   qos.endpoint().history_memory_policy = eprosima::fastrtps::rtps::DYNAMIC_REUSABLE_MEMORY_MODE;
   if (quality == DdsQuality::kReliable) {
     qos.reliability().kind = dds::RELIABLE_RELIABILITY_QOS;
-    qos.durability().kind = dds::TRANSIENT_LOCAL_DURABILITY_QOS;
+    // Volatile: a sample leaves the writer's history once every matched reader acknowledged it
+    // (at once when none is matched), so a long-running writer's memory stays flat. A reader
+    // that joins later gets what is written after it matched; agents send their whole map again
+    // when a new reader matches (Writer::matches_ever).
+    qos.durability().kind = dds::VOLATILE_DURABILITY_QOS;
     qos.history().kind = dds::KEEP_ALL_HISTORY_QOS;
     qos.resource_limits().max_samples = dds::LENGTH_UNLIMITED;
     qos.resource_limits().max_samples_per_instance = dds::LENGTH_UNLIMITED;
@@ -96,9 +100,10 @@ template <class T>
 struct DdsNode::Writer<T>::Impl : public dds::DataWriterListener {
   dds::Publisher* publisher = nullptr;
   dds::DataWriter* writer = nullptr;
-  std::atomic<int> matched{0};
+  std::atomic<int> matched{0}, matched_ever{0};
   void on_publication_matched(dds::DataWriter*, const dds::PublicationMatchedStatus& status) override {
     matched = status.current_count;
+    matched_ever = status.total_count;
   }
 };
 
@@ -109,6 +114,10 @@ bool DdsNode::Writer<T>::Write(const T& sample) {
 template <class T>
 int DdsNode::Writer<T>::matched() const {
   return impl_->matched.load();
+}
+template <class T>
+int DdsNode::Writer<T>::matches_ever() const {
+  return impl_->matched_ever.load();
 }
 template <class T>
 bool DdsNode::Writer<T>::WaitForAcknowledgments(double seconds) {

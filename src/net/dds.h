@@ -1,8 +1,9 @@
 // flatslam on DDS (eProsima Fast DDS): one participant per process, typed writers and readers
 // with the two qualities of service the agents use.
-// - Reliable: keyframes. Every sample is delivered, in order, and kept by the writer for
-//   readers that join later (transient local, keep all), so a server started late still gets
-//   every keyframe an agent made.
+// - Reliable: keyframes and corrections. Every sample is delivered to the readers matched when
+//   it is written, in order; the writer keeps it until they all acknowledged it (volatile, keep
+//   all), so its memory stays flat. A server that starts late gets an agent's whole map because
+//   the agent sends it again when a new reader matches (Writer::matches_ever).
 // - BestEffort: poses. The newest sample only; a lost one is replaced by the next.
 // Discovery: with `peers` set (the default, 127.0.0.1), participants find each other by unicast
 // to those hosts, which works where multicast does not (a container's loopback); an empty list
@@ -48,8 +49,10 @@ class DdsNode {
    public:
     // False when the sample could not be written (serialization failed, or the writer is gone).
     bool Write(const T& sample);
-    // Readers currently matched.
+    // Readers currently matched, and every match since the writer was created (a reader that
+    // joined later, or came back, counts again).
     [[nodiscard]] int matched() const;
+    [[nodiscard]] int matches_ever() const;
     // Waits until every matched reader acknowledged every sample written (reliable writers), at
     // most `seconds`; false on timeout.
     bool WaitForAcknowledgments(double seconds);

@@ -36,6 +36,12 @@ using testing::RunApp;
 using testing::Spawn;
 using testing::Wait;
 
+// Lines of a file (0 when it cannot be read).
+size_t LineCount(const fs::path& path) {
+  const std::string text = ReadBytes(path);
+  return static_cast<size_t>(std::count(text.begin(), text.end(), '\n'));
+}
+
 // The town agents of the merge tests (tests/merge/map_merge_test.cc): agents 0 and 1 share two
 // stretches of road, agent 2 shares the top road with both.
 std::string Town(int agent) {
@@ -219,6 +225,31 @@ TEST(AgentsCli, KeyFramesAnAgentCullsLeaveTheServersMap) {
   fs::remove_all(dir);
 }
 
+// A server that starts while an agent is already mapping gets the agent's whole map: DDS keeps no
+// history for it, so the agent sends every keyframe again when the server matches.
+TEST(AgentsCli, ALateServerGetsTheWholeMap) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_late");
+  const std::string d = std::to_string(80 + getpid() % 20);
+  const fs::path agent_out = dir / "agent";
+  const pid_t agent = Spawn({"agent", "synth:room:duration=40,width=480,height=360", "--id", "0", "--quiet",
+                             "--deterministic", "--dds-domain", d, "--out", agent_out.string()},
+                            dir / "agent.log");
+  // The server starts once the agent has tracked 200 frames (stats.csv grows by a line a frame).
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (LineCount(agent_out / "stats.csv") < 201 && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "4", "--dds-domain", d},
+            dir / "server.log");
+  ASSERT_EQ(Wait(agent), 0) << ReadBytes(dir / "agent.log");
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string agent_log = ReadBytes(dir / "agent.log"), log = ReadBytes(dir / "server.log");
+  EXPECT_FALSE(Contains(agent_log, " 0 sent again to servers that joined later")) << agent_log;
+  const size_t agent_keyframes = ReadTum(agent_out / "keyframes.tum").size();
+  EXPECT_TRUE(Contains(log, "agents [0], " + std::to_string(agent_keyframes) + " keyframes")) << log;
+  fs::remove_all(dir);
+}
+
 // Options a server cannot run with are refused before it joins DDS, naming the option.
 TEST(AgentsCli, ServerRefusesBadOptionsNamingThem) {
   const fs::path dir = testing::FreshTempDir("agents_cli_usage");
@@ -235,12 +266,6 @@ TEST(AgentsCli, ServerRefusesBadOptionsNamingThem) {
     EXPECT_TRUE(Contains(r.output, c.message)) << c.arguments << "\n" << r.output;
   }
   fs::remove_all(dir);
-}
-
-// Lines of a file (0 when it cannot be read).
-size_t LineCount(const fs::path& path) {
-  const std::string text = ReadBytes(path);
-  return static_cast<size_t>(std::count(text.begin(), text.end(), '\n'));
 }
 
 // An agent killed mid-run (SIGKILL: no goodbye) and started again from a later frame: the server

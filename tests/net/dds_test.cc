@@ -76,30 +76,40 @@ TEST(Dds, PoseStampedReachesAnotherParticipant) {
   EXPECT_EQ(got.orientation, sent.orientation);
 }
 
-// Reliable payloads arrive in order, large ones too, and a reader that joins later still gets
-// every payload written before it (what a late server relies on).
-TEST(Dds, ReliablePayloadsReachALateReaderInOrder) {
+// Reliable payloads arrive in order, large ones too. The writer keeps no history for readers that
+// join later (its memory stays flat): a late reader gets what is written after it matched, and the
+// writer counts the match, which is how an agent knows to send its map again.
+TEST(Dds, ReliablePayloadsReachAMatchedReaderInOrderAndALateOneIsCounted) {
   DdsNode a(TestDomain(), "test writer"), b(TestDomain(), "test late reader");
   auto writer = a.PayloadWriter("flatslam/test_payloads");
-  std::vector<Payload> sent;
-  for (uint64_t i = 0; i < 20; ++i) {
+  auto payload = [](uint64_t i) {
     Payload p;
     p.agent = 2;
     p.sequence = i;
-    p.bytes.resize(i == 7 ? 300000 : 100 + i);  // one larger than a UDP datagram: fragmented
+    p.bytes.resize(i == 27 ? 300000 : 100 + i);  // one larger than a UDP datagram: fragmented
     for (size_t k = 0; k < p.bytes.size(); ++k) p.bytes[k] = static_cast<uint8_t>(k * 31 + i);
-    ASSERT_TRUE(writer->Write(p));
-    sent.push_back(p);
-  }
+    return p;
+  };
+  for (uint64_t i = 0; i < 20; ++i) ASSERT_TRUE(writer->Write(payload(i)));  // nobody listens yet
+  EXPECT_EQ(writer->matches_ever(), 0);
   Inbox<Payload> inbox;
   auto reader = b.PayloadReader("flatslam/test_payloads", [&](const Payload& p) { inbox.Push(p); });
+  ASSERT_TRUE(WaitMatched(*writer, 30));
+  EXPECT_EQ(writer->matches_ever(), 1);
+  std::vector<Payload> sent;
+  for (uint64_t i = 20; i < 40; ++i) {
+    sent.push_back(payload(i));
+    ASSERT_TRUE(writer->Write(sent.back()));
+  }
   ASSERT_TRUE(inbox.WaitFor(sent.size(), 30)) << inbox.samples.size() << " of " << sent.size() << " arrived";
+  EXPECT_TRUE(writer->WaitForAcknowledgments(10));
+  const std::lock_guard<std::mutex> lock(inbox.mutex);
+  ASSERT_EQ(inbox.samples.size(), sent.size()) << "payloads written before the reader matched arrived";
   for (size_t i = 0; i < sent.size(); ++i) {
-    EXPECT_EQ(inbox.samples[i].sequence, i);
+    EXPECT_EQ(inbox.samples[i].sequence, sent[i].sequence);
     EXPECT_EQ(inbox.samples[i].agent, 2u);
     EXPECT_EQ(inbox.samples[i].bytes, sent[i].bytes) << i;
   }
-  EXPECT_TRUE(writer->WaitForAcknowledgments(10));
 }
 
 }  // namespace
