@@ -202,7 +202,7 @@ TEST(AgentsCli, KeyFramesAnAgentCullsLeaveTheServersMap) {
   const fs::path dir = testing::FreshTempDir("agents_cli_cull");
   const std::string d = std::to_string(20 + getpid() % 60);
   const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "4", "--dds-domain", d},
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "10", "--dds-domain", d},
             dir / "server.log");
   const auto r = RunApp(
       "agent synth:room:duration=40,width=480,height=360 --id 0 --quiet --deterministic "
@@ -239,7 +239,7 @@ TEST(AgentsCli, ALateServerGetsTheWholeMap) {
   while (LineCount(agent_out / "stats.csv") < 201 && std::chrono::steady_clock::now() < deadline)
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "4", "--dds-domain", d},
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "10", "--dds-domain", d},
             dir / "server.log");
   ASSERT_EQ(Wait(agent), 0) << ReadBytes(dir / "agent.log");
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
