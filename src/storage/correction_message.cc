@@ -6,6 +6,7 @@
 
 #include "core/error.h"
 #include "flatslam/schemas/correction_generated.h"
+#include "storage/schema_records.h"
 
 namespace flatslam {
 namespace {
@@ -31,14 +32,8 @@ std::vector<uint8_t> EncodeCorrectionMessage(const CorrectionMessage& m) {
 }
 
 CorrectionMessage DecodeCorrectionMessage(std::span<const uint8_t> bytes, const std::string& what) {
-  FLATSLAM_CHECK(
-      bytes.size() >= 8 && flatbuffers::BufferHasIdentifier(bytes.data(), agent::CorrectionMessageIdentifier()), what,
-      ": not a correction message (", bytes.size(), " bytes)");
-  flatbuffers::Verifier verifier(bytes.data(), bytes.size());
-  FLATSLAM_CHECK(agent::VerifyCorrectionMessageBuffer(verifier), what, ": corrupt (flatbuffers verification failed)");
-  const agent::CorrectionMessage& root = *agent::GetCorrectionMessage(bytes.data());
-  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= kFormatVersion, what, ": format version ",
-                 root.format_version(), " (this build reads 1 to ", kFormatVersion, ")");
+  const agent::CorrectionMessage& root = records::VerifiedMessage<agent::CorrectionMessage>(
+      bytes, agent::CorrectionMessageIdentifier(), kFormatVersion, what, "correction message");
   FLATSLAM_CHECK(
       root.rotation() && root.rotation()->size() == 9 && root.translation() && root.translation()->size() == 3, what,
       ": a rotation needs 9 values and a translation 3");

@@ -51,14 +51,8 @@ std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyfra
 }
 
 KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std::string& what) {
-  FLATSLAM_CHECK(
-      bytes.size() >= 8 && flatbuffers::BufferHasIdentifier(bytes.data(), agent::KeyFrameMessageIdentifier()), what,
-      ": not a keyframe message (", bytes.size(), " bytes)");
-  flatbuffers::Verifier verifier(bytes.data(), bytes.size());
-  FLATSLAM_CHECK(agent::VerifyKeyFrameMessageBuffer(verifier), what, ": corrupt (flatbuffers verification failed)");
-  const agent::KeyFrameMessage& root = *agent::GetKeyFrameMessage(bytes.data());
-  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= kFormatVersion, what, ": format version ",
-                 root.format_version(), " (this build reads 1 to ", kFormatVersion, ")");
+  const agent::KeyFrameMessage& root = records::VerifiedMessage<agent::KeyFrameMessage>(
+      bytes, agent::KeyFrameMessageIdentifier(), kFormatVersion, what, "keyframe message");
   FLATSLAM_CHECK(root.keyframe() != nullptr, what, ": no keyframe");
   const schema::KeyFrameRecord& r = *root.keyframe();
   FLATSLAM_CHECK(records::KeyFrameColumnsAgree(r), what, ": keypoint columns differ in size");
@@ -104,14 +98,8 @@ std::vector<uint8_t> EncodeKeyFramesCulled(const KeyFramesCulled& message) {
 }
 
 KeyFramesCulled DecodeKeyFramesCulled(std::span<const uint8_t> bytes, const std::string& what) {
-  FLATSLAM_CHECK(
-      bytes.size() >= 8 && flatbuffers::BufferHasIdentifier(bytes.data(), agent::KeyFramesCulledIdentifier()), what,
-      ": not a culled-keyframes message (", bytes.size(), " bytes)");
-  flatbuffers::Verifier verifier(bytes.data(), bytes.size());
-  FLATSLAM_CHECK(agent::VerifyKeyFramesCulledBuffer(verifier), what, ": corrupt (flatbuffers verification failed)");
-  const agent::KeyFramesCulled& root = *agent::GetKeyFramesCulled(bytes.data());
-  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= kFormatVersion, what, ": format version ",
-                 root.format_version(), " (this build reads 1 to ", kFormatVersion, ")");
+  const agent::KeyFramesCulled& root = records::VerifiedMessage<agent::KeyFramesCulled>(
+      bytes, agent::KeyFramesCulledIdentifier(), kFormatVersion, what, "culled-keyframes message");
   KeyFramesCulled out;
   out.agent = root.agent();
   out.session = root.session();

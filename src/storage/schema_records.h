@@ -1,15 +1,19 @@
 // Conversions between the map's entities and their flatbuffers records (schemas/map.fbs), shared
-// by map snapshots (snapshot.cc) and the agents' keyframe messages (keyframe_message.cc): one
-// way to write a keyframe record and to read one back. Internal to src/storage.
+// by map snapshots (snapshot.cc) and the agents' messages (keyframe_message.cc,
+// correction_message.cc): one way to write a keyframe record and to read one back, and one set of
+// checks before a message is read. Internal to src/storage.
 // Concurrency: pure functions over the caller's data.
 #pragma once
 
+#include <cstdint>
 #include <cstring>
 #include <span>
+#include <string>
 #include <vector>
 
 #include <flatbuffers/flatbuffers.h>
 
+#include "core/error.h"
 #include "ecs/map.h"
 #include "flatslam/schemas/map_generated.h"
 #include "io/calibration.h"
@@ -19,6 +23,22 @@ namespace flatslam::records {
 namespace fb = flatbuffers;
 
 inline constexpr uint32_t kNone = 0xffffffffu;  // "no index" in a record
+
+// The root of a message buffer after the checks every agent message gets: its file identifier,
+// the flatbuffers verifier, and a format version from 1 to max_version. Throws flatslam::Error
+// naming `what` (e.g. "keyframe message 12 from agent 1") and `kind` ("keyframe message").
+template <class Root>
+const Root& VerifiedMessage(std::span<const uint8_t> bytes, const char* identifier, uint32_t max_version,
+                            const std::string& what, const char* kind) {
+  FLATSLAM_CHECK(bytes.size() >= 8 && fb::BufferHasIdentifier(bytes.data(), identifier), what, ": not a ", kind, " (",
+                 bytes.size(), " bytes)");
+  fb::Verifier verifier(bytes.data(), bytes.size());
+  FLATSLAM_CHECK(verifier.VerifyBuffer<Root>(identifier), what, ": corrupt (flatbuffers verification failed)");
+  const Root& root = *fb::GetRoot<Root>(bytes.data());
+  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= max_version, what, ": format version ",
+                 root.format_version(), " (this build reads 1 to ", max_version, ")");
+  return root;
+}
 
 static_assert(sizeof(schema::Vec2f) == sizeof(Eigen::Vector2f));
 static_assert(sizeof(schema::Descriptor256) == sizeof(Descriptor));
