@@ -4,8 +4,9 @@
 # bytes sent (per keyframe and per second), the final map update, and the tracking time with and
 # without publishing (both beside the two other agents on the same cores), and the last correction
 # the agent received; for the server: each live merge while the agents ran (time, keyframes, maps
-# joined), when agents met and how long after their first overlap the merged map was ready,
-# messages received, the merge and save time after the agents stopped, and the output maps.
+# joined), when agents met and how long after their first overlap the merged map was ready, each
+# agent's end of run, messages received, the merge and save time after the agents stopped, and
+# the output maps.
 # usage: bench/agents_bench.sh [BUILD_DIR] [OUT_DIR]
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
@@ -16,7 +17,7 @@ mkdir -p "$out"
 town() { echo "synth:town:agent=$1,width=480,height=360,fps=10,duration=$([ "$1" = 0 ] && echo 36 || echo 55)"; }
 domain=$((120 + $$ % 50))
 
-"$app" server --out "$out/server" --agents 3 --idle 8 --dds-domain "$domain" >"$out/server.log" 2>&1 &
+"$app" server --out "$out/server" --agents 3 --dds-domain "$domain" >"$out/server.log" 2>&1 &
 server=$!
 pids=()
 for k in 0 1 2; do
@@ -38,4 +39,4 @@ for k in 0 1 2; do
   grep -E "^time " "$out/alone$k.log" | sed 's/^/  no DDS /'
 done
 echo "server"
-grep -E "^(live merge|met|received|agent|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'
+grep -E "^(live merge|met|ended|finished|received|agent|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'

@@ -6,6 +6,7 @@
 #include <Eigen/Geometry>
 
 #include "args.h"
+#include "stop_signals.h"
 
 namespace flatslam::app {
 
@@ -58,6 +59,7 @@ void AgentLink::OnCorrection(const Payload& payload) {
 
 void AgentLink::OnFrame(const FrameReport& report) {
   if (!report.T_world_cam) return;
+  ++frames_tracked_;
   PoseStamped pose;
   pose.sec = static_cast<int32_t>(report.t_ns / 1'000'000'000);
   pose.nanosec = static_cast<uint32_t>(report.t_ns % 1'000'000'000);
@@ -139,6 +141,11 @@ void AgentLink::OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) {
 }
 
 void AgentLink::PublishFinalMap(const SlamSession& slam) {
+  RunEnded ended;
+  ended.agent = agent_;
+  ended.session = session_;
+  ended.frames = frames_tracked_;
+  ended.stopped = g_stop;
   slam.ReadMap([&](const Map& map) {
     SendCulled(map);
     for (KeyFrameHandle h : map.keyframes().handles()) {
@@ -147,7 +154,15 @@ void AgentLink::PublishFinalMap(const SlamSession& slam) {
         update_bytes_ += bytes;
       }
     }
+    ended.keyframes = map.keyframes().size();
   });
+  // Last on the same reliable writer, so a server that reads it has everything sent before.
+  Payload payload;
+  payload.agent = agent_;
+  payload.kind = PayloadKind::kRunEnded;
+  payload.sequence = sequence_++;
+  payload.bytes = EncodeRunEnded(ended);
+  if (!keyframes_->Write(payload)) ++failed_;
 }
 
 bool AgentLink::Finish(double seconds) {

@@ -44,7 +44,7 @@ class AgentLink : public AgentPublisher {
   void OnFrame(const FrameReport& report) override;
   void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) override;
   // At the end of the run: every keyframe again, as loop closures and bundle adjustment left it,
-  // so the server's copy ends as the agent's map does.
+  // so the server's copy ends as the agent's map does; then the run-ended message.
   void PublishFinalMap(const SlamSession& slam) override;
   bool Finish(double seconds) override;
   [[nodiscard]] std::string Summary() const override;
@@ -70,7 +70,7 @@ class AgentLink : public AgentPublisher {
   // Matches of the keyframe writer already answered with the whole map (mapping lane).
   int answered_matches_ = 0;
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
-      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0};
+      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0}, frames_tracked_{0};
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
 };
 

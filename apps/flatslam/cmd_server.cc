@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <deque>
 #include <filesystem>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -104,8 +105,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const std::filesystem::path out_dir(*out);
   std::filesystem::create_directories(out_dir);
   const int64_t agents_expected = args.get_int("agents", 0);
+  if (agents_expected < 0) throw UsageError{"--agents N: how many agents to wait for (positive)"};
   const double idle_s = args.get_double("idle", 0);
-  if ((agents_expected > 0) != (idle_s > 0)) throw UsageError{"--agents N and --idle S go together (both positive)"};
+  if (!(idle_s >= 0)) throw UsageError{"--idle S: seconds of silence (positive)"};
+  if (idle_s > 0 && agents_expected == 0) throw UsageError{"--idle S needs --agents N"};
   const double live_merge_s = args.get_double("live-merge", 2);
   if (!(live_merge_s >= 0)) throw UsageError{"--live-merge: seconds between live merges (0: none)"};
   const std::filesystem::path vocabulary_path =
@@ -236,6 +239,12 @@ int RunServerLive(const std::vector<std::string>& argv) {
     });
   };
   std::set<uint32_t> heard;
+  // An agent has finished when its newest run (a restarted agent starts a new one) has ended.
+  std::map<uint32_t, uint64_t> newest_run;
+  std::set<std::pair<uint32_t, uint64_t>> ended;
+  auto finished_agents = [&] {
+    return std::count_if(newest_run.begin(), newest_run.end(), [&](const auto& run) { return ended.count(run) > 0; });
+  };
   size_t received = 0, dropped = 0, updates = 0, culled = 0;
   uint64_t bytes = 0;
   auto last = start;
@@ -260,10 +269,27 @@ int RunServerLive(const std::vector<std::string>& argv) {
           culled += maps.Cull(message);
           continue;
         }
+        if (payload.kind == PayloadKind::kRunEnded) {
+          const RunEnded message = DecodeRunEnded(payload.bytes, what);
+          FLATSLAM_CHECK(message.agent == payload.agent, what, ": names agent ", message.agent, " inside");
+          heard.insert(message.agent);
+          newest_run.try_emplace(message.agent, message.session);
+          ended.insert({message.agent, message.session});
+          size_t held = 0;
+          for (const AgentMaps::Session& s : maps.sessions())
+            if (s.agent == message.agent && s.session == message.session) held = s.map.keyframes().size();
+          std::printf("ended         %s after %llu frames%s: %llu keyframes in its map, %zu held here\n",
+                      RunName({message.agent, message.session}).c_str(),
+                      static_cast<unsigned long long>(message.frames), message.stopped ? " (stopped)" : "",
+                      static_cast<unsigned long long>(message.keyframes), held);
+          std::fflush(stdout);
+          continue;
+        }
         FLATSLAM_CHECK(payload.kind == PayloadKind::kKeyFrame, what, ": unknown kind ",
                        static_cast<uint32_t>(payload.kind));
         KeyFrameMessage message = DecodeKeyFrameMessage(payload.bytes, what);
         FLATSLAM_CHECK(message.agent == payload.agent, what, ": names agent ", message.agent, " inside");
+        newest_run[message.agent] = message.session;
         if (maps.camera()) {
           const Calibration& a = maps.camera()->calibration;
           const Calibration& b = message.camera.calibration;
@@ -299,17 +325,30 @@ int RunServerLive(const std::vector<std::string>& argv) {
       previous_cut = now;
       start_merge(now);
     }
-    const double idle = Seconds(last, now);
-    if (agents_expected > 0 && static_cast<int64_t>(heard.size()) >= agents_expected && idle >= idle_s) break;
+    // With --agents N: every agent heard has ended its newest run, and there are N of them; or,
+    // with --idle S, N agents were heard and none has sent anything for S seconds (an agent that
+    // was killed never says it ended).
+    const auto agents_heard = static_cast<int64_t>(heard.size());
+    if (agents_expected > 0 && agents_heard >= agents_expected) {
+      if (finished_agents() == agents_heard) {
+        std::printf("finished      every agent's run ended (%lld agents)\n", static_cast<long long>(agents_heard));
+        break;
+      }
+      if (idle_s > 0 && Seconds(last, now) >= idle_s) {
+        std::printf("finished      %lld agents, nothing received for %.0f s (%lld of them ended their runs)\n",
+                    static_cast<long long>(agents_heard), idle_s, static_cast<long long>(finished_agents()));
+        break;
+      }
+    }
   }
   reader.reset();
   merger.Wait();
   if (merged_result) take_merge(*merged_result, "live merge");
   const double listen_s = Seconds(start, Clock::now());
   std::printf(
-      "received      %zu keyframe messages (%.1f MiB in %.1f s), %zu dropped as malformed, %zu updates of keyframes "
+      "received      %zu messages on %s (%.1f MiB in %.1f s), %zu dropped as malformed, %zu updates of keyframes "
       "held, %zu keyframes removed as their agents culled them\n",
-      received, bytes / 1048576.0, listen_s, dropped, updates, culled);
+      received, kKeyFrameTopic, bytes / 1048576.0, listen_s, dropped, updates, culled);
   for (const AgentMaps::Session& s : maps.sessions())
     std::printf("agent %-7u run %016llx: %zu keyframes, %zu map points\n", s.agent,
                 static_cast<unsigned long long>(s.session), s.map.keyframes().size(), s.map.points().size());

@@ -22,7 +22,7 @@ class AgentPublisher {
   virtual ~AgentPublisher() = default;
   virtual void OnFrame(const FrameReport& report) = 0;
   virtual void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) = 0;
-  // Every keyframe again, as loop closures and bundle adjustment left it.
+  // Every keyframe again, as loop closures and bundle adjustment left it, then word that the run ended.
   virtual void PublishFinalMap(const SlamSession& slam) = 0;
   // Waits up to `seconds` for every matched server to acknowledge every keyframe; false on timeout.
   virtual bool Finish(double seconds) = 0;

@@ -26,10 +26,10 @@ struct PoseStamped {
   std::array<double, 4> orientation{0, 0, 0, 1};
 };
 
-// kKeyFrame: an agent's keyframe, kCulled: keyframes it culled after sending them (both
-// storage/keyframe_message.h); kCorrection: the server's correction for an agent
+// kKeyFrame: an agent's keyframe, kCulled: keyframes it culled after sending them, kRunEnded: its
+// run is over (all storage/keyframe_message.h); kCorrection: the server's correction for an agent
 // (storage/correction_message.h), `agent` being the agent it is for.
-enum class PayloadKind : uint32_t { kKeyFrame = 1, kCorrection = 2, kCulled = 3 };
+enum class PayloadKind : uint32_t { kKeyFrame = 1, kCorrection = 2, kCulled = 3, kRunEnded = 4 };
 
 struct Payload {
   uint32_t agent = 0;

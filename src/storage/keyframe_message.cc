@@ -6,6 +6,7 @@
 #include "core/error.h"
 #include "flatslam/schemas/agent_generated.h"
 #include "flatslam/schemas/culled_generated.h"
+#include "flatslam/schemas/run_ended_generated.h"
 #include "storage/schema_records.h"
 
 namespace flatslam {
@@ -105,6 +106,25 @@ KeyFramesCulled DecodeKeyFramesCulled(std::span<const uint8_t> bytes, const std:
   out.session = root.session();
   const auto ids = records::Span(root.keyframes());
   out.keyframes.assign(ids.begin(), ids.end());
+  return out;
+}
+
+std::vector<uint8_t> EncodeRunEnded(const RunEnded& message) {
+  flatbuffers::FlatBufferBuilder builder(64);
+  agent::FinishRunEndedBuffer(builder, agent::CreateRunEnded(builder, kFormatVersion, message.agent, message.session,
+                                                             message.keyframes, message.frames, message.stopped));
+  return {builder.GetBufferPointer(), builder.GetBufferPointer() + builder.GetSize()};
+}
+
+RunEnded DecodeRunEnded(std::span<const uint8_t> bytes, const std::string& what) {
+  const agent::RunEnded& root = records::VerifiedMessage<agent::RunEnded>(bytes, agent::RunEndedIdentifier(),
+                                                                          kFormatVersion, what, "run-ended message");
+  RunEnded out;
+  out.agent = root.agent();
+  out.session = root.session();
+  out.keyframes = root.keyframes();
+  out.frames = root.frames();
+  out.stopped = root.stopped();
   return out;
 }
 

@@ -52,4 +52,17 @@ struct KeyFramesCulled {
 // Throws flatslam::Error naming `what` and the problem: not such a message, a newer format, corrupt.
 [[nodiscard]] KeyFramesCulled DecodeKeyFramesCulled(std::span<const uint8_t> bytes, const std::string& what);
 
+// The last message of an agent's run, after its final map update.
+struct RunEnded {
+  uint32_t agent = 0;
+  uint64_t session = 0;
+  uint64_t keyframes = 0;  // in the agent's final map
+  uint64_t frames = 0;     // tracked
+  bool stopped = false;    // by a signal, before the end of its dataset
+};
+
+[[nodiscard]] std::vector<uint8_t> EncodeRunEnded(const RunEnded& message);
+// Throws flatslam::Error naming `what` and the problem: not such a message, a newer format, corrupt.
+[[nodiscard]] RunEnded DecodeRunEnded(std::span<const uint8_t> bytes, const std::string& what);
+
 }  // namespace flatslam

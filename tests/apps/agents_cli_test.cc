@@ -91,8 +91,7 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   });
 
   const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "3", "--idle", "10", "--dds-domain", d},
-            dir / "server.log");
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "3", "--dds-domain", d}, dir / "server.log");
   std::vector<pid_t> agents;
   for (int k = 0; k < 3; ++k)
     agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--deterministic", "--dds-domain",
@@ -110,6 +109,18 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   EXPECT_TRUE(Contains(server_log, "\nmet           agent 0 run ")) << server_log;
   // The three agents end in one map: one frame.
   EXPECT_TRUE(Contains(server_log, "agents [0,1,2]")) << server_log;
+  // The server stopped because every agent said its run ended, holding each one's final map.
+  EXPECT_TRUE(Contains(server_log, "\nfinished      every agent's run ended (3 agents)")) << server_log;
+  for (int k = 0; k < 3; ++k) {
+    const size_t at = server_log.find("\nended         agent " + std::to_string(k) + " run ");
+    ASSERT_NE(at, std::string::npos) << server_log;
+    const std::string line = server_log.substr(at + 1, server_log.find('\n', at + 1) - at - 1);
+    const size_t colon = line.find(": ");
+    ASSERT_NE(colon, std::string::npos) << line;
+    const size_t in_map = std::stoul(line.substr(colon + 2));
+    EXPECT_GT(in_map, 0u) << line;
+    EXPECT_TRUE(Contains(line, " keyframes in its map, " + std::to_string(in_map) + " held here")) << line;
+  }
   const std::lock_guard<std::mutex> lock(mutex);
   for (int k = 0; k < 3; ++k) {
     const std::string log = ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
@@ -202,8 +213,7 @@ TEST(AgentsCli, KeyFramesAnAgentCullsLeaveTheServersMap) {
   const fs::path dir = testing::FreshTempDir("agents_cli_cull");
   const std::string d = std::to_string(20 + getpid() % 60);
   const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "10", "--dds-domain", d},
-            dir / "server.log");
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--dds-domain", d}, dir / "server.log");
   const auto r = RunApp(
       "agent synth:room:duration=40,width=480,height=360 --id 0 --quiet --deterministic "
       "--dds-domain " +
@@ -239,14 +249,39 @@ TEST(AgentsCli, ALateServerGetsTheWholeMap) {
   while (LineCount(agent_out / "stats.csv") < 201 && std::chrono::steady_clock::now() < deadline)
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "10", "--dds-domain", d},
-            dir / "server.log");
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--dds-domain", d}, dir / "server.log");
   ASSERT_EQ(Wait(agent), 0) << ReadBytes(dir / "agent.log");
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   const std::string agent_log = ReadBytes(dir / "agent.log"), log = ReadBytes(dir / "server.log");
   EXPECT_FALSE(Contains(agent_log, " 0 sent again to servers that joined later")) << agent_log;
   const size_t agent_keyframes = ReadTum(agent_out / "keyframes.tum").size();
   EXPECT_TRUE(Contains(log, "agents [0], " + std::to_string(agent_keyframes) + " keyframes")) << log;
+  fs::remove_all(dir);
+}
+
+// A killed agent never says its run ended: a server waiting for it stops after --idle S of
+// silence, says so, and still writes the map of what it received.
+TEST(AgentsCli, AServerWaitingForAKilledAgentStopsAfterItsSilence) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_silence");
+  const std::string d = std::to_string(1 + getpid() % 19);
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "3", "--dds-domain", d},
+            dir / "server.log");
+  const fs::path agent_out = dir / "agent";
+  const pid_t agent = Spawn({"agent", "synth:room:duration=20,width=480,height=360", "--id", "0", "--quiet",
+                             "--deterministic", "--dds-domain", d, "--out", agent_out.string()},
+                            dir / "agent.log");
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (LineCount(agent_out / "stats.csv") < 101 && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  ::kill(agent, SIGKILL);
+  EXPECT_EQ(Wait(agent), 128 + SIGKILL);
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string log = ReadBytes(dir / "server.log");
+  EXPECT_TRUE(Contains(log, "\nfinished      1 agents, nothing received for 3 s (0 of them ended their runs)")) << log;
+  EXPECT_FALSE(Contains(log, "\nended ")) << log;
+  EXPECT_TRUE(Contains(log, "agents [0], ")) << log;
+  EXPECT_TRUE(fs::exists(dir / "server" / "map.fsmap"));
   fs::remove_all(dir);
 }
 
@@ -260,7 +295,9 @@ TEST(AgentsCli, ServerRefusesBadOptionsNamingThem) {
   for (const Case& c : {Case{"server --live-merge 2", "server needs --out DIR"},
                         Case{"server" + out + " --live-merge -1", "--live-merge: seconds between live merges"},
                         Case{"server" + out + " --live-merge soon", "--live-merge"},
-                        Case{"server" + out + " --agents 3", "--agents N and --idle S go together"}}) {
+                        Case{"server" + out + " --idle 5", "--idle S needs --agents N"},
+                        Case{"server" + out + " --agents -1", "--agents N"},
+                        Case{"server" + out + " --agents 2 --idle -3", "--idle S"}}) {
     const auto r = RunApp(c.arguments);
     EXPECT_EQ(r.exit_code, 2) << c.arguments << "\n" << r.output;
     EXPECT_TRUE(Contains(r.output, c.message)) << c.arguments << "\n" << r.output;
@@ -274,8 +311,7 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const fs::path dir = testing::FreshTempDir("agents_cli_restart");
   const std::string d = std::to_string(200 + getpid() % 30);
   const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--idle", "8", "--dds-domain", d},
-            dir / "server.log");
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
   const pid_t agent0 =
       Spawn({"agent", Town(0), "--id", "0", "--quiet", "--deterministic", "--dds-domain", d}, dir / "agent0.log");
   const fs::path first_out = dir / "agent1_first";

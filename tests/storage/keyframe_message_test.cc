@@ -111,5 +111,38 @@ TEST(KeyFramesCulled, RoundTripsAndRefusesWhatIsNotOne) {
     EXPECT_NE(error_of(std::span(bytes).first(n)).find("culled 2 from agent 4"), std::string::npos) << n;
 }
 
+TEST(RunEnded, RoundTripsAndRefusesWhatIsNotOne) {
+  RunEnded ended;
+  ended.agent = 2;
+  ended.session = 0xabcdef0123ULL;
+  ended.keyframes = 91;
+  ended.frames = 1200;
+  ended.stopped = true;
+  const std::vector<uint8_t> bytes = EncodeRunEnded(ended);
+  const RunEnded back = DecodeRunEnded(bytes, "keyframe message 7 from agent 2");
+  EXPECT_EQ(back.agent, 2u);
+  EXPECT_EQ(back.session, ended.session);
+  EXPECT_EQ(back.keyframes, 91u);
+  EXPECT_EQ(back.frames, 1200u);
+  EXPECT_TRUE(back.stopped);
+  ended.stopped = false;
+  EXPECT_FALSE(DecodeRunEnded(EncodeRunEnded(ended), "again").stopped);
+  auto error_of = [](std::span<const uint8_t> b) {
+    try {
+      (void)DecodeRunEnded(b, "keyframe message 7 from agent 2");
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  // A culled-keyframes message is not a run-ended one, and no truncation decodes.
+  KeyFramesCulled culled;
+  culled.keyframes = {1};
+  EXPECT_NE(error_of(EncodeKeyFramesCulled(culled)).find("keyframe message 7 from agent 2: not a run-ended message"),
+            std::string::npos);
+  for (size_t n = 0; n < bytes.size(); n += 3)
+    EXPECT_NE(error_of(std::span(bytes).first(n)).find("keyframe message 7 from agent 2"), std::string::npos) << n;
+}
+
 }  // namespace
 }  // namespace flatslam
