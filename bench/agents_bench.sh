@@ -39,4 +39,4 @@ for k in 0 1 2; do
   grep -E "^time " "$out/alone$k.log" | sed 's/^/  no DDS /'
 done
 echo "server"
-grep -E "^(live merge|met|ended|finished|received|agent|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'
+grep -E "^(live merge|met|ended|finished|received|agent|loops|final merge|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'

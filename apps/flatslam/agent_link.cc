@@ -182,12 +182,13 @@ std::string AgentLink::Summary() const {
   std::snprintf(line, sizeof(line),
                 "%llu keyframes to %s (%.1f KiB, %.1f KiB per keyframe, %.1f KiB/s over %.1f s), %llu culled "
                 "after sending, %llu sent again to servers that joined later, final map update %llu keyframes "
-                "(%.1f KiB), %llu poses to %s; %d server(s) matched, %llu writes failed",
+                "(%.1f KiB), %llu poses to %s; %d server(s) matched (%d still at the end), %llu writes failed",
                 static_cast<unsigned long long>(n), kKeyFrameTopic, bytes / 1024.0, n ? bytes / 1024.0 / n : 0.0,
                 s > 0 ? bytes / 1024.0 / s : 0.0, s, static_cast<unsigned long long>(culled_sent_.load()),
                 static_cast<unsigned long long>(resent_.load()), static_cast<unsigned long long>(updates_sent_.load()),
                 update_bytes_ / 1024.0, static_cast<unsigned long long>(poses_sent_.load()),
-                AgentPoseTopic(agent_).c_str(), keyframes_->matched(), static_cast<unsigned long long>(failed_.load()));
+                AgentPoseTopic(agent_).c_str(), keyframes_->matches_ever(), keyframes_->matched(),
+                static_cast<unsigned long long>(failed_.load()));
   std::string summary = line;
   const std::lock_guard<std::mutex> lock(correction_mutex_);
   if (correction_) {

@@ -31,7 +31,7 @@ const char* const kMapUsage =
     "                               [--trajectory FILE [--format tum|kitti|euroc] [--agent N]]\n"
     "                               [--colmap DIR [--min-track N]]\n"
     "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
-    "                       [--refine] [--seed N]\n\n"
+    "                       [--refine] [--close-loops] [--seed N]\n\n"
     "Map snapshots (.fsmap) hold one or more maps with their keyframes, map points and graph edges.\n"
     "  info     format version, file size, vocabulary checksum, calibration, and per map: id,\n"
     "           agents, keyframes, map points, observations, bounding box (read in place: fast)\n"
@@ -64,7 +64,11 @@ const char* const kMapUsage =
     "    --min-matches N  map points a keyframe pair must match (default 40)\n"
     "    --min-pairs N    agreeing keyframe pairs, no keyframe used twice, needed to merge (default 3)\n"
     "    --refine         the weld frees every keyframe (a global bundle adjustment): also takes out\n"
-    "                     drift between seams in several places; time and memory grow with the maps\n";
+    "                     drift between seams in several places; time and memory grow with the maps\n"
+    "    --close-loops    then closes loops in each merged map as a SLAM session would: where the\n"
+    "                     maps meet again away from the seams, or a map's own loop was never closed\n"
+    "                     (a loop search per keyframe: about 0.5 s per 350 keyframes, plus 0.4 s\n"
+    "                     per loop closed)\n";
 
 namespace {
 
@@ -254,6 +258,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   options.min_matches = static_cast<int>(args.get_int("min-matches", options.min_matches));
   options.min_consistent_pairs = static_cast<int>(args.get_int("min-pairs", options.min_consistent_pairs));
   options.refine = args.has("refine");
+  options.close_loops = args.has("close-loops");
   options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   options.seed = static_cast<uint64_t>(args.get_int("seed", static_cast<int64_t>(options.seed)));
   if (!options.Check()) throw UsageError{"--min-matches and --min-pairs must be at least 3 and 1"};
@@ -323,7 +328,7 @@ int RunMap(const std::vector<std::string>& argv) {
   const Args args(expanded,
                   {"ply", "ply-format", "trajectory", "format", "agent", "colmap", "min-track", "vocabulary-checksum",
                    "out", "vocabulary", "min-matches", "min-pairs", "seed"},
-                  {"refine"});
+                  {"refine", "close-loops"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);
     return 0;

@@ -49,6 +49,8 @@ struct LiveMerge {
   // Of it: place recognition of the steps (the overlap graph's is the rest), append and fuse,
   // essential graph, weld bundle adjustments.
   double place_ms = 0, fuse_ms = 0, graph_ms = 0, weld_ms = 0;
+  size_t loops = 0;  // closed in the merged maps, beyond the seams
+  double loops_ms = 0;
 };
 
 SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabulary) {
@@ -84,6 +86,10 @@ void Record(const MultiMapMerge& merged, const MergeInputs& inputs, bool monocul
     job->fuse_ms += a.report.fuse_ms;
     job->graph_ms += a.report.graph_ms;
     job->weld_ms += a.report.weld_ms;
+  }
+  for (const MergedMapLoops& l : merged.loops) {
+    job->loops += l.closures.size();
+    job->loops_ms += l.ms;
   }
   job->frames = FitRunFrames(merged, inputs.agents, inputs.poses, !monocular, kCorrectionKeyFrames);
   job->ready = Clock::now();
@@ -137,6 +143,8 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const auto start = Clock::now();
   AgentMaps maps;
   MapMergeOptions merge_options;
+  // The merged map is the only place where loops across agents can close.
+  merge_options.close_loops = true;
   merge_options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   // Live merges leave the other cores to the receive loop (and, on one machine, to the agents).
   MapMergeOptions live_options = merge_options;
@@ -164,9 +172,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
     for (const auto& group : m.members) joined_maps += group.size() > 1;
     std::printf(
         "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
-        "(merge steps: place recognition %.0f, fuse %.0f, essential graph %.0f, weld %.0f)\n",
+        "(merge steps: place recognition %.0f, fuse %.0f, essential graph %.0f, weld %.0f; %zu loops closed in "
+        "%.0f)\n",
         what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), joined_maps,
-        m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.place_ms, m.fuse_ms, m.graph_ms, m.weld_ms);
+        m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.place_ms, m.fuse_ms, m.graph_ms, m.weld_ms,
+        m.loops, m.loops_ms);
     for (const auto& group : m.members) {
       for (size_t a = 0; a < group.size(); ++a) {
         for (size_t b = a + 1; b < group.size(); ++b) {

@@ -70,6 +70,16 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
         r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes,
         r.refined ? " (refine: all)" : "", r.weld_outliers, r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
   }
+  for (size_t g = 0; g < merged.loops.size(); ++g) {
+    const MergedMapLoops& loops = merged.loops[g];
+    if (loops.keyframes == 0) continue;
+    std::printf("loops         map %zu: %zu keyframes searched, %zu loops closed, %.0f ms\n", g, loops.keyframes,
+                loops.closures.size(), loops.ms);
+    for (const LoopClosure& c : loops.closures)
+      std::printf(
+          "              agent %u keyframe at %.2f s to agent %u's at %.2f s: %d points matched, moved %.3f m\n",
+          c.agent, c.t_ns * 1e-9, c.matched_agent, c.matched_t_ns * 1e-9, c.matches, c.correction_m);
+  }
   if (on_merged) on_merged(merged);
   std::vector<SnapshotMapRef> refs;
   for (size_t g = 0; g < merged.maps.size(); ++g) {

@@ -14,6 +14,7 @@
 #include <tbb/parallel_for.h>
 
 #include "core/error.h"
+#include "config/options.h"
 #include "core/requirements.h"
 #include "mapping/essential_graph.h"
 #include "place/keyframe_database.h"
@@ -123,6 +124,9 @@ MergeCamera MergeCamera::FromCalibration(const Calibration& calibration, const M
   out.monocular = calibration.sensor == Sensor::kMonocular;
   out.stereo_depth =
       StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m, far_stereo_baselines);
+  out.calibration = calibration;
+  out.rgbd_virtual_baseline_m = rgbd_virtual_baseline_m;
+  out.far_stereo_baselines = far_stereo_baselines;
   return out;
 }
 
@@ -622,6 +626,19 @@ MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, 
     if (absorbed[i]) continue;
     out.maps.push_back(std::move(maps[i]));
     out.members.push_back(std::move(members[i]));
+  }
+  if (options.close_loops) {
+    // Loop closing as a SLAM session runs it, with the default options resolved for the camera.
+    SlamOptions slam;
+    slam.rgbd_virtual_baseline_m =
+        camera.rgbd_virtual_baseline_m > 0 ? camera.rgbd_virtual_baseline_m : slam.rgbd_virtual_baseline_m;
+    slam.far_stereo_baselines = camera.far_stereo_baselines;
+    const SystemContext context(camera.calibration, ResolvedOptions(slam, camera.calibration),
+                                ScalePyramid::Make(camera.scales.levels, camera.scales.scale_factor));
+    out.loops.resize(out.maps.size());
+    for (size_t g = 0; g < out.maps.size(); ++g)
+      if (out.members[g].size() > 1)
+        out.loops[g] = CloseLoopsInMergedMap(out.maps[g], vocabulary, context, options.seed);
   }
   return out;
 }

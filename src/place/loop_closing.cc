@@ -162,6 +162,8 @@ void CorrectLoop(Map& map, LoopClosingState& state, const SystemContext& context
   closure.matched_frame_index = map.keyframe(m.candidate).frame_index;
   closure.t_ns = map.keyframe(current).t_ns;
   closure.matched_t_ns = map.keyframe(m.candidate).t_ns;
+  closure.agent = map.keyframe(current).agent;
+  closure.matched_agent = map.keyframe(m.candidate).agent;
   closure.matches = m.matches;
   closure.scale = m.S_cw.s;
   closure.correction_m = (map.keyframe(current).camera_center() - old_center).norm();

@@ -26,13 +26,14 @@ namespace flatslam {
 
 // One loop closure, for the run summary and tests.
 struct LoopClosure {
-  size_t frame_index = 0;              // input frame of the keyframe that closed the loop
-  size_t matched_frame_index = 0;      // input frame of the keyframe it matched
-  int64_t t_ns = 0, matched_t_ns = 0;  // their timestamps
-  int matches = 0;                     // map points matched across the loop
-  double scale = 1;                    // Sim(3) scale of the correction (1 for stereo/RGB-D)
-  double correction_m = 0;             // how far the closing keyframe moved
-  double correction_ms = 0;            // fusion + essential graph
+  size_t frame_index = 0;                 // input frame of the keyframe that closed the loop
+  size_t matched_frame_index = 0;         // input frame of the keyframe it matched
+  int64_t t_ns = 0, matched_t_ns = 0;     // their timestamps
+  uint32_t agent = 0, matched_agent = 0;  // their agents (differ in a merged map)
+  int matches = 0;                        // map points matched across the loop
+  double scale = 1;                       // Sim(3) scale of the correction (1 for stereo/RGB-D)
+  double correction_m = 0;                // how far the closing keyframe moved
+  double correction_ms = 0;               // fusion + essential graph
 };
 
 // A verified loop: the corrected pose of the current keyframe (S_cw), its loop-side point per

@@ -124,7 +124,10 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   const std::lock_guard<std::mutex> lock(mutex);
   for (int k = 0; k < 3; ++k) {
     const std::string log = ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
-    EXPECT_TRUE(Contains(log, "1 server(s) matched, 0 writes failed")) << log;
+    // The server may have left by the time the agent prints its summary (it stops once every
+    // agent said its run ended): one match during the run.
+    EXPECT_TRUE(Contains(log, "; 1 server(s) matched (")) << log;
+    EXPECT_TRUE(Contains(log, "), 0 writes failed")) << log;
     EXPECT_GT(poses[k], 0) << "the subscriber heard no pose of agent " << k;
   }
 

@@ -43,11 +43,13 @@ Trajectory KeyFrameTrajectory(const Map& map, uint32_t agent) {
   return out;
 }
 
-AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment = Alignment::kSE3) {
+AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment = Alignment::kSE3,
+                  bool loop_closing = true) {
   const auto dataset = OpenDataset(spec);
   SlamOptions options;
   options.vocabulary = &DefaultVocabulary();
   options.agent = agent;
+  options.loop_closing = loop_closing;
   SlamRunOptions run;
   AgentRun out;
   run.on_finished = [&](const SlamSession& slam) { out.map = slam.map(); };
@@ -105,8 +107,12 @@ TEST(MapMerge, TownAgentsJoinAlongTheirOverlapsAndAnUnrelatedMapStaysApart) {
   for (const AgentRun* run : town) ASSERT_GT(run->map.keyframes().size(), 20u);
   const std::vector<double> apart = JointAte({&a0.map, &a1.map, &a2.map}, town);
 
+  // Each agent closed its own loop and the merge's seams hold every overlap: loop closing in the
+  // merged map must find nothing more (no false loop).
+  MapMergeOptions options;
+  options.close_loops = true;
   const MultiMapMerge merged =
-      MergeAllMaps({a0.map, a1.map, a2.map, room.map}, DefaultVocabulary(), CameraOf(a0), MapMergeOptions{});
+      MergeAllMaps({a0.map, a1.map, a2.map, room.map}, DefaultVocabulary(), CameraOf(a0), options);
   // The overlap graph: the three town agents overlap pairwise, the room overlaps none of them.
   ASSERT_EQ(merged.overlaps.size(), 6u);
   for (const OverlapEdge& e : merged.overlaps) {
@@ -121,6 +127,10 @@ TEST(MapMerge, TownAgentsJoinAlongTheirOverlapsAndAnUnrelatedMapStaysApart) {
   EXPECT_EQ(std::set<size_t>(merged.members[0].begin(), merged.members[0].end()), (std::set<size_t>{0, 1, 2}));
   EXPECT_EQ(merged.members[1], std::vector<size_t>{3});
   EXPECT_EQ(merged.maps[1].keyframes().size(), room.map.keyframes().size());
+  ASSERT_EQ(merged.loops.size(), 2u);
+  EXPECT_EQ(merged.loops[0].keyframes, merged.maps[0].keyframes().size());
+  EXPECT_TRUE(merged.loops[0].closures.empty());
+  EXPECT_EQ(merged.loops[1].keyframes, 0u);  // a map of one input: its own loops were its run's
   const Map& map = merged.maps[0];
   EXPECT_EQ(map.Validate(), "");
   EXPECT_EQ(map.keyframes().size(), a0.map.keyframes().size() + a1.map.keyframes().size() + a2.map.keyframes().size());
@@ -164,6 +174,46 @@ TEST(MapMerge, TownAgentsJoinAlongTheirOverlapsAndAnUnrelatedMapStaysApart) {
     EXPECT_LE(ate[k], 1.5 * town[k]->own_ate_m);
   }
   EXPECT_GT(*std::max_element(apart.begin(), apart.end()), 10.0);  // before the merge the frames differ
+}
+
+// Town agent 1 runs without loop closing, so its map keeps the drift of its loop (it closes at
+// 53 s). Merged with agent 0's map, it joins along the road they share; loop closing in the
+// merged map then finds agent 1's loop and takes the drift out.
+TEST(MapMerge, LoopClosingInTheMergedMapTakesOutDriftTheMergeLeft) {
+  const AgentRun a0 = RunAgent(Town(0), 0);
+  const AgentRun a1 = RunAgent(Town(1), 1, Alignment::kSE3, /*loop_closing=*/false);
+  MapMergeOptions options;
+  const MultiMapMerge plain = MergeAllMaps({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), options);
+  options.close_loops = true;
+  const MultiMapMerge closed = MergeAllMaps({a0.map, a1.map}, DefaultVocabulary(), CameraOf(a0), options);
+  ASSERT_EQ(plain.maps.size(), 1u);
+  ASSERT_EQ(closed.maps.size(), 1u);
+  EXPECT_TRUE(plain.loops.empty());
+  ASSERT_EQ(closed.loops.size(), 1u);
+  const MergedMapLoops& loops = closed.loops[0];
+  EXPECT_EQ(closed.maps[0].Validate(), "");
+  EXPECT_EQ(loops.keyframes, plain.maps[0].keyframes().size());
+  ASSERT_FALSE(loops.closures.empty());
+  for (const LoopClosure& c : loops.closures) {
+    std::printf("loop: agent %u at %.1f s to agent %u at %.1f s, %d points, moved %.3f m, %.0f ms\n", c.agent,
+                c.t_ns * 1e-9, c.matched_agent, c.matched_t_ns * 1e-9, c.matches, c.correction_m, c.correction_ms);
+    // A true place: the two keyframes' true camera centres are close.
+    auto true_center = [&](const AgentRun& run, int64_t t_ns) {
+      const auto it = std::min_element(run.gt.begin(), run.gt.end(), [&](const TimedPose& a, const TimedPose& b) {
+        return std::abs(a.t_ns - t_ns) < std::abs(b.t_ns - t_ns);
+      });
+      return Eigen::Vector3d(it->T_world_cam.translation());
+    };
+    const AgentRun& from = c.agent == 0 ? a0 : a1;
+    const AgentRun& to = c.matched_agent == 0 ? a0 : a1;
+    EXPECT_LT((true_center(from, c.t_ns) - true_center(to, c.matched_t_ns)).norm(), 15.0);
+  }
+  const std::vector<double> before = JointAte({&plain.maps[0]}, {&a0, &a1});
+  const std::vector<double> after = JointAte({&closed.maps[0]}, {&a0, &a1});
+  std::printf("keyframe ATE, one alignment: agent 0 %.3f -> %.3f m (own %.3f), agent 1 %.3f -> %.3f m (own %.3f)\n",
+              before[0], after[0], a0.own_ate_m, before[1], after[1], a1.own_ate_m);
+  EXPECT_LT(after[1], 0.75 * before[1]);
+  EXPECT_LE(after[0], 1.5 * a0.own_ate_m);
 }
 
 // Two monocular runs of the room with different noise: the maps have different arbitrary scales,
