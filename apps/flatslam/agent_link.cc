@@ -32,8 +32,11 @@ DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers) 
   return options;
 }
 
-AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera)
+AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map)
     : agent_(agent),
+      // A monocular run's correction has a scale, which its frames' poses relative to their
+      // keyframes would also need: its map stays, only its published poses move.
+      move_map_(move_map && camera.calibration.sensor != Sensor::kMonocular),
       // A new id per process: a restarted agent's keyframes and points never collide with the
       // ids of its earlier run on the server.
       session_(std::random_device{}() * uint64_t{0x100000000} ^ std::random_device{}()),
@@ -63,13 +66,16 @@ void AgentLink::OnFrame(const FrameReport& report) {
   PoseStamped pose;
   pose.sec = static_cast<int32_t>(report.t_ns / 1'000'000'000);
   pose.nanosec = static_cast<uint32_t>(report.t_ns % 1'000'000'000);
-  Eigen::Vector3d t = report.T_world_cam->translation();
-  Eigen::Matrix3d R = report.T_world_cam->linear();
   std::optional<CorrectionMessage> correction;
+  Eigen::Isometry3d T_map_run = Eigen::Isometry3d::Identity();  // the frame the pose is in, from the run's
   {
     const std::lock_guard<std::mutex> lock(correction_mutex_);
     correction = correction_;
+    T_map_run = map_frames_.at(std::min<size_t>(report.map_frame, map_frames_.size() - 1));
   }
+  const Eigen::Isometry3d T_run_cam = T_map_run.inverse() * *report.T_world_cam;
+  Eigen::Vector3d t = T_run_cam.translation();
+  Eigen::Matrix3d R = T_run_cam.linear();
   if (correction) {
     // The camera centre and orientation in the merged map: X_merged = s R_c X + t_c.
     t = correction->scale * (correction->rotation * t) + correction->translation;
@@ -93,7 +99,8 @@ size_t AgentLink::Send(const Map& map, KeyFrameHandle keyframe) {
   payload.agent = agent_;
   payload.kind = PayloadKind::kKeyFrame;
   payload.sequence = sequence_++;
-  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_);
+  // In the run's own frame, the one the server keeps the run's map in.
+  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, map_frames_.back().inverse());
   if (!keyframes_->Write(payload)) {
     ++failed_;
     return 0;
@@ -122,7 +129,25 @@ void AgentLink::SendCulled(const Map& map) {
     ++failed_;
 }
 
-void AgentLink::OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) {
+void AgentLink::MoveToNewestCorrection(SlamSession& slam) {
+  Eigen::Isometry3d T_new_old;
+  {
+    const std::lock_guard<std::mutex> lock(correction_mutex_);
+    if (!move_map_ || !correction_ || correction_->revision <= moved_revision_ || correction_->scale != 1.0) return;
+    Eigen::Isometry3d T_merged_run = Eigen::Isometry3d::Identity();
+    T_merged_run.linear() = correction_->rotation;
+    T_merged_run.translation() = correction_->translation;
+    T_new_old = T_merged_run * map_frames_.back().inverse();
+    // Recorded before the move: a frame tracked after it finds its frame here.
+    map_frames_.push_back(T_merged_run);
+    moved_revision_ = correction_->revision;
+  }
+  slam.MoveMapFrame(T_new_old);
+  ++map_moves_;
+}
+
+void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
+  MoveToNewestCorrection(slam);
   slam.ReadMap([&](const Map& map) {
     SendCulled(map);
     // A server that matched since the last keyframe (one that started late, or came back) has
@@ -190,6 +215,8 @@ std::string AgentLink::Summary() const {
                 AgentPoseTopic(agent_).c_str(), keyframes_->matches_ever(), keyframes_->matched(),
                 static_cast<unsigned long long>(failed_.load()));
   std::string summary = line;
+  std::snprintf(line, sizeof(line), "; run %016llx", static_cast<unsigned long long>(session_));
+  summary += line;
   const std::lock_guard<std::mutex> lock(correction_mutex_);
   if (correction_) {
     std::snprintf(line, sizeof(line),
@@ -199,6 +226,9 @@ std::string AgentLink::Summary() const {
                   static_cast<unsigned long long>(correction_->revision), correction_->frame_agent,
                   static_cast<unsigned long long>(correction_->frame_session), correction_->runs, correction_->scale,
                   correction_->keyframes, correction_->rms_m);
+    summary += line;
+    std::snprintf(line, sizeof(line), "; its map moved into the merged map's frame %llu times (the last by merge %llu)",
+                  static_cast<unsigned long long>(map_moves_.load()), static_cast<unsigned long long>(moved_revision_));
     summary += line;
   } else {
     summary += "; no correction from a server (its map joined no other agent's yet)";
@@ -211,7 +241,7 @@ int RunServerLive(const std::vector<std::string>& args);  // cmd_server.cc
 void EnableLive() {
   g_make_agent_publisher = [](uint32_t agent, const LiveOptions& options,
                               const AgentCamera& camera) -> std::unique_ptr<AgentPublisher> {
-    return std::make_unique<AgentLink>(agent, ParseDdsOptions(options.domain, options.peers), camera);
+    return std::make_unique<AgentLink>(agent, ParseDdsOptions(options.domain, options.peers), camera, options.move_map);
   };
   g_run_server = &RunServerLive;
 }

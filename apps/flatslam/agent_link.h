@@ -7,7 +7,9 @@
 // flatslam/corrections for the server's corrections of its run: once its map has been merged with
 // others', the poses it publishes are in the merged map's frame (frame_id flatslam_map_<run of
 // that frame>) instead of its own (flatslam_agent_N_map), as a ROS map -> odom correction would
-// place them; its own map is not changed.
+// place them. A stereo or RGB-D agent also moves its map into that frame (between keyframes, on
+// the mapping lane; unless --own-frame), so that its map, saved trajectory and later keyframes
+// are in it; it still sends keyframes in its run's own frame, the one the server keeps its map in.
 // Concurrency: OnFrame from the track stage, OnKeyFrame from the mapping lane, corrections on
 // the DDS listener thread (the latest one is kept under a mutex); the counters are atomic; Finish
 // and Summary after the run.
@@ -40,9 +42,12 @@ DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers);
 
 class AgentLink : public AgentPublisher {
  public:
-  AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera);
+  // move_map: a stereo or RGB-D map moves into the merged map's frame with each newer correction.
+  AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map);
   void OnFrame(const FrameReport& report) override;
-  void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) override;
+  // Moves the map into the merged map's frame first when a newer correction came (stereo and
+  // RGB-D), then sends the keyframe.
+  void OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) override;
   // At the end of the run: every keyframe again, as loop closures and bundle adjustment left it,
   // so the server's copy ends as the agent's map does; then the run-ended message.
   void PublishFinalMap(const SlamSession& slam) override;
@@ -51,6 +56,7 @@ class AgentLink : public AgentPublisher {
 
  private:
   uint32_t agent_;
+  bool move_map_;
   uint64_t session_;
   AgentCamera camera_;
   DdsNode node_;
@@ -59,6 +65,11 @@ class AgentLink : public AgentPublisher {
   mutable std::mutex correction_mutex_;
   std::optional<CorrectionMessage> correction_;  // the newest for this run
   uint64_t corrections_received_ = 0;
+  // The map's world frame after each move, from the run's own (first: the run's own frame); a
+  // frame report's map_frame indexes it. Written on the mapping lane.
+  std::vector<Eigen::Isometry3d> map_frames_{Eigen::Isometry3d::Identity()};
+  uint64_t moved_revision_ = 0;  // the correction the map was last moved by
+  void MoveToNewestCorrection(SlamSession& slam);
   std::unique_ptr<DdsNode::Reader<Payload>> corrections_;  // last: stops before the rest goes
   void OnCorrection(const Payload& payload);
   // Writes one keyframe message; its size in bytes, 0 when nothing was written.
@@ -70,7 +81,7 @@ class AgentLink : public AgentPublisher {
   // Matches of the keyframe writer already answered with the whole map (mapping lane).
   int answered_matches_ = 0;
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
-      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0}, frames_tracked_{0};
+      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0}, frames_tracked_{0}, map_moves_{0};
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
 };
 

@@ -88,7 +88,10 @@ const char* const kRunUsage =
     "                   effort), each mapped keyframe on flatslam/keyframes for flatslam server\n"
     "                   (reliable; kept for a server that starts later); --dds-domain D (default 0),\n"
     "                   --dds-peers: hosts found by unicast discovery (default 127.0.0.1) or\n"
-    "                   'multicast' for DDS's default discovery\n"
+    "                   'multicast' for DDS's default discovery. Once the server's corrections\n"
+    "                   place the agent in a merged map, a stereo or RGB-D agent moves its map into\n"
+    "                   that map's frame (its saved trajectory and map follow); --own-frame keeps\n"
+    "                   it in its own frame (published poses are corrected either way)\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n"
     "The first SIGINT or SIGTERM stops reading: the frames in flight are tracked, mapping finishes, and\n"
     "the trajectory, stats, summary, map and checkpoint are written as at a normal end; the exit code\n"
@@ -134,8 +137,9 @@ const std::set<std::string> kRunFlags = {
     "vocabulary",  "skip",       "lose-at",  "save-map",   "agent",      "load-map",
     "first-frame", "config",     "set",      "settings",   "checkpoint", "checkpoint-every",
     "resume",      "dds-domain", "dds-peers"};
-const std::set<std::string> kRunSwitches = {"deterministic", "quiet",        "no-loop-closing", "no-global-ba",
-                                            "localize-only", "list-options", "strict",          "publish"};
+const std::set<std::string> kRunSwitches = {"deterministic", "quiet",         "no-loop-closing",
+                                            "no-global-ba",  "localize-only", "list-options",
+                                            "strict",        "publish",       "own-frame"};
 
 // The run's command line as a checkpoint keeps it for --resume: one "--name=value" per flag,
 // paths made absolute (a resume may start elsewhere), without --load-map and --first-frame (the
@@ -394,18 +398,17 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::unique_ptr<AgentPublisher> link;
   if (args.has("publish")) {
     FLATSLAM_CHECK(g_make_agent_publisher != nullptr, "--publish: this executable has no DDS support (flatslam-live)");
-    link = g_make_agent_publisher(options.agent,
-                                  LiveOptions{args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1")},
-                                  AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
-    run.on_keyframe_mapped = [&](const SlamSession& slam, KeyFrameHandle keyframe) {
-      link->OnKeyFrame(slam, keyframe);
-    };
+    link = g_make_agent_publisher(
+        options.agent,
+        LiveOptions{args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1"), !args.has("own-frame")},
+        AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
+    run.on_keyframe_mapped = [&](SlamSession& slam, KeyFrameHandle keyframe) { link->OnKeyFrame(slam, keyframe); };
     run.on_finished = [&, save = run.on_finished](const SlamSession& slam) {
       if (save) save(slam);
       link->PublishFinalMap(slam);
     };
-  } else if (args.has("dds-domain") || args.has("dds-peers")) {
-    throw UsageError{"--dds-domain and --dds-peers need --publish"};
+  } else if (args.has("dds-domain") || args.has("dds-peers") || args.has("own-frame")) {
+    throw UsageError{"--dds-domain, --dds-peers and --own-frame need --publish"};
   }
   run.on_frame = [&](const FrameReport& r) {
     recorder.OnFrame(r);

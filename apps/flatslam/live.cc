@@ -24,11 +24,11 @@ const char* const kAgentUsage =
     "--help for the other options). Each frame's pose goes out as a ROS 2 geometry_msgs/PoseStamped on\n"
     "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable;\n"
     "a server that starts later gets the whole map again), and at the end every keyframe again as the\n"
-    "agent's final map, then a message that its run ended; flatslam server collects them. Once the server has merged "
-    "the agent's map with\n"
-    "others', it sends corrections on flatslam/corrections and the agent publishes its poses in the merged\n"
-    "map's frame (frame_id flatslam_map_<run>) instead of its own (flatslam_agent_N_map); its own map is\n"
-    "not changed.\n"
+    "agent's final map, then a message that its run ended; flatslam server collects them. Once the\n"
+    "server has merged the agent's map with others', it sends corrections on flatslam/corrections and\n"
+    "the agent publishes its poses in the merged map's frame (frame_id flatslam_map_<run>) instead of\n"
+    "its own (flatslam_agent_N_map). A stereo or RGB-D agent also moves its map into that frame, so that\n"
+    "its saved map and trajectory are in it (--own-frame: its map stays in its own frame).\n"
     "The summary adds the bytes sent per keyframe and per second and the last correction.\n";
 
 const char* const kServerUsage =

@@ -21,7 +21,7 @@ class AgentPublisher {
  public:
   virtual ~AgentPublisher() = default;
   virtual void OnFrame(const FrameReport& report) = 0;
-  virtual void OnKeyFrame(const SlamSession& slam, KeyFrameHandle keyframe) = 0;
+  virtual void OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) = 0;
   // Every keyframe again, as loop closures and bundle adjustment left it, then word that the run ended.
   virtual void PublishFinalMap(const SlamSession& slam) = 0;
   // Waits up to `seconds` for every matched server to acknowledge every keyframe; false on timeout.
@@ -34,6 +34,7 @@ class AgentPublisher {
 struct LiveOptions {
   std::string domain = "0";
   std::string peers = "127.0.0.1";
+  bool move_map = true;  // move a stereo/RGB-D map into the merged frame (false: --own-frame)
 };
 
 // Set by EnableLive in flatslam-live; null in flatslam.

@@ -151,6 +151,15 @@ void Map::BindMatchedPoints(KeyFrameHandle kf, std::span<const PointHandle> matc
   }
 }
 
+void Map::MoveFrame(const Eigen::Isometry3d& T_new_old) {
+  const Eigen::Isometry3d T_old_new = T_new_old.inverse();
+  for (KeyFrame& kf : keyframes_.values()) kf.T_cam_world = kf.T_cam_world * T_old_new;
+  for (MapPoint& point : points_.values()) {
+    point.position = T_new_old * point.position;
+    point.normal = T_new_old.linear() * point.normal;
+  }
+}
+
 void Map::AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b) {
   FLATSLAM_CHECK(a != b, "loop edge from ", a, " to itself");
   KeyFrame& ka = keyframes_.get(a);

@@ -141,6 +141,9 @@ class Map {
   void BindMatchedPoints(KeyFrameHandle kf, std::span<const PointHandle> matched);
   // Joins a and b by a loop edge (both directions; once).
   void AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b);
+  // Moves the whole map rigidly into another world frame: every keyframe pose and every point
+  // (position and viewing direction) by T_new_old. Distances, and so everything relative, stay.
+  void MoveFrame(const Eigen::Isometry3d& T_new_old);
   // Recomputes kf's covisibility (keyframes sharing >= min_shared points; if none reach it,
   // the single best one) and mirrors the weights into the neighbours. Sets the parent of a
   // keyframe without one to its strongest neighbour.

@@ -39,8 +39,9 @@ struct SlamRunOptions {
   // can turn this off, so that a session of any length holds no per-frame record but its pose.
   bool keep_reports = true;
   // Called after each keyframe's local mapping, on the mapping lane (the track stage when mapping
-  // runs inline), e.g. to publish it (SlamSession::ReadMap reads the map meanwhile); may be empty.
-  std::function<void(const SlamSession&, KeyFrameHandle)> on_keyframe_mapped;
+  // runs inline), e.g. to publish it (SlamSession::ReadMap reads the map meanwhile) or to move the
+  // map (SlamSession::MoveMapFrame); may be empty.
+  std::function<void(SlamSession&, KeyFrameHandle)> on_keyframe_mapped;
   // Called once after every stage has drained, before RunSlam returns (e.g. to save the map);
   // may be empty.
   std::function<void(const SlamSession&)> on_finished;

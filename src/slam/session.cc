@@ -40,6 +40,7 @@ constexpr Access kCapture = Access::Of({C::kMap, C::kLocalMapping, C::kTrajector
 constexpr Access kFrameTrajectory = Access::Of({C::kMap, C::kLocalMapping, C::kTrajectory}, {});
 constexpr Access kKeyFrameTrajectory = Access::Of({C::kMap}, {});
 constexpr Access kReadMap = Access::Of({C::kMap}, {});
+constexpr Access kMoveFrame = Access::Of({}, {C::kMap});
 }  // namespace SessionAccess
 
 std::span<const AccessStep> SlamSession::Steps() {
@@ -57,6 +58,7 @@ std::span<const AccessStep> SlamSession::Steps() {
       {"mapping.cull", kCull, "mapping", false, true},
       {"place", kPlace, "mapping", false, true},
       {"mapping.publish", kReadMap, "mapping", false, true},
+      {"mapping.move_frame", kMoveFrame, "mapping", false, true},
       {"global_ba.build", kBuildGlobalBa, "background", false, true},
       {"global_ba.solve", Access{}, "background", false, false},
       {"global_ba.apply", kApplyGlobalBa, "background", false, true},
@@ -129,6 +131,7 @@ FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandl
   report.keyframe = new_keyframe->has_value();
   report.map_keyframes = map_.keyframes().size();
   report.map_points = map_.points().size();
+  report.map_frame = map_frame_moves_;
   if (report.keyframe) ++pending_keyframes_;
   report.track_ms = MsSince(start);
   return report;
@@ -271,18 +274,29 @@ void SlamSession::GlobalBundleAdjustment(size_t loops) {
   if (context_.options.inject_fault == InjectedFault::kGlobalBundleAdjustment)
     Fail("injected failure in global bundle adjustment");
   MapBundleAdjustment ba;
+  uint64_t epoch = 0;
   {
     const auto lease = access_.Acquire(SessionAccess::kBuildGlobalBa);
     if (!BuildGlobalBundleAdjustment(map_, context_, tracker_.first_keyframe, &ba)) return;
+    epoch = map_epoch_;
   }
   const BundleAdjustmentResult result =
       SolveGlobalBundleAdjustment(ba, context_, [this] { return abandon_background_.load(); });
   if (!result.success || abandon_background_) return;
   const auto lease = access_.Acquire(SessionAccess::kApplyGlobalBa);
-  if (loops_.closures.size() != loops) return;  // a newer loop moved the map: this solution is stale
+  // A newer loop, or a move of the map's frame, moved the map: this solution is stale.
+  if (loops_.closures.size() != loops || epoch != map_epoch_) return;
   ApplyGlobalBundleAdjustment(map_, context_, ba, result);
   map_corrected_ = true;
   ++map_epoch_;
+}
+
+void SlamSession::MoveMapFrame(const Eigen::Isometry3d& T_new_old) {
+  const auto lease = access_.Acquire(SessionAccess::kMoveFrame);
+  map_.MoveFrame(T_new_old);
+  map_corrected_ = true;
+  ++map_epoch_;
+  ++map_frame_moves_;
 }
 
 void SlamSession::ForceLost() {

@@ -112,6 +112,13 @@ class SlamSession {
   // Calls read(map) while holding read access to the map (the "mapping.publish" step: a
   // keyframe's message for a map server, between two keyframes' mapping). Any thread.
   void ReadMap(const std::function<void(const Map&)>& read) const;
+  // Moves the map rigidly into another world frame (T_new_old; a map server's correction puts an
+  // agent's map in the merged map's frame): every keyframe and point; tracked frames follow their
+  // reference keyframes, the tracker's last pose at the next frame, as after a loop correction.
+  // Work computed on a copy of the map before the move (new points, local or global bundle
+  // adjustment) is dropped. Frames tracked after it report map_frame one higher. The mapping
+  // lane, between keyframes (the "mapping.move_frame" step).
+  void MoveMapFrame(const Eigen::Isometry3d& T_new_old);
 
  private:
   static_assert(sizeof(AnchoredFramePose) == 72);
@@ -148,6 +155,7 @@ class SlamSession {
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;
+  uint32_t map_frame_moves_ = 0;  // kMap: MoveMapFrame calls so far
 
   // Between tracking and mapping, without the lock.
   std::atomic<int> pending_keyframes_{0};

@@ -1,6 +1,7 @@
 #include "storage/keyframe_message.h"
 
 #include <cmath>
+#include <optional>
 #include <unordered_map>
 
 #include "core/error.h"
@@ -21,8 +22,14 @@ bool Finite(const Eigen::Vector3d& v) {
 }  // namespace
 
 std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyframe, uint32_t agent, uint64_t session,
-                                           const AgentCamera& camera) {
-  const KeyFrame& kf = map.keyframe(keyframe);
+                                           const AgentCamera& camera, const Eigen::Isometry3d& T_out_map) {
+  const bool moved = !T_out_map.isApprox(Eigen::Isometry3d::Identity(), 0.0);
+  std::optional<KeyFrame> moved_keyframe;
+  if (moved) {
+    moved_keyframe = map.keyframe(keyframe);  // keypoint columns shared, not copied
+    moved_keyframe->T_cam_world = moved_keyframe->T_cam_world * T_out_map.inverse();
+  }
+  const KeyFrame& kf = moved ? *moved_keyframe : map.keyframe(keyframe);
   // The keyframe's live points, in the order its keypoints first see them.
   std::unordered_map<PointHandle, uint32_t> index;
   std::vector<uint64_t> ids;
@@ -32,7 +39,14 @@ std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyfra
     if (!point || index.count(p)) continue;
     index.emplace(p, static_cast<uint32_t>(ids.size()));
     ids.push_back(p.packed());
-    points.push_back(records::ToPointRecord(*point, records::kNone));
+    if (moved) {
+      MapPoint out = *point;
+      out.position = T_out_map * point->position;
+      out.normal = T_out_map.linear() * point->normal;
+      points.push_back(records::ToPointRecord(out, records::kNone));
+    } else {
+      points.push_back(records::ToPointRecord(*point, records::kNone));
+    }
   }
   flatbuffers::FlatBufferBuilder builder(kf.size() * 80 + points.size() * sizeof(schema::PointRecord) + 1024);
   auto point_index = [&](PointHandle p) {

@@ -47,6 +47,9 @@ struct FrameReport {
   bool skipped = false;
   // The pose tracking gave the frame (T_world_cam), when it joined the trajectory.
   std::optional<Eigen::Isometry3d> T_world_cam;
+  // How many times the map had moved to another frame (SlamSession::MoveMapFrame) when the frame
+  // was tracked: T_world_cam is in the world frame after that many moves.
+  uint32_t map_frame = 0;
 };
 
 // Tracking's memory from one frame to the next.

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <array>
+#include <map>
 #include <cmath>
 #include <chrono>
 #include <csignal>
@@ -40,6 +41,61 @@ using testing::Wait;
 size_t LineCount(const fs::path& path) {
   const std::string text = ReadBytes(path);
   return static_cast<size_t>(std::count(text.begin(), text.end(), '\n'));
+}
+
+// Every correction a subscriber heard, by agent run and merge.
+using HeardCorrections = std::map<std::pair<uint64_t, uint64_t>, CorrectionMessage>;  // (session, revision)
+
+// From an agent's summary: its run, and the frame its map ended in, from its run's own frame (the
+// correction it last moved its map by; identity when it never moved it).
+struct AgentFrame {
+  uint64_t session = 0;
+  unsigned long long moves = 0, by = 0;
+  Eigen::Isometry3d T_map_run = Eigen::Isometry3d::Identity();
+};
+AgentFrame AgentFrameOf(const std::string& agent_log, const HeardCorrections& heard) {
+  AgentFrame out;
+  const size_t run = agent_log.find("; run ");
+  EXPECT_NE(run, std::string::npos) << agent_log;
+  if (run == std::string::npos) return out;
+  out.session = std::stoull(agent_log.substr(run + 6, 16), nullptr, 16);
+  // An agent that heard no correction while it ran says so instead.
+  const size_t at = agent_log.find("its map moved into the merged map's frame ");
+  if (at == std::string::npos) {
+    EXPECT_TRUE(Contains(agent_log, "no correction from a server")) << agent_log;
+    return out;
+  }
+  EXPECT_EQ(
+      std::sscanf(agent_log.c_str() + at,
+                  "its map moved into the merged map's frame %llu times (the last by merge %llu)", &out.moves, &out.by),
+      2)
+      << agent_log.substr(at, 120);
+  if (out.moves == 0) return out;
+  const auto it = heard.find({out.session, out.by});
+  EXPECT_NE(it, heard.end()) << "moved by a correction not heard: merge " << out.by;
+  if (it == heard.end()) return out;
+  out.T_map_run.linear() = it->second.rotation;
+  out.T_map_run.translation() = it->second.translation;
+  return out;
+}
+
+// The agent's newest 10 keyframes (as it saved them, in its map's frame), taken back to its run's
+// frame and moved by correction c, against the same keyframes in the server's map: RMS distance.
+// The number of them found there goes to *found.
+double NewestKeyFramesRms(const Trajectory& keyframes, const AgentFrame& frame, const CorrectionMessage& c,
+                          const Trajectory& merged, size_t* found) {
+  double sum = 0;
+  *found = 0;
+  for (size_t i = keyframes.size() >= 10 ? keyframes.size() - 10 : 0; i < keyframes.size(); ++i) {
+    const Eigen::Vector3d run = frame.T_map_run.inverse() * keyframes[i].T_world_cam.translation();
+    const Eigen::Vector3d moved = c.scale * (c.rotation * run) + c.translation;
+    for (const TimedPose& m : merged) {
+      if (m.t_ns != keyframes[i].t_ns) continue;
+      sum += (moved - m.T_world_cam.translation()).squaredNorm();
+      ++*found;
+    }
+  }
+  return *found > 0 ? std::sqrt(sum / static_cast<double>(*found)) : 0.0;
 }
 
 // The town agents of the merge tests (tests/merge/map_merge_test.cc): agents 0 and 1 share two
@@ -80,12 +136,15 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
       }
     }));
   }
-  // The server's corrections, as an agent receives them: the newest per agent.
+  // The server's corrections, as an agent receives them: the newest per agent, and every one by
+  // its merge.
   std::array<std::optional<CorrectionMessage>, 3> corrections;
+  HeardCorrections every_correction;
   const auto correction_reader = subscriber.PayloadReader(kCorrectionTopic, [&](const Payload& payload) {
     if (payload.kind != PayloadKind::kCorrection || payload.agent >= 3) return;
     CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
     const std::lock_guard<std::mutex> lock(mutex);
+    every_correction[{c.session, c.revision}] = c;
     auto& last = corrections[payload.agent];
     if (!last || c.revision > last->revision) last = std::move(c);
   });
@@ -94,15 +153,16 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
       Spawn({"server", "--out", (dir / "server").string(), "--agents", "3", "--dds-domain", d}, dir / "server.log");
   std::vector<pid_t> agents;
   for (int k = 0; k < 3; ++k)
-    agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--deterministic", "--dds-domain",
-                            d, "--out", (dir / ("agent" + std::to_string(k))).string()},
+    agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--deterministic", "--own-frame",
+                            "--dds-domain", d, "--out", (dir / ("agent" + std::to_string(k))).string()},
                            dir / ("agent" + std::to_string(k) + ".log")));
   for (int k = 0; k < 3; ++k) ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   const std::string server_log = ReadBytes(dir / "server.log");
   EXPECT_TRUE(Contains(server_log, "0 dropped as malformed")) << server_log;
-  for (size_t pos = 0; (pos = server_log.find("\nlive merge", pos)) != std::string::npos; ++pos)
-    std::printf("%s\n", server_log.substr(pos + 1, server_log.find('\n', pos + 1) - pos - 1).c_str());
+  for (const char* what : {"\nlive merge", "\nloops ", "\nfinal merge"})
+    for (size_t pos = 0; (pos = server_log.find(what, pos)) != std::string::npos; ++pos)
+      std::printf("%s\n", server_log.substr(pos + 1, server_log.find('\n', pos + 1) - pos - 1).c_str());
   for (size_t pos = 0; (pos = server_log.find("\nmet ", pos)) != std::string::npos; ++pos)
     std::printf("%s\n", server_log.substr(pos + 1, server_log.find('\n', pos + 1) - pos - 1).c_str());
   // The server merged the maps while the agents ran, and said when they met.
@@ -154,27 +214,22 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   // Corrections: every agent's last one places its map in agent 0's frame (the merged map keeps
   // the lowest agent's). It is fitted on the agent's newest keyframes, where its camera is: those
   // keyframes of its own run, moved by it, land where the server's map has them, to within a
-  // quarter of the agent's own keyframe error.
+  // quarter of the agent's own keyframe error. With --own-frame (deterministic runs) the agents'
+  // maps stay in their own frames.
   for (int k = 0; k < 3; ++k) {
     ASSERT_TRUE(corrections[k].has_value()) << "no correction for agent " << k << "\n" << server_log;
     const CorrectionMessage& c = *corrections[k];
     EXPECT_EQ(c.frame_agent, 0u);
     EXPECT_EQ(c.frame_session, corrections[0]->frame_session);
     EXPECT_EQ(c.runs, 3u);
+    const AgentFrame frame = AgentFrameOf(ReadBytes(dir / ("agent" + std::to_string(k) + ".log")), every_correction);
+    EXPECT_EQ(frame.session, c.session);
+    EXPECT_EQ(frame.moves, 0u);
     const Trajectory keyframes = ReadTum(dir / ("agent" + std::to_string(k)) / "keyframes.tum");
     ASSERT_GE(keyframes.size(), 10u);
-    double sum = 0;
     size_t n = 0;
-    for (size_t i = keyframes.size() - 10; i < keyframes.size(); ++i) {
-      const Eigen::Vector3d moved = c.scale * (c.rotation * keyframes[i].T_world_cam.translation()) + c.translation;
-      for (const TimedPose& m : merged[k]) {
-        if (m.t_ns != keyframes[i].t_ns) continue;
-        sum += (moved - m.T_world_cam.translation()).squaredNorm();
-        ++n;
-      }
-    }
+    const double rms = NewestKeyFramesRms(keyframes, frame, c, merged[k], &n);
     ASSERT_EQ(n, 10u) << "agent " << k;
-    const double rms = std::sqrt(sum / 10);
     const double own = testing::JointAte({gt[k]}, {keyframes})[0];
     std::printf(
         "agent %d: its newest 10 keyframes corrected are %.3f m from the server's map (fit: %.3f m; its own "
@@ -312,7 +367,20 @@ TEST(AgentsCli, ServerRefusesBadOptionsNamingThem) {
 // keeps the keyframes of the killed run, and the restarted run's keyframes join agent 0's map.
 TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const fs::path dir = testing::FreshTempDir("agents_cli_restart");
-  const std::string d = std::to_string(200 + getpid() % 30);
+  const uint32_t domain = 200 + static_cast<uint32_t>(getpid() % 30);
+  const std::string d = std::to_string(domain);
+  // The corrections the agents get (the agents here move their maps by them: no --own-frame).
+  DdsOptions dds;
+  dds.domain = domain;
+  DdsNode subscriber(dds, "test subscriber");
+  std::mutex mutex;
+  HeardCorrections corrections;
+  const auto correction_reader = subscriber.PayloadReader(kCorrectionTopic, [&](const Payload& payload) {
+    if (payload.kind != PayloadKind::kCorrection) return;
+    CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
+    const std::lock_guard<std::mutex> lock(mutex);
+    corrections[{c.session, c.revision}] = std::move(c);
+  });
   const pid_t server =
       Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
   const pid_t agent0 =
@@ -329,8 +397,9 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   EXPECT_EQ(Wait(killed), 128 + SIGKILL);
   const size_t restart_at = LineCount(first_out / "stats.csv") - 1;
   ASSERT_GE(restart_at, 150u);
+  const fs::path again_out = dir / "agent1_again";
   const pid_t restarted = Spawn({"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d,
-                                 "--first-frame", std::to_string(restart_at)},
+                                 "--first-frame", std::to_string(restart_at), "--out", again_out.string()},
                                 dir / "agent1_again.log");
   ASSERT_EQ(Wait(restarted), 0) << ReadBytes(dir / "agent1_again.log");
   ASSERT_EQ(Wait(agent0), 0) << ReadBytes(dir / "agent0.log");
@@ -366,6 +435,32 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   }
   EXPECT_EQ(written, keyframes) << log;
   EXPECT_GE(joined, agent0_keyframes + restarted_keyframes) << log;
+
+  // The restarted run moved its map into the merged map's frame (agent 0's) while it ran; what
+  // it sent stayed in its run's frame: its newest keyframes, taken back by the correction it moved
+  // by and moved by the last one, land where the server's map has them.
+  const AgentFrame frame = AgentFrameOf(ReadBytes(dir / "agent1_again.log"), corrections);
+  EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / "agent1_again.log");
+  const std::lock_guard<std::mutex> lock(mutex);
+  const CorrectionMessage* last = nullptr;
+  for (const auto& [key, c] : corrections)
+    if (key.first == frame.session) last = &c;  // the map is ordered by session, then merge
+  ASSERT_NE(last, nullptr) << "no correction heard for the restarted run";
+  EXPECT_EQ(last->frame_agent, 0u);
+  const fs::path exported = dir / "merged1.tum";
+  const auto r = RunApp("map export " + (dir / "server" / "map.fsmap").string() + " --trajectory " + exported.string() +
+                        " --agent 1");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const Trajectory again = ReadTum(again_out / "keyframes.tum");
+  size_t n = 0;
+  const double rms = NewestKeyFramesRms(again, frame, *last, ReadTum(exported), &n);
+  const double own = testing::JointAte({ReadTum(again_out / "groundtruth.tum")}, {again})[0];
+  std::printf(
+      "restarted agent 1: map moved %llu times (last by merge %llu); newest 10 keyframes %.3f m from the "
+      "server's map after the last correction (own keyframe ATE %.3f m)\n",
+      frame.moves, frame.by, rms, own);
+  EXPECT_EQ(n, 10u);
+  EXPECT_LE(rms, 0.25 * own);
   fs::remove_all(dir);
 }
 

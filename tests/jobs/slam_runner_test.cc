@@ -11,6 +11,7 @@
 #include <string>
 #include <thread>
 
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -89,6 +90,76 @@ TEST(SlamRun, DeterministicRunClosesALoopAndFinishes) {
   EXPECT_GE(o.run.loop_closures.size(), 1u);
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size());
   EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
+}
+
+// A map server's correction moves an agent's map into the merged map's frame mid-run
+// (SlamSession::MoveMapFrame, from the mapping lane): every pose after the move, and the refined
+// trajectory of the whole run, come out in the new frame, as the same run's poses moved by the
+// transform; frames report which frame their pose is in; nothing is lost.
+TEST(SlamRun, MovingTheMapFrameMidRunMovesEveryPose) {
+  const auto dataset = OpenDataset("synth:room:duration=8,width=480,height=360");
+  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
+  SlamOptions options;
+  options.vocabulary = &vocabulary;
+  Eigen::Isometry3d T_new_old = Eigen::Isometry3d::Identity();
+  T_new_old.linear() = Eigen::AngleAxisd(0.5, Eigen::Vector3d(0.2, 1, 0.1).normalized()).toRotationMatrix();
+  T_new_old.translation() = Eigen::Vector3d(3, -1, 2);
+  auto run_once = [&](bool move) {
+    SlamRunOptions run;
+    run.deterministic = true;
+    size_t keyframes = 0;
+    run.on_keyframe_mapped = [&](SlamSession& slam, KeyFrameHandle) {
+      if (move && ++keyframes == 5) slam.MoveMapFrame(T_new_old);
+    };
+    return RunSlam(*dataset, options, run);
+  };
+  const SlamRunResult plain = run_once(false), moved = run_once(true);
+  ASSERT_EQ(moved.reports.size(), plain.reports.size());
+  // Up to the move the runs are the same; the first frames after it are the plain run's poses
+  // moved, to rounding. Later the two runs part by rounding (a different RANSAC sample or keyframe
+  // decision), as any two runs of different numbers do, so they are compared with the ground truth.
+  size_t before = 0, after = 0, lost = 0;
+  double worst_before = 0, worst_first_after = 0;
+  for (size_t i = 0; i < moved.reports.size(); ++i) {
+    const FrameReport& r = moved.reports[i];
+    lost += r.state != TrackingState::kOk;
+    if (!r.T_world_cam || !plain.reports[i].T_world_cam) continue;
+    ASSERT_LE(r.map_frame, 1u);
+    const Eigen::Isometry3d expected =
+        r.map_frame == 0 ? *plain.reports[i].T_world_cam : T_new_old * *plain.reports[i].T_world_cam;
+    const double d = (expected.translation() - r.T_world_cam->translation()).norm();
+    if (r.map_frame == 0) {
+      ++before;
+      worst_before = std::max(worst_before, d);
+    } else if (++after <= 10) {
+      worst_first_after = std::max(worst_first_after, d);
+    }
+  }
+  std::printf(
+      "%zu frames tracked before the move, %zu after; the first 10 after it %.1g m from the plain run's "
+      "moved\n",
+      before, after, worst_first_after);
+  EXPECT_EQ(lost, 0u);
+  EXPECT_GT(before, 10u);
+  EXPECT_GT(after, 50u);
+  EXPECT_EQ(worst_before, 0.0);
+  EXPECT_LT(worst_first_after, 1e-4);
+  // The refined trajectory of the whole run is in the new frame: against the plain run's, moved,
+  // and with the ground truth after alignment.
+  ASSERT_EQ(moved.trajectory.size(), plain.trajectory.size());
+  EXPECT_LT((moved.trajectory.front().T_world_cam.translation() -
+             T_new_old * plain.trajectory.front().T_world_cam.translation())
+                .norm(),
+            0.01);
+  const testing::TrajectoryScore a = testing::ScoreTrajectory(*dataset->ground_truth(), plain.trajectory);
+  const testing::TrajectoryScore b = testing::ScoreTrajectory(*dataset->ground_truth(), moved.trajectory);
+  std::printf("ATE plain %.4f m, moved %.4f m over %.1f m\n", a.se3.ate_m.rmse, b.se3.ate_m.rmse, b.path_m);
+  EXPECT_LT(b.se3.ate_m.rmse, 0.01 * b.path_m);
+  // The alignment to the ground truth is the move's: the moved run's world is T_new_old's.
+  const Eigen::Isometry3d plain_to_gt = a.se3.alignment.Apply(Eigen::Isometry3d::Identity());
+  const Eigen::Isometry3d old_to_gt = b.se3.alignment.Apply(T_new_old);  // x -> A_moved(T_new_old x)
+  EXPECT_LT((old_to_gt.translation() - plain_to_gt.translation()).norm(), 0.05);
+  EXPECT_LT(Eigen::AngleAxisd(old_to_gt.linear().transpose() * plain_to_gt.linear()).angle(), 0.01);
 }
 
 // Several sessions live in one process (nothing static): two runs on different scenes at the same

@@ -3,6 +3,7 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
 #include "core/error.h"
@@ -53,6 +54,35 @@ TEST(KeyFrameMessage, RoundTripsAKeyFrameWithItsPoints) {
     EXPECT_EQ(m.points[i].descriptor, map.point(kf.points[k]).descriptor);
   }
   EXPECT_GT(bound, 0u);
+}
+
+// An agent whose map moved into a merged map's frame sends in its run's own frame: the pose and
+// the points come out moved back, everything else as it is.
+TEST(KeyFrameMessage, IsWrittenInTheFrameAsked) {
+  const Map map = testing::RandomMap({});
+  const KeyFrameHandle h = map.keyframes().handles()[5];
+  const KeyFrame& kf = map.keyframe(h);
+  Eigen::Isometry3d T_out_map = Eigen::Isometry3d::Identity();
+  T_out_map.linear() = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  T_out_map.translation() = Eigen::Vector3d(-4, 1, 9);
+  const KeyFrameMessage m =
+      DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, 3, 1, testing::TestAgentCamera(), T_out_map), "moved");
+  const KeyFrameMessage plain =
+      DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, 3, 1, testing::TestAgentCamera()), "plain");
+  // The camera sees every point where it saw it: camera-frame coordinates are unchanged.
+  EXPECT_TRUE(m.keyframe.T_cam_world.isApprox(kf.T_cam_world * T_out_map.inverse(), 1e-12));
+  EXPECT_EQ(m.keyframe.uv, kf.uv);
+  ASSERT_EQ(m.points.size(), plain.points.size());
+  ASSERT_GT(m.points.size(), 0u);
+  for (size_t i = 0; i < m.points.size(); ++i) {
+    EXPECT_EQ(m.point_ids[i], plain.point_ids[i]);
+    EXPECT_TRUE(m.points[i].position.isApprox(T_out_map * plain.points[i].position, 1e-12));
+    EXPECT_TRUE(m.points[i].normal.isApprox(T_out_map.linear() * plain.points[i].normal, 1e-12));
+    EXPECT_TRUE((m.keyframe.T_cam_world * m.points[i].position)
+                    .isApprox(plain.keyframe.T_cam_world * plain.points[i].position, 1e-9));
+    EXPECT_EQ(m.points[i].descriptor, plain.points[i].descriptor);
+    EXPECT_EQ(m.points[i].max_distance, plain.points[i].max_distance);
+  }
 }
 
 // Whatever arrives, decoding either returns a verified message or throws naming the message.
