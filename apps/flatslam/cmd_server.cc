@@ -366,8 +366,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
                  "): no map written");
 
   const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
-  const MergeCamera camera =
-      MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
+  const bool monocular = metadata.calibration.sensor == Sensor::kMonocular;
   // The final merge, of every keyframe: its corrections go out too (agents still running, and
   // any other subscriber, get them) before the server exits.
   LiveMerge final_merge;
@@ -377,7 +376,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const MergeInputs inputs = InputsOf(all, &final_merge);
   const MergeTimes times =
       MergeAndSave(std::move(all.maps), vocabulary, metadata, merge_options, out_dir / "map.fsmap",
-                   [&](const MultiMapMerge& merged) { Record(merged, inputs, camera.monocular, &final_merge); });
+                   [&](const MultiMapMerge& merged) { Record(merged, inputs, monocular, &final_merge); });
   take_merge(final_merge, "final merge");
   if (!corrections->WaitForAcknowledgments(5))
     std::fprintf(stderr, "warning: not every subscriber acknowledged the final corrections within 5 s\n");

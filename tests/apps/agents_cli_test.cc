@@ -43,6 +43,14 @@ size_t LineCount(const fs::path& path) {
   return static_cast<size_t>(std::count(text.begin(), text.end(), '\n'));
 }
 
+// Waits (at most 120 s) until a run writing to `out` has tracked `frames` frames (its stats.csv
+// grows by a line a frame, after a header).
+void WaitForTrackedFrames(const fs::path& out, size_t frames) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (LineCount(out / "stats.csv") < frames + 1 && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+}
+
 // Every correction a subscriber heard, by agent run and merge.
 using HeardCorrections = std::map<std::pair<uint64_t, uint64_t>, CorrectionMessage>;  // (session, revision)
 
@@ -136,17 +144,13 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
       }
     }));
   }
-  // The server's corrections, as an agent receives them: the newest per agent, and every one by
-  // its merge.
-  std::array<std::optional<CorrectionMessage>, 3> corrections;
+  // The server's corrections, as the agents receive them.
   HeardCorrections every_correction;
   const auto correction_reader = subscriber.PayloadReader(kCorrectionTopic, [&](const Payload& payload) {
     if (payload.kind != PayloadKind::kCorrection || payload.agent >= 3) return;
     CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
     const std::lock_guard<std::mutex> lock(mutex);
-    every_correction[{c.session, c.revision}] = c;
-    auto& last = corrections[payload.agent];
-    if (!last || c.revision > last->revision) last = std::move(c);
+    every_correction[{c.session, c.revision}] = std::move(c);
   });
 
   const pid_t server =
@@ -211,6 +215,12 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
     EXPECT_LE(joint[k], 1.5 * own) << "agent " << k;
   }
 
+  // The newest correction of each agent (each runs once here).
+  std::array<std::optional<CorrectionMessage>, 3> corrections;
+  for (const auto& [key, c] : every_correction) {
+    auto& last = corrections.at(c.agent);
+    if (!last || c.revision > last->revision) last = c;
+  }
   // Corrections: every agent's last one places its map in agent 0's frame (the merged map keeps
   // the lowest agent's). It is fitted on the agent's newest keyframes, where its camera is: those
   // keyframes of its own run, moved by it, land where the server's map has them, to within a
@@ -303,9 +313,7 @@ TEST(AgentsCli, ALateServerGetsTheWholeMap) {
                              "--deterministic", "--dds-domain", d, "--out", agent_out.string()},
                             dir / "agent.log");
   // The server starts once the agent has tracked 200 frames (stats.csv grows by a line a frame).
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  while (LineCount(agent_out / "stats.csv") < 201 && std::chrono::steady_clock::now() < deadline)
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  WaitForTrackedFrames(agent_out, 200);
   const pid_t server =
       Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--dds-domain", d}, dir / "server.log");
   ASSERT_EQ(Wait(agent), 0) << ReadBytes(dir / "agent.log");
@@ -329,9 +337,7 @@ TEST(AgentsCli, AServerWaitingForAKilledAgentStopsAfterItsSilence) {
   const pid_t agent = Spawn({"agent", "synth:room:duration=20,width=480,height=360", "--id", "0", "--quiet",
                              "--deterministic", "--dds-domain", d, "--out", agent_out.string()},
                             dir / "agent.log");
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  while (LineCount(agent_out / "stats.csv") < 101 && std::chrono::steady_clock::now() < deadline)
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  WaitForTrackedFrames(agent_out, 100);
   ::kill(agent, SIGKILL);
   EXPECT_EQ(Wait(agent), 128 + SIGKILL);
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
@@ -390,9 +396,7 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
       {"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d, "--out", first_out.string()},
       dir / "agent1_first.log");
   // Killed once it has tracked 150 frames (stats.csv grows by a line a frame).
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  while (LineCount(first_out / "stats.csv") < 151 && std::chrono::steady_clock::now() < deadline)
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  WaitForTrackedFrames(first_out, 150);
   ::kill(killed, SIGKILL);
   EXPECT_EQ(Wait(killed), 128 + SIGKILL);
   const size_t restart_at = LineCount(first_out / "stats.csv") - 1;
