@@ -66,7 +66,10 @@ struct TrackerState {
   size_t segment_keyframes = 0;    // keyframes made since the current map segment started
   std::vector<KeyFrameHandle> local_keyframes;
   std::vector<PointHandle> local_points;
-  int last_inliers = 0;                    // of the last frame's local-map tracking
+  int last_inliers = 0;  // of the last frame's local-map tracking
+  // How far (pixels, median over the matched points) the motion model's prediction landed from
+  // the tracked pose: the largest of the recent frames', halving with each frame after it.
+  float prediction_error_px = 0;
   std::optional<TrackedFrame> init_frame;  // monocular: first frame of the two-view initialization
   std::mt19937_64 rng;                     // RANSAC of the monocular initialization
   int lost_frames = 0;
