@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "io/image_io.h"
+#include "io/rectify.h"
 
 namespace flatslam {
 namespace {
@@ -34,8 +35,14 @@ std::vector<StampedFile> ReadFileList(const std::filesystem::path& path, const s
   return list;
 }
 
-// Published intrinsics of the Freiburg Kinects (vision.in.tum.de, "Intrinsic Camera Calibration").
-std::optional<PinholeCamera> FreiburgCamera(const std::string& folder_name) {
+// Published calibration of the Freiburg Kinects' colour cameras (vision.in.tum.de, "Intrinsic
+// Camera Calibration"): intrinsics and OpenCV's k1 k2 p1 p2 k3. fr3's images come undistorted.
+struct FreiburgCalibration {
+  PinholeCamera camera;
+  std::array<double, 5> distortion{};
+};
+
+std::optional<FreiburgCalibration> FreiburgCamera(const std::string& folder_name) {
   std::string name = folder_name;
   std::transform(name.begin(), name.end(), name.begin(), [](unsigned char c) { return std::tolower(c); });
   const auto tokens = io::SplitFields(name, " _-.");
@@ -43,19 +50,22 @@ std::optional<PinholeCamera> FreiburgCamera(const std::string& folder_name) {
     const std::string fr = std::string("fr") + digit, freiburg = std::string("freiburg") + digit;
     return name.find(freiburg) != std::string::npos || std::find(tokens.begin(), tokens.end(), fr) != tokens.end();
   };
-  PinholeCamera camera;
+  FreiburgCalibration c;
+  PinholeCamera& camera = c.camera;
   camera.width = 640;
   camera.height = 480;
   if (has('1')) {
     std::tie(camera.fx, camera.fy, camera.cx, camera.cy) = std::tuple(517.3, 516.5, 318.6, 255.3);
+    c.distortion = {0.2624, -0.9531, -0.0054, 0.0026, 1.1633};
   } else if (has('2')) {
     std::tie(camera.fx, camera.fy, camera.cx, camera.cy) = std::tuple(520.9, 521.0, 325.1, 249.7);
+    c.distortion = {0.2312, -0.7849, -0.0033, -0.0001, 0.9172};
   } else if (has('3')) {
     std::tie(camera.fx, camera.fy, camera.cx, camera.cy) = std::tuple(535.4, 539.2, 320.1, 247.6);
   } else {
     return std::nullopt;
   }
-  return camera;
+  return c;
 }
 
 Eigen::Isometry3d Interpolate(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b, double s) {
@@ -152,9 +162,25 @@ TumDataset::TumDataset(const std::filesystem::path& sequence_dir, const TumOptio
     depth_factor_ = file.depth_factor;
     calibration_source_ = "camera.txt";
   } else if (const auto freiburg = FreiburgCamera(folder)) {
-    calibration_.camera = *freiburg;
+    calibration_.camera = freiburg->camera;
     depth_factor_ = 5000;
     calibration_source_ = "Freiburg intrinsics";
+    if (std::any_of(freiburg->distortion.begin(), freiburg->distortion.end(), [](double d) { return d != 0; })) {
+      // fr1/fr2: both images are undistorted with the same map (the depth image is registered to
+      // the colour one), nearest-neighbour for depth; the camera keeps only valid pixels. Near
+      // the corners the distortion moves a pixel by up to about 25 px (fr1).
+      const PinholeCamera& raw = freiburg->camera;
+      const cv::Matx33d K(raw.fx, 0, raw.cx, 0, raw.fy, raw.cy, 0, 0, 1);
+      const cv::Mat D(freiburg->distortion, true);
+      const cv::Size size(raw.width, raw.height);
+      const cv::Matx33d k = UndistortedCameraMatrix(K, D.reshape(1, 1), size, 0);
+      undistort_ = RectifyMap(K, D.reshape(1, 1), cv::Matx33d::eye(), k, size);
+      calibration_.camera.fx = k(0, 0);
+      calibration_.camera.fy = k(1, 1);
+      calibration_.camera.cx = k(0, 2);
+      calibration_.camera.cy = k(1, 2);
+      calibration_source_ = "Freiburg intrinsics and distortion";
+    }
   } else {
     Fail("no calibration for TUM sequence ", dir_.string(), ": ", camera_txt.string(),
          " is missing and the folder name names no freiburg1/2/3 camera");
@@ -183,8 +209,9 @@ Frame TumDataset::read(size_t i) const {
   Frame frame;
   frame.index = i;
   frame.t_ns = entry.t_ns;
-  frame.left = ReadGrayImage(entry.rgb, size, color_order_);
-  if (calibration_.sensor == Sensor::kRgbd) frame.depth = ReadDepthImage(entry.depth, depth_factor_, size);
+  frame.left = undistort_.Apply(ReadGrayImage(entry.rgb, size, color_order_));
+  if (calibration_.sensor == Sensor::kRgbd)
+    frame.depth = undistort_.Apply(ReadDepthImage(entry.depth, depth_factor_, size), Interpolation::kNearest);
   return frame;
 }
 

@@ -7,10 +7,11 @@
 //   1. camera.txt in the sequence folder (written by flatslam's dataset writer), one line:
 //        fx fy cx cy width height [depth_factor]
 //      '#' starts a comment line; depth_factor defaults to 5000.
-//   2. the published Freiburg intrinsics, chosen by a "freiburg1/2/3" (or "fr1/2/3") token
+//   2. the published Freiburg calibration, chosen by a "freiburg1/2/3" (or "fr1/2/3") token
 //      in the folder name, 640x480, depth factor 5000. fr1/fr2 images are distorted
-//      (k1 ~ 0.26 / 0.23); that distortion is ignored here (small bias near the borders):
-//      write a camera.txt for undistorted images when it matters.
+//      (k1 ~ 0.26 / 0.23): read() undistorts the colour and the depth image with the same map
+//      (depth nearest-neighbour), and the calibration is the undistorted camera's (only valid
+//      pixels: a larger focal length). fr3's images come undistorted.
 //   3. otherwise an error naming the missing camera.txt.
 #pragma once
 
@@ -22,6 +23,7 @@
 
 #include "io/dataset.h"
 #include "io/image_io.h"
+#include "io/rectify.h"
 #include "io/types.h"
 
 namespace flatslam {
@@ -66,7 +68,8 @@ class TumDataset final : public Dataset {
   // RGB-D: RGB frames left without a depth partner (dropped). 0 for monocular.
   [[nodiscard]] size_t unmatched_rgb() const { return unmatched_rgb_; }
   [[nodiscard]] double depth_factor() const { return depth_factor_; }
-  // "camera.txt", "Freiburg intrinsics" or "options".
+  // "camera.txt", "Freiburg intrinsics" (fr3), "Freiburg intrinsics and distortion" (fr1, fr2)
+  // or "options".
   [[nodiscard]] const std::string& calibration_source() const { return calibration_source_; }
   // Timestamp of the depth image paired with frame i (RGB-D only).
   [[nodiscard]] int64_t depth_t_ns(size_t i) const { return frames_.at(i).depth_t_ns; }
@@ -87,6 +90,7 @@ class TumDataset final : public Dataset {
   std::vector<Entry> frames_;
   size_t unmatched_rgb_ = 0;
   std::optional<Trajectory> ground_truth_;
+  RectifyMap undistort_;  // fr1/fr2 without camera.txt; empty: images pass unchanged
 };
 
 namespace io {

@@ -1,11 +1,13 @@
 #include "io/tum.h"
 
+#include <cmath>
 #include <fstream>
 #include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
 #include "io/dataset.h"
@@ -26,7 +28,8 @@ using testing::ExpectErrorMentions;
 // the closer 1.000; 1.100 and 1.300 have no partner within 20 ms.
 class TumTiny : public ::testing::Test {
  protected:
-  void SetUp() override { dir_ = Make("rgbd_dataset_freiburg1_tiny"); }
+  // fr3: the published calibration has no distortion, so pixels pass unchanged.
+  void SetUp() override { dir_ = Make("rgbd_dataset_freiburg3_tiny"); }
   void TearDown() override { fs::remove_all(dir_.parent_path()); }
 
   static fs::path Make(const std::string& folder) {
@@ -90,13 +93,62 @@ TEST_F(TumTiny, FreiburgIntrinsicsFromFolderName) {
   const TumDataset dataset(dir_);
   EXPECT_EQ(dataset.calibration_source(), "Freiburg intrinsics");
   const PinholeCamera& c = dataset.calibration().camera;
-  EXPECT_DOUBLE_EQ(c.fx, 517.3);
-  EXPECT_DOUBLE_EQ(c.fy, 516.5);
-  EXPECT_DOUBLE_EQ(c.cx, 318.6);
-  EXPECT_DOUBLE_EQ(c.cy, 255.3);
+  EXPECT_DOUBLE_EQ(c.fx, 535.4);
+  EXPECT_DOUBLE_EQ(c.fy, 539.2);
+  EXPECT_DOUBLE_EQ(c.cx, 320.1);
+  EXPECT_DOUBLE_EQ(c.cy, 247.6);
   EXPECT_EQ(c.width, 640);
   EXPECT_EQ(c.height, 480);
   EXPECT_DOUBLE_EQ(dataset.depth_factor(), 5000);
+}
+
+// fr1's colour camera is distorted (published k1 k2 p1 p2 k3 = 0.2624 -0.9531 -0.0054 0.0026
+// 1.1633). A bright spot and a depth reading written where the raw camera sees the ray
+// (0.4, 0.3, 1) come out where the undistorted camera the dataset reports projects that ray,
+// colour and depth alike.
+TEST(TumFreiburg1, ImagesAreUndistortedAndTheCameraIsTheUndistortedOne) {
+  const fs::path dir = testing::FreshTempDir("tum_fr1") / "rgbd_dataset_freiburg1_desk";
+  fs::create_directories(dir / "rgb");
+  fs::create_directories(dir / "depth");
+  const double fx = 517.3, fy = 516.5, cx = 318.6, cy = 255.3;
+  const double k1 = 0.2624, k2 = -0.9531, p1 = -0.0054, p2 = 0.0026, k3 = 1.1633;
+  const double x = 0.4, y = 0.3, r2 = x * x + y * y;
+  const double radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2;
+  const double xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x);
+  const double yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y;
+  const cv::Point raw(static_cast<int>(std::lround(fx * xd + cx)), static_cast<int>(std::lround(fy * yd + cy)));
+  // Where the same ray lands without the distortion, to show the distortion matters here.
+  const cv::Point2d pinhole(fx * x + cx, fy * y + cy);
+  EXPECT_GT(cv::norm(cv::Point2d(raw) - pinhole), 5.0);
+  cv::Mat color(480, 640, CV_8UC3, cv::Scalar(0, 0, 0));
+  cv::circle(color, raw, 3, cv::Scalar(255, 255, 255), cv::FILLED);
+  ASSERT_TRUE(cv::imwrite((dir / "rgb" / "1.000000.png").string(), color));
+  cv::Mat depth(480, 640, CV_16UC1, cv::Scalar(0));
+  cv::circle(depth, raw, 3, cv::Scalar(7500), cv::FILLED);
+  ASSERT_TRUE(cv::imwrite((dir / "depth" / "1.000000.png").string(), depth));
+  std::ofstream(dir / "rgb.txt") << "1.000000 rgb/1.000000.png\n";
+  std::ofstream(dir / "depth.txt") << "1.000000 depth/1.000000.png\n";
+
+  const TumDataset dataset(dir);
+  EXPECT_EQ(dataset.calibration_source(), "Freiburg intrinsics and distortion");
+  const PinholeCamera& c = dataset.calibration().camera;
+  EXPECT_EQ(c.width, 640);
+  EXPECT_EQ(c.height, 480);
+  const cv::Point2d expected(c.fx * x + c.cx, c.fy * y + c.cy);
+  const Frame frame = dataset.read(0);
+  const cv::Moments spot = cv::moments(frame.left > 128, true);
+  ASSERT_GT(spot.m00, 10);
+  EXPECT_NEAR(spot.m10 / spot.m00, expected.x, 1.0);
+  EXPECT_NEAR(spot.m01 / spot.m00, expected.y, 1.0);
+  const cv::Moments reading = cv::moments(frame.depth > 0, true);
+  ASSERT_GT(reading.m00, 10);
+  EXPECT_NEAR(reading.m10 / reading.m00, expected.x, 1.0);
+  EXPECT_NEAR(reading.m01 / reading.m00, expected.y, 1.0);
+  double lowest = 0, highest = 0;
+  cv::minMaxLoc(frame.depth, &lowest, &highest, nullptr, nullptr, frame.depth > 0);
+  EXPECT_FLOAT_EQ(lowest, 1.5f);  // 7500 / 5000, never blended with the zeros around it
+  EXPECT_FLOAT_EQ(highest, 1.5f);
+  fs::remove_all(dir.parent_path());
 }
 
 TEST_F(TumTiny, GroundTruthIsInterpolatedAtFrames) {
