@@ -85,8 +85,8 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "pixels (x level scale) searched around a point's predicted position")                                            \
   X(int, max_frames_between_keyframes, 0, max_frames_between_keyframes >= 0, "0 = the frame rate (one second)")       \
   X(int, min_frames_between_keyframes, -1, min_frames_between_keyframes >= -1,                                        \
-    "an idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor (2 monocular: "      \
-    "forward motion thins the tracked points every frame; 0 with depth)")                                             \
+    "an idle local mapping takes a keyframe only this many frames after the last; -1 = by sensor (monocular: 2, "     \
+    "or 1 below 7.5 Hz, see MonocularKeyFrameSpacing; 0 with depth)")                                                 \
   X(size_t, local_keyframes, 10, local_keyframes > 0, "covisible keyframes used for triangulation")                   \
   X(double, new_point_depth_factor, 4, new_point_depth_factor >= 1,                                                   \
     "new points of a keyframe are searched between the near depth of the points it sees (5th percentile) "            \
@@ -197,5 +197,9 @@ struct DerivedOption {
 // Features per image for a camera: 1.9 x sqrt(width x height), times sqrt(20 Hz / frame rate)
 // below 20 Hz, rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series and kept in [500, 8000].
 [[nodiscard]] int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz);
+
+// Frames a monocular keyframe waits after the last: 2, or the number nearest to 0.2 s where that
+// is fewer (1 below 7.5 Hz); 2 when the frame rate is unknown (<= 0).
+[[nodiscard]] int MonocularKeyFrameSpacing(double frame_rate_hz);
 
 }  // namespace flatslam

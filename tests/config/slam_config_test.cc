@@ -217,6 +217,31 @@ TEST(SlamOptions, FeatureBudgetFollowsTheCamera) {
   EXPECT_EQ(ResolvedOptions(explicit_budget, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular)).orb.features, 1500);
 }
 
+// Monocular keyframe spacing: 2 frames at KITTI's rate (its times.txt gives 9.65 Hz) and above,
+// 1 where 2 frames span more than about 0.2 s (KITTI with every 2nd frame, 4.8 Hz); depth
+// cameras have none; an explicit value is kept.
+TEST(SlamOptions, MonocularKeyFrameSpacingFollowsTheFrameRate) {
+  const SlamOptions defaults;
+  EXPECT_EQ(defaults.min_frames_between_keyframes, -1);
+  auto spacing = [&](double rate_hz, Sensor sensor) {
+    return ResolvedOptions(defaults, CameraOf(1241, 376, 718.9, rate_hz, sensor, 0.537)).min_frames_between_keyframes;
+  };
+  EXPECT_EQ(spacing(9.65, Sensor::kMonocular), 2);
+  EXPECT_EQ(spacing(20, Sensor::kMonocular), 2);
+  EXPECT_EQ(spacing(30, Sensor::kMonocular), 2);
+  EXPECT_EQ(spacing(7.5, Sensor::kMonocular), 2);
+  EXPECT_EQ(spacing(7.4, Sensor::kMonocular), 1);
+  EXPECT_EQ(spacing(4.8, Sensor::kMonocular), 1);
+  EXPECT_EQ(spacing(1, Sensor::kMonocular), 1);
+  EXPECT_EQ(spacing(0, Sensor::kMonocular), 2);  // rate unknown
+  EXPECT_EQ(spacing(4.8, Sensor::kStereo), 0);
+  SlamOptions explicit_spacing;
+  explicit_spacing.min_frames_between_keyframes = 3;
+  EXPECT_EQ(ResolvedOptions(explicit_spacing, CameraOf(1241, 376, 718.9, 4.8, Sensor::kMonocular))
+                .min_frames_between_keyframes,
+            3);
+}
+
 // --list-options: each value chosen from the camera comes with its rule, and the whole listing
 // still reads back as a config file.
 TEST(SlamOptions, DerivedValuesAreExplained) {
