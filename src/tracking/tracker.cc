@@ -477,13 +477,14 @@ TrackResult TrackFrame(const Map& map, const KeyFrameDatabase& database, const S
       ok = found.has_value();
       report.relocalized = ok;
     }
-    const std::optional<Eigen::Isometry3d> predicted =
-        s.velocity && s.last_frame ? std::optional(*s.velocity * s.last_frame->T_cam_world) : std::nullopt;
+    const bool have_prediction = s.velocity && s.last_frame;
+    const Eigen::Isometry3d predicted =
+        have_prediction ? Eigen::Isometry3d(*s.velocity * s.last_frame->T_cam_world) : Eigen::Isometry3d::Identity();
     if (ok) ok = t.TrackLocalMap(frame, &matches);
     // A relocalized frame's pose was found without the prediction: its distance says nothing of
     // how well the motion is predicted.
-    if (ok && predicted && !report.relocalized) {
-      const float error = PredictionError(map, context.geometry.camera, *predicted, frame);
+    if (ok && have_prediction && !report.relocalized) {
+      const float error = PredictionError(map, context.geometry.camera, predicted, frame);
       s.prediction_error_px = std::max(error, 0.5f * s.prediction_error_px);
     }
     if (!ok) report.relocalized = false;
