@@ -616,4 +616,27 @@ double StereoDepthRule::FarDepth(std::span<const float> depth) const {
   return std::max<double>(fixed_far_m, measured[measured.size() / 2]);
 }
 
+Eigen::Isometry3d ScaledMotion(const Eigen::Isometry3d& T, double s) {
+  // log: rotation vector w (angle theta) and the twist's translation rho with t = V(w) rho,
+  // V(w) = I + (1 - cos theta) / theta^2 [w]x + (theta - sin theta) / theta^3 [w]x^2; exp of
+  // s (w, rho) is the rotation by s w and the translation V(s w) s rho.
+  const Eigen::AngleAxisd rotation(T.linear());
+  const double theta = rotation.angle();
+  const auto V = [](const Eigen::Vector3d& w) -> Eigen::Matrix3d {
+    const double angle = w.norm();
+    Eigen::Matrix3d W;
+    W << 0, -w.z(), w.y(), w.z(), 0, -w.x(), -w.y(), w.x(), 0;
+    // Series below 1e-4 rad: the closed forms lose their digits to cancellation there.
+    const double a = angle < 1e-4 ? 0.5 - angle * angle / 24 : (1 - std::cos(angle)) / (angle * angle);
+    const double b = angle < 1e-4 ? 1.0 / 6 - angle * angle / 120 : (angle - std::sin(angle)) / (angle * angle * angle);
+    return Eigen::Matrix3d::Identity() + a * W + b * W * W;
+  };
+  const Eigen::Vector3d w = theta * rotation.axis();
+  const Eigen::Vector3d rho = V(w).lu().solve(T.translation());
+  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
+  out.linear() = Eigen::AngleAxisd(s * theta, rotation.axis()).toRotationMatrix();
+  out.translation() = V(s * w) * (s * rho);
+  return out;
+}
+
 }  // namespace flatslam

@@ -1,5 +1,6 @@
-// Multi-view geometry: two-view DLT triangulation with checks, and monocular two-view
-// initialization (RANSAC fundamental and homography, model selection, motion recovery).
+// Multi-view geometry: two-view DLT triangulation with checks, monocular two-view initialization
+// (RANSAC fundamental and homography, model selection, motion recovery), and rigid motion at a
+// constant twist.
 // Concurrency: stateless free functions; callable from any thread (the caller owns the rng).
 #pragma once
 
@@ -106,5 +107,10 @@ struct TwoViewResult {
                                                              const std::vector<Eigen::Vector2d>& px2,
                                                              const PinholeCamera& camera, const TwoViewOptions& options,
                                                              std::mt19937_64& rng);
+
+// The rigid motion T continued at its constant twist for s times as long: exp(s log T) in SE(3)
+// (s = 2 gives T * T, s = 0.5 the motion whose square is T, s = 0 the identity). Rotations of
+// T up to pi.
+[[nodiscard]] Eigen::Isometry3d ScaledMotion(const Eigen::Isometry3d& T, double s);
 
 }  // namespace flatslam

@@ -57,6 +57,9 @@ struct TrackerState {
   TrackingState state = TrackingState::kNotInitialized;
   std::optional<TrackedFrame> last_frame;
   std::optional<Eigen::Isometry3d> velocity;  // T_cur_last of the previous step
+  // The time (ns) that step took; the prediction continues the velocity for the time since the
+  // last frame (a dropped frame doubles it). 0: unknown, the velocity is used as it is.
+  int64_t velocity_dt_ns = 0;
   // The keyframe sharing most points with the last frame: frames are anchored at it, and local
   // mapping never culls it.
   KeyFrameHandle reference_keyframe;

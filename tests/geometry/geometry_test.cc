@@ -307,5 +307,25 @@ TEST(InitializeTwoView, RejectsMisuseAndTooFewPoints) {
   EXPECT_FALSE(InitializeTwoView(few, few, camera, TwoViewOptions{}, rng).has_value());
 }
 
+// A motion continued at its constant twist: twice it is the motion applied twice, half of it
+// applied twice is the motion, none of it is the identity; a pure translation scales linearly;
+// small and large rotations alike.
+TEST(ScaledMotion, ContinuesTheConstantTwist) {
+  for (const double angle : {0.0, 1e-7, 1e-3, 0.3, 2.5}) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = Rot(angle, Eigen::Vector3d(0.3, -1.0, 0.2));
+    T.translation() = Eigen::Vector3d(0.4, -0.1, 1.3);
+    const Eigen::Isometry3d twice = ScaledMotion(T, 2.0), half = ScaledMotion(T, 0.5);
+    EXPECT_LT(((T * T).matrix() - twice.matrix()).norm(), 1e-9) << angle;
+    EXPECT_LT(((half * half).matrix() - T.matrix()).norm(), 1e-9) << angle;
+    EXPECT_LT((ScaledMotion(T, 1.0).matrix() - T.matrix()).norm(), 1e-9) << angle;
+    EXPECT_LT((ScaledMotion(T, 0.0).matrix() - Eigen::Matrix4d::Identity()).norm(), 1e-12) << angle;
+    EXPECT_LT(((T * T * T).matrix() - ScaledMotion(T, 3.0).matrix()).norm(), 1e-9) << angle;
+  }
+  Eigen::Isometry3d shift = Eigen::Isometry3d::Identity();
+  shift.translation() = Eigen::Vector3d(1.0, 2.0, -3.0);
+  EXPECT_LT((ScaledMotion(shift, 1.7).translation() - 1.7 * shift.translation()).norm(), 1e-12);
+}
+
 }  // namespace
 }  // namespace flatslam

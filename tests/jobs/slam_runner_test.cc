@@ -238,6 +238,45 @@ TEST(SlamRun, KittiStereoAtTwiceAndThreeTimesTheSpeed) {
   }
 }
 
+// Dropped frames on a fast-moving car: KITTI 06 stereo (1.2 m a frame) with 7 of its 51 frames
+// missing in gaps of 1-3. The motion prediction used to replay the last step as it was, half or
+// a third of the motion since the last frame after a gap; tracking settled on far points around
+// that pose and the error carried on (ATE 1.16 m, scale 1.054). It now continues the velocity
+// for the frame periods that passed. Bar: the snippet's own, 0.059 m, 0 lost. KITTI 07
+// monocular with 7 frames dropped: Sim(3) 0.463 m before, 0.303 m now; bar 0.5% of the path (as
+// for half the frame rate), 0 lost.
+TEST(SlamRun, DroppedFramesOnAFastCar) {
+  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
+  SlamOptions options;
+  options.vocabulary = &vocabulary;
+  struct Case {
+    const char* sequence;
+    Sensor sensor;
+    std::vector<std::pair<size_t, size_t>> skip;
+  };
+  for (const Case& c : {Case{"06", Sensor::kStereo, {{10, 11}, {20, 22}, {30, 31}, {40, 43}}},
+                        Case{"07", Sensor::kMonocular, {{30, 31}, {60, 62}, {90, 91}, {120, 123}}}}) {
+    DatasetOptions dataset_options;
+    dataset_options.sensor = c.sensor;
+    const auto dataset =
+        OpenDataset((testing::DatasetsDir() / "kitti" / "sequences" / c.sequence).string(), dataset_options);
+    SlamRunOptions run;
+    run.skip = c.skip;
+    const SlamRunResult result = RunSlam(*dataset, options, run);
+    const testing::TrajectoryScore score = testing::ScoreTrajectory(*dataset->ground_truth(), result.trajectory);
+    const auto lost = std::count_if(result.reports.begin(), result.reports.end(),
+                                    [](const FrameReport& r) { return r.state == TrackingState::kLost; });
+    EXPECT_EQ(lost, 0) << c.sequence;
+    if (c.sensor == Sensor::kStereo) {
+      EXPECT_EQ(result.trajectory.size(), 44u);
+      EXPECT_LT(score.se3.ate_m.rmse, 0.059);
+      EXPECT_NEAR(score.sim3.alignment.scale, 1.0, 0.01);
+    } else {
+      EXPECT_LT(score.sim3.ate_m.rmse, 0.005 * score.path_m);
+    }
+  }
+}
+
 // Monocular KITTI at half its frame rate (every 2nd frame: 4.8 Hz, 1.1 m a frame on 07, 2.4 m
 // on 06). With keyframes at least 2 frames (0.4 s) apart the map ran out of points on 07's
 // straight and 06's start: 11 frames lost on each, a new segment, Sim(3) ATE 11.2 m and 17.3 m.
