@@ -15,10 +15,12 @@ app="$build/apps/flatslam"
 synth_duration=""
 [ "$quick" = "--quick" ] && synth_duration=",duration=20"
 
-# name|dataset|sensor|reference (what the row is held to; "-" = none)
+# name|dataset|sensor|reference (what the row is held to; "-" = none)|extra flags (optional)
 runs=(
   "kitti07|$datasets/kitti/sequences/07|mono|Sim(3) ATE <= 0.283 m (ORB-SLAM2: 0.268 m), 0 lost"
   "kitti06|$datasets/kitti/sequences/06|stereo|ATE <= 0.059 m, 0 lost"
+  "kitti06 7 frames dropped|$datasets/kitti/sequences/06|stereo|ATE <= 0.059 m, 0 lost|--skip 10:11,20:22,30:31,40:43"
+  "kitti07 7 frames dropped|$datasets/kitti/sequences/07|mono|Sim(3) ATE < 0.5% of path, 0 lost|--skip 30:31,60:62,90:91,120:123"
   "kitti06|$datasets/kitti/sequences/06|mono|-"
   "euroc-MH01-f000-149|$datasets/euroc/MH_01_f000_149|stereo|-"
   "euroc-MH01-f000-149|$datasets/euroc/MH_01_f000_149|mono|-"
@@ -38,12 +40,13 @@ runs=(
 
 printf "%-26s %-6s %6s %5s %5s %9s %7s %9s %7s %9s %8s  %s\n" sequence sensor frames lost kfs ATE_m ATE_% ATE_sim3 scale RPE_m fps reference
 for entry in "${runs[@]}"; do
-  IFS='|' read -r name spec sensor reference <<<"$entry"
+  IFS='|' read -r name spec sensor reference extra <<<"$entry"
   if [[ "$spec" != synth:* && ! -d "$spec" ]]; then
     printf "%-26s %-6s missing: %s\n" "$name" "$sensor" "$spec"
     continue
   fi
-  summary=$("$app" run "$spec" --sensor "$sensor" --quiet 2>&1) || true
+  # shellcheck disable=SC2086
+  summary=$("$app" run "$spec" --sensor "$sensor" $extra --quiet 2>&1) || true
   frames=$(awk '/^frames/{print $2}' <<<"$summary")
   lost=$(awk '/^frames/{print $4}' <<<"$summary")
   kfs=$(awk '/^map /{print $2}' <<<"$summary")
