@@ -141,8 +141,7 @@ struct Tracking {
     return created >= options.min_init_matches / 2;
   }
 
-  bool TrackWithMotion(TrackedFrame& frame) {
-    const std::optional<Eigen::Isometry3d> predicted = PredictedPose(s, frame.t_ns, context.calibration.frame_rate_hz);
+  bool TrackWithMotion(TrackedFrame& frame, const std::optional<Eigen::Isometry3d>& predicted) {
     if (!predicted) return false;
     frame.T_cam_world = *predicted;
     std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
@@ -493,14 +492,14 @@ TrackResult TrackFrame(const Map& map, const KeyFrameDatabase& database, const S
       relocalizing = true;
       s.velocity.reset();
     }
-    if (!relocalizing) ok = t.TrackWithMotion(frame) || t.TrackReferenceKeyFrame(frame);
+    const std::optional<Eigen::Isometry3d> prediction = PredictedPose(s, frame.t_ns, context.calibration.frame_rate_hz);
+    if (!relocalizing) ok = t.TrackWithMotion(frame, prediction) || t.TrackReferenceKeyFrame(frame);
     if (!ok && options.vocabulary) {
       const std::optional<KeyFrameHandle> found = Relocalize(map, database, context, frame);
       if (found) s.reference_keyframe = *found;
       ok = found.has_value();
       report.relocalized = ok;
     }
-    const std::optional<Eigen::Isometry3d> prediction = PredictedPose(s, frame.t_ns, context.calibration.frame_rate_hz);
     const bool have_prediction = prediction.has_value();
     const Eigen::Isometry3d predicted = prediction.value_or(Eigen::Isometry3d::Identity());
     if (ok) ok = t.TrackLocalMap(frame, &matches);
@@ -528,8 +527,7 @@ TrackResult TrackFrame(const Map& map, const KeyFrameDatabase& database, const S
       report.reinitialized = true;
       s.lost_frames = 0;
       s.state = TrackingState::kOk;
-      frame.T_cam_world =
-          PredictedPose(s, frame.t_ns, context.calibration.frame_rate_hz).value_or(s.last_frame->T_cam_world);
+      frame.T_cam_world = prediction.value_or(s.last_frame->T_cam_world);
       std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
       const Eigen::Isometry3d T = frame.T_cam_world;
       if (t.PlanInitialize(frame)) {
