@@ -36,6 +36,8 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
     kf = known->second;
     map.keyframe(kf).T_cam_world = message.keyframe.T_cam_world;
   }
+  std::vector<PointHandle>& touched = touched_;
+  touched.clear();
   for (uint32_t k = 0; k < message.keypoint_point.size(); ++k) {
     const uint32_t i = message.keypoint_point[k];
     const PointHandle bound = map.keyframe(kf).points[k];
@@ -44,28 +46,23 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
       if (!bound.is_null()) map.EraseObservation(bound, kf, /*min_observations=*/1);
       continue;
     }
-    MapPoint& sent = message.points[i];
     auto [found, is_new] = index.points.emplace(message.point_ids[i], PointHandle::null());
     if (is_new || !map.points().contains(found->second)) {
-      sent.reference = kf;
-      sent.first_keyframe_id = map.keyframe(kf).id;
-      sent.observations.clear();
-      found->second = map.points().create(MapPoint(sent));
+      found->second = map.AddPoint(message.positions[i], kf);
     } else {
-      MapPoint& point = map.point(found->second);
-      point.position = sent.position;
-      point.normal = sent.normal;
-      point.descriptor = sent.descriptor;
-      point.min_distance = sent.min_distance;
-      point.max_distance = sent.max_distance;
+      map.point(found->second).position = message.positions[i];
     }
     const PointHandle p = found->second;
+    touched.push_back(p);
     if (bound == p) continue;
     if (!bound.is_null()) map.EraseObservation(bound, kf, /*min_observations=*/1);
     bool seen = false;
     for (const Observation& o : map.point(p).observations) seen = seen || o.keyframe == kf;
     if (!seen) map.AddObservation(p, kf, k);
   }
+  // Viewing direction, distance range and descriptor from the observations the server holds.
+  for (PointHandle p : touched)
+    if (map.points().contains(p)) map.UpdatePointStats(p, message.camera.scales);
   map.UpdateCovisibility(kf);
   return added;
 }

@@ -68,6 +68,7 @@ class AgentMaps {
   std::vector<Index> index_;
   std::map<std::pair<uint32_t, uint64_t>, size_t> by_session_;
   std::optional<AgentCamera> camera_;
+  std::vector<PointHandle> touched_;  // Add's buffer: the points of the message being applied
 };
 
 // A map's keyframe poses (T_world_cam) by frame timestamp (one agent run never keyframes a frame

@@ -14,6 +14,9 @@ namespace flatslam {
 namespace {
 
 constexpr uint32_t kFormatVersion = 1;
+// Keyframe messages: 2 sends points as their position in the keyframe's camera frame (1: map
+// snapshots' point records, no longer read).
+constexpr uint32_t kKeyFrameFormatVersion = 2;
 
 bool Finite(const Eigen::Vector3d& v) {
   return std::isfinite(v.x()) && std::isfinite(v.y()) && std::isfinite(v.z());
@@ -23,55 +26,60 @@ bool Finite(const Eigen::Vector3d& v) {
 
 std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyframe, uint32_t agent, uint64_t session,
                                            const AgentCamera& camera, const Eigen::Isometry3d& T_out_map) {
-  const bool moved = !T_out_map.isApprox(Eigen::Isometry3d::Identity(), 0.0);
+  const KeyFrame& kf = map.keyframe(keyframe);
+  // Points go in the keyframe's camera frame, which a move of the map's frame leaves alone: only
+  // the pose is written in the frame asked for.
   std::optional<KeyFrame> moved_keyframe;
-  if (moved) {
-    moved_keyframe = map.keyframe(keyframe);  // keypoint columns shared, not copied
-    moved_keyframe->T_cam_world = moved_keyframe->T_cam_world * T_out_map.inverse();
+  if (!T_out_map.isApprox(Eigen::Isometry3d::Identity(), 0.0)) {
+    moved_keyframe = kf;  // keypoint columns shared, not copied
+    moved_keyframe->T_cam_world = kf.T_cam_world * T_out_map.inverse();
   }
-  const KeyFrame& kf = moved ? *moved_keyframe : map.keyframe(keyframe);
   // The keyframe's live points, in the order its keypoints first see them.
   std::unordered_map<PointHandle, uint32_t> index;
   std::vector<uint64_t> ids;
-  std::vector<schema::PointRecord> points;
+  std::vector<agent::Vec3f> positions;
   for (PointHandle p : kf.points) {
     const MapPoint* point = map.points().try_get(p);
     if (!point || index.count(p)) continue;
     index.emplace(p, static_cast<uint32_t>(ids.size()));
     ids.push_back(p.packed());
-    if (moved) {
-      MapPoint out = *point;
-      out.position = T_out_map * point->position;
-      out.normal = T_out_map.linear() * point->normal;
-      points.push_back(records::ToPointRecord(out, records::kNone));
-    } else {
-      points.push_back(records::ToPointRecord(*point, records::kNone));
-    }
+    const Eigen::Vector3f X = (kf.T_cam_world * point->position).cast<float>();
+    positions.emplace_back(X.x(), X.y(), X.z());
   }
-  flatbuffers::FlatBufferBuilder builder(kf.size() * 80 + points.size() * sizeof(schema::PointRecord) + 1024);
+  flatbuffers::FlatBufferBuilder builder(kf.size() * 80 + positions.size() * 24 + 1024);
   auto point_index = [&](PointHandle p) {
     const auto it = index.find(p);
     return it == index.end() ? records::kNone : it->second;
   };
   const auto record = records::BuildKeyFrameRecord(
-      builder, kf, point_index, [](KeyFrameHandle) { return records::kNone; }, /*graph=*/false);
+      builder, moved_keyframe ? *moved_keyframe : kf, point_index, [](KeyFrameHandle) { return records::kNone; },
+      /*graph=*/false);
   const auto id_vector = builder.CreateVector(ids);
-  const auto point_vector = builder.CreateVectorOfStructs(points);
+  const auto position_vector = builder.CreateVectorOfStructs(positions);
   const auto calibration = records::BuildCalibration(builder, camera.calibration);
   const auto pyramid = schema::CreateScalePyramid(builder, camera.scales.scale_factor, camera.scales.levels);
-  agent::FinishKeyFrameMessageBuffer(
-      builder, agent::CreateKeyFrameMessage(builder, kFormatVersion, agent, session, calibration, pyramid,
-                                            camera.rgbd_virtual_baseline_m, record, id_vector, point_vector));
+  agent::KeyFrameMessageBuilder message(builder);
+  message.add_format_version(kKeyFrameFormatVersion);
+  message.add_agent(agent);
+  message.add_session(session);
+  message.add_calibration(calibration);
+  message.add_scales(pyramid);
+  message.add_rgbd_virtual_baseline_m(camera.rgbd_virtual_baseline_m);
+  message.add_keyframe(record);
+  message.add_point_ids(id_vector);
+  message.add_point_positions(position_vector);
+  agent::FinishKeyFrameMessageBuffer(builder, message.Finish());
   return {builder.GetBufferPointer(), builder.GetBufferPointer() + builder.GetSize()};
 }
 
 KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std::string& what) {
-  const agent::KeyFrameMessage& root = records::VerifiedMessage<agent::KeyFrameMessage>(
-      bytes, agent::KeyFrameMessageIdentifier(), kFormatVersion, what, "keyframe message");
+  const agent::KeyFrameMessage& root =
+      records::VerifiedMessage<agent::KeyFrameMessage>(bytes, agent::KeyFrameMessageIdentifier(), kKeyFrameFormatVersion,
+                                                       what, "keyframe message", /*min_version=*/kKeyFrameFormatVersion);
   FLATSLAM_CHECK(root.keyframe() != nullptr, what, ": no keyframe");
   const schema::KeyFrameRecord& r = *root.keyframe();
   FLATSLAM_CHECK(records::KeyFrameColumnsAgree(r), what, ": keypoint columns differ in size");
-  const size_t np = records::Size(root.points());
+  const size_t np = records::Size(root.point_positions());
   FLATSLAM_CHECK(records::Size(root.point_ids()) == np, what, ": ", records::Size(root.point_ids()), " point ids for ",
                  np, " points");
 
@@ -96,10 +104,12 @@ KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std:
   }
   const auto ids = records::Span(root.point_ids());
   out.point_ids.assign(ids.begin(), ids.end());
-  out.points.reserve(np);
-  for (const schema::PointRecord& record : records::Span(root.points())) {
-    out.points.push_back(records::FromPointRecord(record));
-    FLATSLAM_CHECK(Finite(out.points.back().position), what, ": point ", out.points.size() - 1, " is not finite");
+  out.positions.reserve(np);
+  const Eigen::Isometry3d T_world_cam = out.keyframe.T_cam_world.inverse();
+  for (const agent::Vec3f& X : records::Span(root.point_positions())) {
+    const Eigen::Vector3d X_cam(X.x(), X.y(), X.z());
+    FLATSLAM_CHECK(Finite(X_cam), what, ": point ", out.positions.size(), " is not finite");
+    out.positions.push_back(T_world_cam * X_cam);
   }
   return out;
 }

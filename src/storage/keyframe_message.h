@@ -1,7 +1,9 @@
 // An agent's keyframe as a message for the map server (schemas/agent.fbs): the keyframe (pose,
 // keypoints, descriptors) and the map points it sees, with their positions as the agent has them
 // when it sends, each point named by the agent's stable id so that the server joins the
-// observations of one point from several keyframes. Decoding verifies everything before it
+// observations of one point from several keyframes. A point's other statistics (viewing
+// direction, distance range, representative descriptor) follow from its observations, so the
+// receiver computes them (Map::UpdatePointStats) instead of receiving them. Decoding verifies everything before it
 // returns: a malformed message is an error, never a crash.
 // Concurrency: pure functions; EncodeKeyFrameMessage reads the map (hold read access to it).
 #pragma once
@@ -30,7 +32,7 @@ struct KeyFrameMessage {
   KeyFrame keyframe;                     // identity, pose and keypoint columns; points null, no graph
   std::vector<uint32_t> keypoint_point;  // per keypoint: index into points, or kNoPoint
   std::vector<uint64_t> point_ids;       // per point: the agent's id (its packed handle)
-  std::vector<MapPoint> points;          // position, normal, descriptor, distances; no observations
+  std::vector<Eigen::Vector3d> positions;  // per point, in the keyframe's world frame (sent in its camera frame)
   static constexpr uint32_t kNoPoint = 0xffffffffu;
 };
 

@@ -25,18 +25,19 @@ namespace fb = flatbuffers;
 inline constexpr uint32_t kNone = 0xffffffffu;  // "no index" in a record
 
 // The root of a message buffer after the checks every agent message gets: its file identifier,
-// the flatbuffers verifier, and a format version from 1 to max_version. Throws flatslam::Error
+// the flatbuffers verifier, and a format version from min_version to max_version. Throws flatslam::Error
 // naming `what` (e.g. "keyframe message 12 from agent 1") and `kind` ("keyframe message").
 template <class Root>
 const Root& VerifiedMessage(std::span<const uint8_t> bytes, const char* identifier, uint32_t max_version,
-                            const std::string& what, const char* kind) {
+                            const std::string& what, const char* kind, uint32_t min_version = 1) {
   FLATSLAM_CHECK(bytes.size() >= 8 && fb::BufferHasIdentifier(bytes.data(), identifier), what, ": not a ", kind, " (",
                  bytes.size(), " bytes)");
   fb::Verifier verifier(bytes.data(), bytes.size());
   FLATSLAM_CHECK(verifier.VerifyBuffer<Root>(identifier), what, ": corrupt (flatbuffers verification failed)");
   const Root& root = *fb::GetRoot<Root>(bytes.data());
-  FLATSLAM_CHECK(root.format_version() >= 1 && root.format_version() <= max_version, what, ": format version ",
-                 root.format_version(), " (this build reads 1 to ", max_version, ")");
+  FLATSLAM_CHECK(root.format_version() >= min_version && root.format_version() <= max_version, what,
+                 ": format version ", root.format_version(), " (this build reads ", min_version, " to ", max_version,
+                 ")");
   return root;
 }
 

@@ -442,7 +442,11 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
 
   // The restarted run moved its map into the merged map's frame (agent 0's) while it ran; what
   // it sent stayed in its run's frame: its newest keyframes, taken back by the correction it moved
-  // by and moved by the last one, land where the server's map has them.
+  // by and moved by the last one, land where the server's map has them, as near as the server's
+  // own fit of that correction says (the fit's residual is how much the merge bent those
+  // keyframes while it took out the run's drift: 0.003-0.23 m in runs of this test, against
+  // 0.27-0.33 m of the run's own error). A run whose sent or saved frame were mixed up would miss
+  // by the move itself, metres here.
   const AgentFrame frame = AgentFrameOf(ReadBytes(dir / "agent1_again.log"), corrections);
   EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / "agent1_again.log");
   const std::lock_guard<std::mutex> lock(mutex);
@@ -461,10 +465,11 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const double own = testing::JointAte({ReadTum(again_out / "groundtruth.tum")}, {again})[0];
   std::printf(
       "restarted agent 1: map moved %llu times (last by merge %llu); newest 10 keyframes %.3f m from the "
-      "server's map after the last correction (own keyframe ATE %.3f m)\n",
-      frame.moves, frame.by, rms, own);
+      "server's map after the last correction (revision %u, fit %.3f m on %u keyframes; own keyframe ATE %.3f m)\n",
+      frame.moves, frame.by, rms, static_cast<unsigned>(last->revision), last->rms_m, last->keyframes, own);
   EXPECT_EQ(n, 10u);
-  EXPECT_LE(rms, 0.25 * own);
+  EXPECT_NEAR(rms, last->rms_m, 0.01);
+  EXPECT_LT(rms, own);
   fs::remove_all(dir);
 }
 

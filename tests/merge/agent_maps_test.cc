@@ -2,6 +2,7 @@
 #include "merge/agent_maps.h"
 
 #include <iterator>
+#include <map>
 
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
@@ -49,6 +50,26 @@ TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
   for (const MapPoint& p : got.points().values()) got_observations += p.observations.size();
   EXPECT_EQ(got_observations, observations);
   EXPECT_EQ(got.Validate(), "");
+  // Points arrive as positions; the server computes viewing direction and representative
+  // descriptor from the observations it holds, as the agent does from the same ones.
+  Map expected = map;
+  for (PointHandle p : expected.points().handles()) expected.UpdatePointStats(p, testing::TestAgentCamera().scales);
+  std::map<int64_t, KeyFrameHandle> by_time;
+  for (KeyFrameHandle h : expected.keyframes().handles()) by_time[expected.keyframe(h).t_ns] = h;
+  size_t compared = 0;
+  for (const KeyFrame& kf : got.keyframes().values()) {
+    const KeyFrame& agent_kf = expected.keyframe(by_time.at(kf.t_ns));
+    for (size_t k = 0; k < kf.size(); ++k) {
+      if (kf.points[k].is_null()) continue;
+      const MapPoint& server_point = got.point(kf.points[k]);
+      const MapPoint& agent_point = expected.point(agent_kf.points[k]);
+      EXPECT_EQ(server_point.descriptor, agent_point.descriptor);
+      EXPECT_TRUE(server_point.normal.isApprox(agent_point.normal, 1e-5));
+      EXPECT_LT((server_point.position - agent_point.position).norm(), 1e-4);
+      ++compared;
+    }
+  }
+  EXPECT_EQ(compared, observations);
   // The agent's final update: a keyframe moved by a loop correction, a point culled. The server's
   // map follows: same keyframes, the point gone, the pose moved.
   Map changed = map;

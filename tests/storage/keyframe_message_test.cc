@@ -1,6 +1,7 @@
 #include "storage/keyframe_message.h"
 
 #include <string>
+#include <unordered_set>
 #include <vector>
 
 #include <Eigen/Geometry>
@@ -48,12 +49,36 @@ TEST(KeyFrameMessage, RoundTripsAKeyFrameWithItsPoints) {
     }
     ++bound;
     const uint32_t i = m.keypoint_point[k];
-    ASSERT_LT(i, m.points.size());
+    ASSERT_LT(i, m.positions.size());
     EXPECT_EQ(m.point_ids[i], kf.points[k].packed());
-    EXPECT_EQ(m.points[i].position, map.point(kf.points[k]).position);
-    EXPECT_EQ(m.points[i].descriptor, map.point(kf.points[k]).descriptor);
+    // Single precision in the camera frame: within 1e-6 of the point's distance from the camera.
+    const Eigen::Vector3d& X = map.point(kf.points[k]).position;
+    const double distance = (X - kf.camera_center()).norm();
+    EXPECT_LT((m.positions[i] - X).norm(), 1e-6 * distance) << k;
   }
   EXPECT_GT(bound, 0u);
+}
+
+// A point costs its id and three floats: 20 bytes, plus a few for the vectors' alignment.
+TEST(KeyFrameMessage, APointCostsItsIdAndItsPosition) {
+  const Map map = testing::RandomMap({});
+  const KeyFrameHandle h = map.keyframes().handles()[5];
+  KeyFrame bare = map.keyframe(h);
+  size_t points = 0;
+  {
+    std::unordered_set<PointHandle> seen;
+    for (PointHandle p : bare.points)
+      if (map.points().contains(p)) seen.insert(p);
+    points = seen.size();
+  }
+  ASSERT_GT(points, 20u);
+  // The same keyframe seeing no points: the difference is what its points cost.
+  Map without = map;
+  for (PointHandle p : map.keyframe(h).points)
+    if (!p.is_null() && without.points().contains(p)) without.EraseObservation(p, h, /*min_observations=*/0);
+  const size_t with_points = EncodeKeyFrameMessage(map, h, 3, 1, testing::TestAgentCamera()).size();
+  const size_t without_points = EncodeKeyFrameMessage(without, h, 3, 1, testing::TestAgentCamera()).size();
+  EXPECT_LE(with_points - without_points, points * 20 + 32);
 }
 
 // An agent whose map moved into a merged map's frame sends in its run's own frame: the pose and
@@ -72,16 +97,12 @@ TEST(KeyFrameMessage, IsWrittenInTheFrameAsked) {
   // The camera sees every point where it saw it: camera-frame coordinates are unchanged.
   EXPECT_TRUE(m.keyframe.T_cam_world.isApprox(kf.T_cam_world * T_out_map.inverse(), 1e-12));
   EXPECT_EQ(m.keyframe.uv, kf.uv);
-  ASSERT_EQ(m.points.size(), plain.points.size());
-  ASSERT_GT(m.points.size(), 0u);
-  for (size_t i = 0; i < m.points.size(); ++i) {
+  ASSERT_EQ(m.positions.size(), plain.positions.size());
+  ASSERT_GT(m.positions.size(), 0u);
+  for (size_t i = 0; i < m.positions.size(); ++i) {
     EXPECT_EQ(m.point_ids[i], plain.point_ids[i]);
-    EXPECT_TRUE(m.points[i].position.isApprox(T_out_map * plain.points[i].position, 1e-12));
-    EXPECT_TRUE(m.points[i].normal.isApprox(T_out_map.linear() * plain.points[i].normal, 1e-12));
-    EXPECT_TRUE((m.keyframe.T_cam_world * m.points[i].position)
-                    .isApprox(plain.keyframe.T_cam_world * plain.points[i].position, 1e-9));
-    EXPECT_EQ(m.points[i].descriptor, plain.points[i].descriptor);
-    EXPECT_EQ(m.points[i].max_distance, plain.points[i].max_distance);
+    EXPECT_TRUE(m.positions[i].isApprox(T_out_map * plain.positions[i], 1e-9));
+    EXPECT_TRUE((m.keyframe.T_cam_world * m.positions[i]).isApprox(plain.keyframe.T_cam_world * plain.positions[i], 1e-9));
   }
 }
 
