@@ -34,9 +34,7 @@ DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers) 
 
 AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map)
     : agent_(agent),
-      // A monocular run's correction has a scale, which its frames' poses relative to their
-      // keyframes would also need: its map stays, only its published poses move.
-      move_map_(move_map && camera.calibration.sensor != Sensor::kMonocular),
+      move_map_(move_map),
       // A new id per process: a restarted agent's keyframes and points never collide with the
       // ids of its earlier run on the server.
       session_(std::random_device{}() * uint64_t{0x100000000} ^ std::random_device{}()),
@@ -67,15 +65,16 @@ void AgentLink::OnFrame(const FrameReport& report) {
   pose.sec = static_cast<int32_t>(report.t_ns / 1'000'000'000);
   pose.nanosec = static_cast<uint32_t>(report.t_ns % 1'000'000'000);
   std::optional<CorrectionMessage> correction;
-  Eigen::Isometry3d T_map_run = Eigen::Isometry3d::Identity();  // the frame the pose is in, from the run's
+  Similarity3 S_map_run;  // the frame the pose is in, from the run's
   {
     const std::lock_guard<std::mutex> lock(correction_mutex_);
     correction = correction_;
-    T_map_run = map_frames_.at(std::min<size_t>(report.map_frame, map_frames_.size() - 1));
+    S_map_run = map_frames_.at(std::min<size_t>(report.map_frame, map_frames_.size() - 1));
   }
-  const Eigen::Isometry3d T_run_cam = T_map_run.inverse() * *report.T_world_cam;
-  Eigen::Vector3d t = T_run_cam.translation();
-  Eigen::Matrix3d R = T_run_cam.linear();
+  // The camera centre and orientation in the run's frame.
+  const Similarity3 S_run_map = S_map_run.inverse();
+  Eigen::Vector3d t = S_run_map * report.T_world_cam->translation();
+  Eigen::Matrix3d R = S_run_map.R * report.T_world_cam->linear();
   if (correction) {
     // The camera centre and orientation in the merged map: X_merged = s R_c X + t_c.
     t = correction->scale * (correction->rotation * t) + correction->translation;
@@ -100,7 +99,11 @@ size_t AgentLink::Send(const Map& map, KeyFrameHandle keyframe) {
   payload.kind = PayloadKind::kKeyFrame;
   payload.sequence = sequence_++;
   // In the run's own frame, the one the server keeps the run's map in.
-  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, map_frames_.back().inverse());
+  const Similarity3 S_run_map = map_frames_.back().inverse();
+  Eigen::Isometry3d T_run_map = Eigen::Isometry3d::Identity();
+  T_run_map.linear() = S_run_map.R;
+  T_run_map.translation() = S_run_map.t;
+  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, T_run_map, S_run_map.s);
   if (!keyframes_->Write(payload)) {
     ++failed_;
     return 0;
@@ -130,19 +133,22 @@ void AgentLink::SendCulled(const Map& map) {
 }
 
 void AgentLink::MoveToNewestCorrection(SlamSession& slam) {
-  Eigen::Isometry3d T_new_old;
+  Similarity3 S_new_old;
   {
     const std::lock_guard<std::mutex> lock(correction_mutex_);
-    if (!move_map_ || !correction_ || correction_->revision <= moved_revision_ || correction_->scale != 1.0) return;
-    Eigen::Isometry3d T_merged_run = Eigen::Isometry3d::Identity();
-    T_merged_run.linear() = correction_->rotation;
-    T_merged_run.translation() = correction_->translation;
-    T_new_old = T_merged_run * map_frames_.back().inverse();
+    if (!move_map_ || !correction_ || correction_->revision <= moved_revision_) return;
+    // Only a monocular map's scale is free; a stereo or RGB-D run's corrections have none.
+    if (camera_.calibration.sensor != Sensor::kMonocular && correction_->scale != 1.0) return;
+    const Similarity3 S_merged_run{correction_->rotation, correction_->translation, correction_->scale};
+    S_new_old = S_merged_run * map_frames_.back().inverse();
     // Recorded before the move: a frame tracked after it finds its frame here.
-    map_frames_.push_back(T_merged_run);
+    map_frames_.push_back(S_merged_run);
     moved_revision_ = correction_->revision;
   }
-  slam.MoveMapFrame(T_new_old);
+  Eigen::Isometry3d T_new_old = Eigen::Isometry3d::Identity();
+  T_new_old.linear() = S_new_old.R;
+  T_new_old.translation() = S_new_old.t;
+  slam.MoveMapFrame(T_new_old, S_new_old.s);
   ++map_moves_;
 }
 

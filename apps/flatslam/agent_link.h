@@ -25,6 +25,7 @@
 #include <utility>
 #include <vector>
 
+#include "geometry/similarity.h"
 #include "live.h"
 #include "net/dds.h"
 #include "slam/session.h"
@@ -65,9 +66,9 @@ class AgentLink : public AgentPublisher {
   mutable std::mutex correction_mutex_;
   std::optional<CorrectionMessage> correction_;  // the newest for this run
   uint64_t corrections_received_ = 0;
-  // The map's world frame after each move, from the run's own (first: the run's own frame); a
-  // frame report's map_frame indexes it. Written on the mapping lane.
-  std::vector<Eigen::Isometry3d> map_frames_{Eigen::Isometry3d::Identity()};
+  // The map's world frame after each move, from the run's own (X_map = S X_run; first: the run's
+  // own frame); a frame report's map_frame indexes it. Written on the mapping lane.
+  std::vector<Similarity3> map_frames_{Similarity3{}};
   uint64_t moved_revision_ = 0;  // the correction the map was last moved by
   void MoveToNewestCorrection(SlamSession& slam);
   std::unique_ptr<DdsNode::Reader<Payload>> corrections_;  // last: stops before the rest goes

@@ -27,8 +27,9 @@ const char* const kAgentUsage =
     "agent's final map, then a message that its run ended; flatslam server collects them. Once the\n"
     "server has merged the agent's map with others', it sends corrections on flatslam/corrections and\n"
     "the agent publishes its poses in the merged map's frame (frame_id flatslam_map_<run>) instead of\n"
-    "its own (flatslam_agent_N_map). A stereo or RGB-D agent also moves its map into that frame, so that\n"
-    "its saved map and trajectory are in it (--own-frame: its map stays in its own frame).\n"
+    "its own (flatslam_agent_N_map). The agent also moves its map into that frame (a monocular one with\n"
+    "the merged map's scale), so that its saved map and trajectory are in it (--own-frame: its map stays\n"
+    "in its own frame).\n"
     "The summary adds the bytes sent per keyframe and per second and the last correction.\n";
 
 const char* const kServerUsage =

@@ -151,12 +151,21 @@ void Map::BindMatchedPoints(KeyFrameHandle kf, std::span<const PointHandle> matc
   }
 }
 
-void Map::MoveFrame(const Eigen::Isometry3d& T_new_old) {
-  const Eigen::Isometry3d T_old_new = T_new_old.inverse();
-  for (KeyFrame& kf : keyframes_.values()) kf.T_cam_world = kf.T_cam_world * T_old_new;
+Eigen::Isometry3d MovedCameraPose(const Eigen::Isometry3d& T_cam_world, const Eigen::Isometry3d& T_new_old,
+                                  double scale) {
+  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
+  out.linear() = T_cam_world.linear() * T_new_old.linear().transpose();
+  out.translation() = scale * T_cam_world.translation() - out.linear() * T_new_old.translation();
+  return out;
+}
+
+void Map::MoveFrame(const Eigen::Isometry3d& T_new_old, double scale) {
+  for (KeyFrame& kf : keyframes_.values()) kf.T_cam_world = MovedCameraPose(kf.T_cam_world, T_new_old, scale);
   for (MapPoint& point : points_.values()) {
-    point.position = T_new_old * point.position;
+    point.position = T_new_old.linear() * (scale * point.position) + T_new_old.translation();
     point.normal = T_new_old.linear() * point.normal;
+    point.min_distance = static_cast<float>(point.min_distance * scale);
+    point.max_distance = static_cast<float>(point.max_distance * scale);
   }
 }
 

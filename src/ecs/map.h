@@ -114,6 +114,12 @@ struct MapScales {
   int levels = 8;
 };
 
+// A camera pose (T_cam_world) after its world moved by X_new = scale * R X_old + t (T_new_old =
+// [R|t]): the same centre and orientation in the new world, in a camera frame whose distances
+// scale with it (rotation R_cw R^T, translation scale * t_cw - R_cw R^T t).
+[[nodiscard]] Eigen::Isometry3d MovedCameraPose(const Eigen::Isometry3d& T_cam_world, const Eigen::Isometry3d& T_new_old,
+                                                double scale);
+
 class Map {
  public:
   [[nodiscard]] KeyFrameHandle AddKeyFrame(KeyFrame&& keyframe);
@@ -141,9 +147,12 @@ class Map {
   void BindMatchedPoints(KeyFrameHandle kf, std::span<const PointHandle> matched);
   // Joins a and b by a loop edge (both directions; once).
   void AddLoopEdge(KeyFrameHandle a, KeyFrameHandle b);
-  // Moves the whole map rigidly into another world frame: every keyframe pose and every point
-  // (position and viewing direction) by T_new_old. Distances, and so everything relative, stay.
-  void MoveFrame(const Eigen::Isometry3d& T_new_old);
+  // Moves the whole map into another world frame, X_new = scale * R X_old + t (T_new_old = [R|t]):
+  // every keyframe pose (MovedCameraPose) and every point (position, viewing direction, distance
+  // range). Rigid with scale 1, when distances, and so everything relative, stay; with another
+  // scale (a monocular map, whose scale is arbitrary) every distance scales and every angle and
+  // pixel stays.
+  void MoveFrame(const Eigen::Isometry3d& T_new_old, double scale = 1.0);
   // Recomputes kf's covisibility (keyframes sharing >= min_shared points; if none reach it,
   // the single best one) and mirrors the weights into the neighbours. Sets the parent of a
   // keyframe without one to its strongest neighbour.

@@ -87,11 +87,23 @@ bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFram
   return false;
 }
 
-Eigen::Isometry3d ResolveFramePose(const Map& map, const CulledKeyFrames& culled, const AnchoredFramePose& f) {
+FrameMove FrameMove::Then(const FrameMove& later) const {
+  // later(this(X)) = s2 R2 (s1 R1 X + t1) + t2.
+  FrameMove out;
+  out.T_new_old.linear() = later.T_new_old.linear() * T_new_old.linear();
+  out.T_new_old.translation() = later.scale * (later.T_new_old.linear() * T_new_old.translation()) +
+                                later.T_new_old.translation();
+  out.scale = later.scale * scale;
+  return out;
+}
+
+Eigen::Isometry3d ResolveFramePose(const Map& map, const CulledKeyFrames& culled, const AnchoredFramePose& f,
+                                   const FrameMove& since) {
   Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
+  T_cam_ref.translation() *= since.scale;
   KeyFrameHandle ref = f.reference;
   if (FollowToLiveKeyFrame(map, culled, &ref, &T_cam_ref)) return T_cam_ref * map.keyframe(ref).T_cam_world;
-  return f.T_cam_world.isometry();
+  return MovedCameraPose(f.T_cam_world.isometry(), since.T_new_old, since.scale);
 }
 
 void ApplySightings(Map& map, std::span<const PointHandle> visible, std::span<const PointHandle> found) {

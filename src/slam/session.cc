@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 
 #include <tbb/parallel_invoke.h>
@@ -40,7 +41,7 @@ constexpr Access kCapture = Access::Of({C::kMap, C::kLocalMapping, C::kTrajector
 constexpr Access kFrameTrajectory = Access::Of({C::kMap, C::kLocalMapping, C::kTrajectory}, {});
 constexpr Access kKeyFrameTrajectory = Access::Of({C::kMap}, {});
 constexpr Access kReadMap = Access::Of({C::kMap}, {});
-constexpr Access kMoveFrame = Access::Of({}, {C::kMap});
+constexpr Access kMoveFrame = Access::Of({}, {C::kMap, C::kTracker, C::kLocalMapping, C::kTrajectory});
 }  // namespace SessionAccess
 
 std::span<const AccessStep> SlamSession::Steps() {
@@ -117,7 +118,8 @@ FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandl
   if (tracker_.state != TrackingState::kNotInitialized && map_corrected_ && tracker_.last_frame &&
       !frame_poses_.empty()) {
     // A loop correction or global BA moved the map: the last frame follows its reference keyframe.
-    tracker_.last_frame->T_cam_world = ResolveFramePose(map_, mapping_.culled, frame_poses_.back());
+    tracker_.last_frame->T_cam_world = ResolveFramePose(map_, mapping_.culled, frame_poses_.back(),
+                                                        MovesSince(frame_moves_, frame_poses_.size() - 1));
     map_corrected_ = false;
   }
   // Tracking reads the map; the mapping system then writes what it found.
@@ -291,9 +293,17 @@ void SlamSession::GlobalBundleAdjustment(size_t loops) {
   ++map_epoch_;
 }
 
-void SlamSession::MoveMapFrame(const Eigen::Isometry3d& T_new_old) {
+void SlamSession::MoveMapFrame(const Eigen::Isometry3d& T_new_old, double scale) {
+  FLATSLAM_CHECK(std::isfinite(scale) && scale > 0, "moving the map's frame: scale ", scale, " is not positive");
+  FLATSLAM_CHECK(scale == 1.0 || context_.monocular(), "moving the map's frame: scale ", scale,
+                 " for a stereo or RGB-D map, whose depths are metric (only a monocular map may scale)");
   const auto lease = access_.Acquire(SessionAccess::kMoveFrame);
-  map_.MoveFrame(T_new_old);
+  map_.MoveFrame(T_new_old, scale);
+  if (tracker_.velocity) tracker_.velocity->translation() *= scale;
+  if (tracker_.init_frame)
+    tracker_.init_frame->T_cam_world = MovedCameraPose(tracker_.init_frame->T_cam_world, T_new_old, scale);
+  for (auto& [handle, culled] : mapping_.culled) culled.T_kf_parent.translation() *= scale;
+  frame_moves_.push_back({frame_poses_.size(), FrameMove{T_new_old, scale}});
   map_corrected_ = true;
   ++map_epoch_;
   ++map_frame_moves_;
@@ -346,6 +356,7 @@ void SlamSession::CaptureState(State* out) const {
   out->map.AssignForSnapshot(map_);
   frame_poses_.TakeView(&out->frames);
   out->culled = mapping_.culled;
+  out->moves = frame_moves_;
   out->next_frame = next_frame_;
 }
 
@@ -357,12 +368,16 @@ void SlamSession::ReadMap(const std::function<void(const Map&)>& read) const {
 void SlamSession::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) const {
   out->clear();
   out->reserve(frames.size());
+  size_t i = 0;
   frames.ForEach([&](AnchoredFramePose a) {
+    const FrameMove since = MovesSince(moves, i++);
     Eigen::Isometry3d T_cam_ref = a.T_cam_ref.isometry();
+    T_cam_ref.translation() *= since.scale;
     if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref))
       a.T_cam_ref = CompactPose(T_cam_ref);
     else
       a.reference = KeyFrameHandle::null();
+    if (!moves.empty()) a.T_cam_world = CompactPose(MovedCameraPose(a.T_cam_world.isometry(), since.T_new_old, since.scale));
     out->push_back(a);
   });
 }
@@ -378,10 +393,18 @@ Trajectory SlamSession::FrameTrajectory() const {
   const auto lease = access_.Acquire(SessionAccess::kFrameTrajectory);
   Trajectory out;
   out.reserve(frame_poses_.size());
+  size_t i = 0;
   frame_poses_.ForEach([&](const AnchoredFramePose& f) {
-    out.push_back({f.t_ns, ResolveFramePose(map_, mapping_.culled, f).inverse()});
+    out.push_back({f.t_ns, ResolveFramePose(map_, mapping_.culled, f, MovesSince(frame_moves_, i++)).inverse()});
   });
   return out;
+}
+
+FrameMove SlamSession::MovesSince(std::span<const FrameMoveRecord> moves, size_t i) {
+  FrameMove since;
+  for (const FrameMoveRecord& m : moves)
+    if (m.frames_before > i) since = since.Then(m.move);
+  return since;
 }
 
 Trajectory SlamSession::KeyFrameTrajectory() const {

@@ -99,10 +99,16 @@ class SlamSession {
   // map while copying (its writers, tracking among them, wait meanwhile). Pass the same State each time: the
   // copy then moves little more than what changed since the last. The frame view reads the
   // session's own records: use a State only while its session lives.
+  // A move of the map's frame (MoveMapFrame) after the first `frames_before` frame records.
+  struct FrameMoveRecord {
+    size_t frames_before = 0;
+    FrameMove move;
+  };
   struct State {
     Map map;
     ChunkLog<AnchoredFramePose>::View frames;
     CulledKeyFrames culled;
+    std::vector<FrameMoveRecord> moves;
     size_t next_frame = 0;  // input index after the last frame given to Track
     // Every frame anchored at a keyframe of `map` (culled references followed to live ones; none
     // where no live keyframe is left), for a snapshot's session.
@@ -112,13 +118,16 @@ class SlamSession {
   // Calls read(map) while holding read access to the map (the "mapping.publish" step: a
   // keyframe's message for a map server, between two keyframes' mapping). Any thread.
   void ReadMap(const std::function<void(const Map&)>& read) const;
-  // Moves the map rigidly into another world frame (T_new_old; a map server's correction puts an
-  // agent's map in the merged map's frame): every keyframe and point; tracked frames follow their
-  // reference keyframes, the tracker's last pose at the next frame, as after a loop correction.
+  // Moves the map into another world frame, X_new = scale * R X_old + t (T_new_old = [R|t]; a map
+  // server's correction puts an agent's map in the merged map's frame): every keyframe and point;
+  // tracked frames follow their reference keyframes, the tracker's last pose at the next frame, as
+  // after a loop correction. A scale other than 1 is for monocular maps only (stereo and RGB-D
+  // depths are metric; throws flatslam::Error): distances relative to keyframes (frame records,
+  // the motion model, culled keyframes' links) scale with it.
   // Work computed on a copy of the map before the move (new points, local or global bundle
   // adjustment) is dropped. Frames tracked after it report map_frame one higher. The mapping
   // lane, between keyframes (the "mapping.move_frame" step).
-  void MoveMapFrame(const Eigen::Isometry3d& T_new_old);
+  void MoveMapFrame(const Eigen::Isometry3d& T_new_old, double scale = 1.0);
 
  private:
   static_assert(sizeof(AnchoredFramePose) == 72);
@@ -156,6 +165,9 @@ class SlamSession {
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;
   uint32_t map_frame_moves_ = 0;  // kMap: MoveMapFrame calls so far
+  std::vector<FrameMoveRecord> frame_moves_;  // kTrajectory: each move, after how many frame records
+  // How the map moved after frame record i was written (moves: the session's or a State's).
+  [[nodiscard]] static FrameMove MovesSince(std::span<const FrameMoveRecord> moves, size_t i);
 
   // Between tracking and mapping, without the lock.
   std::atomic<int> pending_keyframes_{0};

@@ -25,14 +25,15 @@ bool Finite(const Eigen::Vector3d& v) {
 }  // namespace
 
 std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyframe, uint32_t agent, uint64_t session,
-                                           const AgentCamera& camera, const Eigen::Isometry3d& T_out_map) {
+                                           const AgentCamera& camera, const Eigen::Isometry3d& T_out_map,
+                                           double scale) {
   const KeyFrame& kf = map.keyframe(keyframe);
-  // Points go in the keyframe's camera frame, which a move of the map's frame leaves alone: only
-  // the pose is written in the frame asked for.
+  // Points go in the keyframe's camera frame, which a rigid move of the map's frame leaves alone
+  // (a scaled one scales them): only the pose is written in the frame asked for.
   std::optional<KeyFrame> moved_keyframe;
-  if (!T_out_map.isApprox(Eigen::Isometry3d::Identity(), 0.0)) {
+  if (!T_out_map.isApprox(Eigen::Isometry3d::Identity(), 0.0) || scale != 1.0) {
     moved_keyframe = kf;  // keypoint columns shared, not copied
-    moved_keyframe->T_cam_world = kf.T_cam_world * T_out_map.inverse();
+    moved_keyframe->T_cam_world = MovedCameraPose(kf.T_cam_world, T_out_map, scale);
   }
   // The keyframe's live points, in the order its keypoints first see them.
   std::unordered_map<PointHandle, uint32_t> index;
@@ -43,7 +44,7 @@ std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyfra
     if (!point || index.count(p)) continue;
     index.emplace(p, static_cast<uint32_t>(ids.size()));
     ids.push_back(p.packed());
-    const Eigen::Vector3f X = (kf.T_cam_world * point->position).cast<float>();
+    const Eigen::Vector3f X = (scale * (kf.T_cam_world * point->position)).cast<float>();
     positions.emplace_back(X.x(), X.y(), X.z());
   }
   flatbuffers::FlatBufferBuilder builder(kf.size() * 80 + positions.size() * 24 + 1024);

@@ -36,11 +36,12 @@ struct KeyFrameMessage {
   static constexpr uint32_t kNoPoint = 0xffffffffu;
 };
 
-// T_out_map: the world frame the message's pose and points are written in, from the map's (an
-// agent whose map moved into a merged map's frame sends in its run's own frame).
+// T_out_map and scale: the world frame the message's pose and points are written in, X_out = scale
+// * R X_map + t (an agent whose map moved into a merged map's frame sends in its run's own frame;
+// a monocular one's move has a scale).
 [[nodiscard]] std::vector<uint8_t> EncodeKeyFrameMessage(
     const Map& map, KeyFrameHandle keyframe, uint32_t agent, uint64_t session, const AgentCamera& camera,
-    const Eigen::Isometry3d& T_out_map = Eigen::Isometry3d::Identity());
+    const Eigen::Isometry3d& T_out_map = Eigen::Isometry3d::Identity(), double scale = 1.0);
 // Throws flatslam::Error naming `what` (e.g. "keyframe message 12 from agent 1") and the first
 // problem: not a keyframe message, a newer format, corrupt, columns of different sizes, a point
 // index out of range, non-finite values.

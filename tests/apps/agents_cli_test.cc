@@ -59,7 +59,8 @@ using HeardCorrections = std::map<std::pair<uint64_t, uint64_t>, CorrectionMessa
 struct AgentFrame {
   uint64_t session = 0;
   unsigned long long moves = 0, by = 0;
-  Eigen::Isometry3d T_map_run = Eigen::Isometry3d::Identity();
+  Eigen::Isometry3d T_map_run = Eigen::Isometry3d::Identity();  // X_map = scale * R X_run + t
+  double scale = 1.0;                                            // a monocular run's
 };
 AgentFrame AgentFrameOf(const std::string& agent_log, const HeardCorrections& heard) {
   AgentFrame out;
@@ -84,6 +85,7 @@ AgentFrame AgentFrameOf(const std::string& agent_log, const HeardCorrections& he
   if (it == heard.end()) return out;
   out.T_map_run.linear() = it->second.rotation;
   out.T_map_run.translation() = it->second.translation;
+  out.scale = it->second.scale;
   return out;
 }
 
@@ -95,7 +97,8 @@ double NewestKeyFramesRms(const Trajectory& keyframes, const AgentFrame& frame, 
   double sum = 0;
   *found = 0;
   for (size_t i = keyframes.size() >= 10 ? keyframes.size() - 10 : 0; i < keyframes.size(); ++i) {
-    const Eigen::Vector3d run = frame.T_map_run.inverse() * keyframes[i].T_world_cam.translation();
+    const Eigen::Vector3d run = frame.T_map_run.linear().transpose() *
+                                (keyframes[i].T_world_cam.translation() - frame.T_map_run.translation()) / frame.scale;
     const Eigen::Vector3d moved = c.scale * (c.rotation * run) + c.translation;
     for (const TimedPose& m : merged) {
       if (m.t_ns != keyframes[i].t_ns) continue;
@@ -470,6 +473,63 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   EXPECT_EQ(n, 10u);
   EXPECT_NEAR(rms, last->rms_m, 0.01);
   EXPECT_LT(rms, own);
+  fs::remove_all(dir);
+}
+
+// Monocular agents move their maps too, with the merged map's scale: two monocular runs of the
+// room (different seeds, so different scales) end in one map, each moved its map into the merged
+// frame while it ran, and its saved keyframes, taken back by that move (a similarity) and moved by
+// its last correction, land where the server's map has them, as near as the server's fit says.
+TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_mono");
+  const uint32_t domain = 60 + static_cast<uint32_t>(getpid() % 20);
+  const std::string d = std::to_string(domain);
+  DdsOptions dds;
+  dds.domain = domain;
+  DdsNode subscriber(dds, "test subscriber");
+  std::mutex mutex;
+  HeardCorrections corrections;
+  const auto correction_reader = subscriber.PayloadReader(kCorrectionTopic, [&](const Payload& payload) {
+    if (payload.kind != PayloadKind::kCorrection) return;
+    CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
+    const std::lock_guard<std::mutex> lock(mutex);
+    corrections[{c.session, c.revision}] = std::move(c);
+  });
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
+  std::vector<pid_t> agents;
+  for (int k = 0; k < 2; ++k)
+    agents.push_back(Spawn({"agent", "synth:room:sensor=mono,duration=20,width=480,height=360", "--seed",
+                            std::to_string(k + 1), "--id", std::to_string(k), "--quiet", "--deterministic",
+                            "--dds-domain", d, "--out", (dir / ("agent" + std::to_string(k))).string()},
+                           dir / ("agent" + std::to_string(k) + ".log")));
+  for (int k = 0; k < 2; ++k)
+    ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  EXPECT_TRUE(Contains(ReadBytes(dir / "server.log"), "agents [0,1]")) << ReadBytes(dir / "server.log");
+  const std::lock_guard<std::mutex> lock(mutex);
+  for (int k = 0; k < 2; ++k) {
+    const fs::path out = dir / ("agent" + std::to_string(k));
+    const AgentFrame frame = AgentFrameOf(ReadBytes(dir / ("agent" + std::to_string(k) + ".log")), corrections);
+    EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+    const CorrectionMessage* last = nullptr;
+    for (const auto& [key, c] : corrections)
+      if (key.first == frame.session) last = &c;
+    ASSERT_NE(last, nullptr) << "no correction heard for agent " << k;
+    const fs::path exported = dir / ("merged" + std::to_string(k) + ".tum");
+    const auto r = RunApp("map export " + (dir / "server" / "map.fsmap").string() + " --trajectory " +
+                          exported.string() + " --agent " + std::to_string(k));
+    ASSERT_EQ(r.exit_code, 0) << r.output;
+    size_t n = 0;
+    const double rms = NewestKeyFramesRms(ReadTum(out / "keyframes.tum"), frame, *last, ReadTum(exported), &n);
+    std::printf(
+        "monocular agent %d: map moved %llu times, the last by merge %llu with scale %.4f; newest 10 keyframes %.4f "
+        "from the server's map after the last correction (revision %llu, scale %.4f, fit %.4f)\n",
+        k, frame.moves, frame.by, frame.scale, rms, static_cast<unsigned long long>(last->revision), last->scale,
+        last->rms_m);
+    EXPECT_EQ(n, 10u);
+    EXPECT_NEAR(rms, last->rms_m, 0.01);
+  }
   fs::remove_all(dir);
 }
 

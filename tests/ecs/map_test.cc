@@ -32,6 +32,39 @@ struct Fixture {
   }
 };
 
+// Moving a map into another frame with a scale (a monocular map joining a merged one): every
+// point stays where every camera sees it (same direction, depth scaled), camera centres and points
+// move by the similarity, distance ranges scale.
+TEST(Map, MoveFrameWithAScaleKeepsWhatEveryCameraSees) {
+  Fixture f(3, 4);
+  f.map.keyframe(f.kfs[1]).T_cam_world.linear() =
+      Eigen::AngleAxisd(0.3, Eigen::Vector3d(0, 1, 0.2).normalized()).toRotationMatrix();
+  for (PointHandle p : f.pts) f.map.UpdatePointStats(p, MapScales{});
+  const Map before = f.map;
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = Eigen::AngleAxisd(1.1, Eigen::Vector3d(1, -2, 0.5).normalized()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(4, 0.5, -7);
+  const double s = 2.5;
+  f.map.MoveFrame(T, s);
+  auto moved = [&](const Eigen::Vector3d& X) -> Eigen::Vector3d { return s * (T.linear() * X) + T.translation(); };
+  for (KeyFrameHandle kf : f.kfs) {
+    const KeyFrame& a = before.keyframe(kf);
+    const KeyFrame& b = f.map.keyframe(kf);
+    EXPECT_LT((b.camera_center() - moved(a.camera_center())).norm(), 1e-12);
+    for (PointHandle p : f.pts) {
+      const Eigen::Vector3d Xa = a.T_cam_world * before.point(p).position;
+      const Eigen::Vector3d Xb = b.T_cam_world * f.map.point(p).position;
+      EXPECT_LT((Xb - s * Xa).norm(), 1e-12);  // camera-frame coordinates scale
+    }
+  }
+  for (PointHandle p : f.pts) {
+    EXPECT_LT((f.map.point(p).position - moved(before.point(p).position)).norm(), 1e-12);
+    EXPECT_LT((f.map.point(p).normal - T.linear() * before.point(p).normal).norm(), 1e-12);
+    EXPECT_FLOAT_EQ(f.map.point(p).max_distance, static_cast<float>(s * before.point(p).max_distance));
+    EXPECT_FLOAT_EQ(f.map.point(p).min_distance, static_cast<float>(s * before.point(p).min_distance));
+  }
+}
+
 TEST(Map, ObservationsAreMirrored) {
   Fixture f(3, 20);
   EXPECT_EQ(f.map.Validate(), "");
