@@ -109,6 +109,62 @@ double NewestKeyFramesRms(const Trajectory& keyframes, const AgentFrame& frame, 
   return *found > 0 ? std::sqrt(sum / static_cast<double>(*found)) : 0.0;
 }
 
+// Every correction the server sends, heard by the test's own DDS subscriber.
+class CorrectionListener {
+ public:
+  explicit CorrectionListener(uint32_t domain)
+      : node_(Options(domain), "test subscriber"),
+        reader_(node_.PayloadReader(kCorrectionTopic, [this](const Payload& payload) {
+          if (payload.kind != PayloadKind::kCorrection) return;
+          CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
+          const std::lock_guard<std::mutex> lock(mutex_);
+          heard_[{c.session, c.revision}] = std::move(c);
+        })) {}
+  [[nodiscard]] HeardCorrections Heard() const {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    return heard_;
+  }
+
+ private:
+  static DdsOptions Options(uint32_t domain) {
+    DdsOptions dds;
+    dds.domain = domain;
+    return dds;
+  }
+  mutable std::mutex mutex_;
+  HeardCorrections heard_;
+  DdsNode node_;
+  std::unique_ptr<DdsNode::Reader<Payload>> reader_;  // last: stops before what it writes goes
+};
+
+// An agent run against the server's final map: the last correction heard for it, and the RMS
+// distance NewestKeyFramesRms measures between its saved keyframes (taken back by the move it
+// logged) moved by that correction and its keyframes in the map (exported for `agent` to
+// `exported`). Fails the test and returns nullopt when something is missing.
+struct LastCorrectionCheck {
+  CorrectionMessage last;
+  double rms = 0;
+  size_t found = 0;
+};
+std::optional<LastCorrectionCheck> CheckAgainstLastCorrection(const fs::path& map, uint32_t agent,
+                                                              const Trajectory& keyframes, const AgentFrame& frame,
+                                                              const HeardCorrections& heard,
+                                                              const fs::path& exported) {
+  const CorrectionMessage* last = nullptr;
+  for (const auto& [key, c] : heard)
+    if (key.first == frame.session) last = &c;  // ordered by session, then merge
+  EXPECT_NE(last, nullptr) << "no correction heard for agent " << agent;
+  if (!last) return std::nullopt;
+  const auto r = RunApp("map export " + map.string() + " --trajectory " + exported.string() + " --agent " +
+                        std::to_string(agent));
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  if (r.exit_code != 0) return std::nullopt;
+  LastCorrectionCheck out;
+  out.last = *last;
+  out.rms = NewestKeyFramesRms(keyframes, frame, *last, ReadTum(exported), &out.found);
+  return out;
+}
+
 // The town agents of the merge tests (tests/merge/map_merge_test.cc): agents 0 and 1 share two
 // stretches of road, agent 2 shares the top road with both.
 std::string Town(int agent) {
@@ -379,17 +435,7 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const uint32_t domain = 200 + static_cast<uint32_t>(getpid() % 30);
   const std::string d = std::to_string(domain);
   // The corrections the agents get (the agents here move their maps by them: no --own-frame).
-  DdsOptions dds;
-  dds.domain = domain;
-  DdsNode subscriber(dds, "test subscriber");
-  std::mutex mutex;
-  HeardCorrections corrections;
-  const auto correction_reader = subscriber.PayloadReader(kCorrectionTopic, [&](const Payload& payload) {
-    if (payload.kind != PayloadKind::kCorrection) return;
-    CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
-    const std::lock_guard<std::mutex> lock(mutex);
-    corrections[{c.session, c.revision}] = std::move(c);
-  });
+  const CorrectionListener listener(domain);
   const pid_t server =
       Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
   const pid_t agent0 =
@@ -450,21 +496,17 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   // keyframes while it took out the run's drift: 0.003-0.23 m in runs of this test, against
   // 0.27-0.33 m of the run's own error). A run whose sent or saved frame were mixed up would miss
   // by the move itself, metres here.
+  const HeardCorrections corrections = listener.Heard();
   const AgentFrame frame = AgentFrameOf(ReadBytes(dir / "agent1_again.log"), corrections);
   EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / "agent1_again.log");
-  const std::lock_guard<std::mutex> lock(mutex);
-  const CorrectionMessage* last = nullptr;
-  for (const auto& [key, c] : corrections)
-    if (key.first == frame.session) last = &c;  // the map is ordered by session, then merge
-  ASSERT_NE(last, nullptr) << "no correction heard for the restarted run";
-  EXPECT_EQ(last->frame_agent, 0u);
-  const fs::path exported = dir / "merged1.tum";
-  const auto r = RunApp("map export " + (dir / "server" / "map.fsmap").string() + " --trajectory " + exported.string() +
-                        " --agent 1");
-  ASSERT_EQ(r.exit_code, 0) << r.output;
   const Trajectory again = ReadTum(again_out / "keyframes.tum");
-  size_t n = 0;
-  const double rms = NewestKeyFramesRms(again, frame, *last, ReadTum(exported), &n);
+  const auto check =
+      CheckAgainstLastCorrection(dir / "server" / "map.fsmap", 1, again, frame, corrections, dir / "merged1.tum");
+  ASSERT_TRUE(check.has_value());
+  const CorrectionMessage* last = &check->last;
+  EXPECT_EQ(last->frame_agent, 0u);
+  const double rms = check->rms;
+  const size_t n = check->found;
   const double own = testing::JointAte({ReadTum(again_out / "groundtruth.tum")}, {again})[0];
   std::printf(
       "restarted agent 1: map moved %llu times (last by merge %llu); newest 10 keyframes %.3f m from the "
@@ -484,17 +526,7 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
   const fs::path dir = testing::FreshTempDir("agents_cli_mono");
   const uint32_t domain = 60 + static_cast<uint32_t>(getpid() % 20);
   const std::string d = std::to_string(domain);
-  DdsOptions dds;
-  dds.domain = domain;
-  DdsNode subscriber(dds, "test subscriber");
-  std::mutex mutex;
-  HeardCorrections corrections;
-  const auto correction_reader = subscriber.PayloadReader(kCorrectionTopic, [&](const Payload& payload) {
-    if (payload.kind != PayloadKind::kCorrection) return;
-    CorrectionMessage c = DecodeCorrectionMessage(payload.bytes, "correction");
-    const std::lock_guard<std::mutex> lock(mutex);
-    corrections[{c.session, c.revision}] = std::move(c);
-  });
+  const CorrectionListener listener(domain);
   const pid_t server =
       Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
   std::vector<pid_t> agents;
@@ -507,21 +539,17 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
     ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   EXPECT_TRUE(Contains(ReadBytes(dir / "server.log"), "agents [0,1]")) << ReadBytes(dir / "server.log");
-  const std::lock_guard<std::mutex> lock(mutex);
+  const HeardCorrections corrections = listener.Heard();
   for (int k = 0; k < 2; ++k) {
     const fs::path out = dir / ("agent" + std::to_string(k));
     const AgentFrame frame = AgentFrameOf(ReadBytes(dir / ("agent" + std::to_string(k) + ".log")), corrections);
     EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
-    const CorrectionMessage* last = nullptr;
-    for (const auto& [key, c] : corrections)
-      if (key.first == frame.session) last = &c;
-    ASSERT_NE(last, nullptr) << "no correction heard for agent " << k;
-    const fs::path exported = dir / ("merged" + std::to_string(k) + ".tum");
-    const auto r = RunApp("map export " + (dir / "server" / "map.fsmap").string() + " --trajectory " +
-                          exported.string() + " --agent " + std::to_string(k));
-    ASSERT_EQ(r.exit_code, 0) << r.output;
-    size_t n = 0;
-    const double rms = NewestKeyFramesRms(ReadTum(out / "keyframes.tum"), frame, *last, ReadTum(exported), &n);
+    const auto check = CheckAgainstLastCorrection(dir / "server" / "map.fsmap", k, ReadTum(out / "keyframes.tum"),
+                                                  frame, corrections, dir / ("merged" + std::to_string(k) + ".tum"));
+    ASSERT_TRUE(check.has_value());
+    const CorrectionMessage* last = &check->last;
+    const double rms = check->rms;
+    const size_t n = check->found;
     std::printf(
         "monocular agent %d: map moved %llu times, the last by merge %llu with scale %.4f; newest 10 keyframes %.4f "
         "from the server's map after the last correction (revision %llu, scale %.4f, fit %.4f)\n",
