@@ -117,6 +117,26 @@ void MoveTheMapFrameMidRun(const std::string& spec, double scale, size_t at_keyf
     out.translation() = scale * (T_new_old.linear() * T_world_cam.translation()) + T_new_old.translation();
     return out;
   };
+  // A checkpoint taken after the move holds every frame anchored in the moved map, as the
+  // session's own trajectory has it (frames recorded before the move among them).
+  double worst_checkpoint = -1;
+  auto check_checkpoint = [&](SlamSession& slam) {
+    SlamSession::State state;
+    slam.CaptureState(&state);
+    std::vector<AnchoredFramePose> frames;
+    state.AnchoredToMap(&frames);
+    const Trajectory trajectory = slam.FrameTrajectory();
+    EXPECT_EQ(frames.size(), trajectory.size());
+    worst_checkpoint = 0;
+    for (size_t i = 0; i < frames.size() && i < trajectory.size(); ++i) {
+      const AnchoredFramePose& f = frames[i];
+      const Eigen::Isometry3d T_cam_world = f.reference.is_null()
+                                                ? f.T_cam_world.isometry()
+                                                : f.T_cam_ref.isometry() * state.map.keyframe(f.reference).T_cam_world;
+      worst_checkpoint = std::max(
+          worst_checkpoint, (T_cam_world.inverse().translation() - trajectory[i].T_world_cam.translation()).norm());
+    }
+  };
   auto run_once = [&](bool move) {
     SlamRunOptions run;
     run.deterministic = true;
@@ -124,6 +144,7 @@ void MoveTheMapFrameMidRun(const std::string& spec, double scale, size_t at_keyf
     run.on_keyframe_mapped = [&](SlamSession& slam, KeyFrameHandle) {
       if (!move) return;
       ++keyframes;
+      if (keyframes == at_keyframe + 4) check_checkpoint(slam);
       if (!two_steps) {
         if (keyframes == at_keyframe) slam.MoveMapFrame(T_new_old, scale);
         return;
@@ -172,6 +193,9 @@ void MoveTheMapFrameMidRun(const std::string& spec, double scale, size_t at_keyf
       "%zu frames tracked before the move, %zu after; the first 10 after it %.1g m from the plain run's "
       "moved\n",
       before, after, worst_first_after);
+  std::printf("checkpoint after the move: its frames %.1g from the session's trajectory\n", worst_checkpoint);
+  EXPECT_GE(worst_checkpoint, 0.0);          // taken
+  EXPECT_LT(worst_checkpoint, 1e-5 * scale);  // single-precision records
   EXPECT_EQ(lost, 0u);
   EXPECT_GT(before, 10u);
   EXPECT_GT(after, 50u);
