@@ -6,7 +6,8 @@
 # the agent received; for the server: each live merge while the agents ran (time, keyframes, maps
 # joined), when agents met and how long after their first overlap the merged map was ready, each
 # agent's end of run, messages received, the merge and save time after the agents stopped, and
-# the output maps.
+# the output maps; then each agent's keyframe ATE in its own map and in the server's, and all
+# three under one alignment.
 # usage: bench/agents_bench.sh [BUILD_DIR] [OUT_DIR]
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
@@ -21,7 +22,7 @@ domain=$((120 + $$ % 50))
 server=$!
 pids=()
 for k in 0 1 2; do
-  "$app" agent "$(town $k)" --id $k --quiet --dds-domain "$domain" >"$out/agent$k.log" 2>&1 &
+  "$app" agent "$(town $k)" --id $k --quiet --dds-domain "$domain" --out "$out/agent$k" >"$out/agent$k.log" 2>&1 &
   pids+=($!)
 done
 for p in "${pids[@]}"; do wait "$p"; done
@@ -40,3 +41,18 @@ for k in 0 1 2; do
 done
 echo "server"
 grep -E "^(live merge|met|ended|finished|received|agent|loops|final merge|output map|wrote|time) " "$out/server.log" | sed 's/^/  /'
+
+# Accuracy: each agent's keyframes as it saved them, and as the server's map holds them, each
+# aligned alone (SE(3)); then all three agents' keyframes in the server's map under one alignment
+# (timestamps offset by 1000 s per agent so that they pair with their own ground truth).
+ate() { "$app" eval "$1" "$2" 2>&1 | awk '/ATE \[m\]/ { print $3; exit }'; }
+: >"$out/joint_est.tum"
+: >"$out/joint_gt.tum"
+echo "accuracy (keyframe ATE, m)"
+for k in 0 1 2; do
+  "$app" map export "$out/server/map.fsmap" --trajectory "$out/merged$k.tum" --agent $k >/dev/null
+  echo "  agent $k: own $(ate "$out/agent$k/keyframes.tum" "$out/agent$k/groundtruth.tum"), in the server's map $(ate "$out/merged$k.tum" "$out/agent$k/groundtruth.tum")"
+  awk -v o=$((k * 1000)) '/^#/ { next } { $1 = sprintf("%.6f", $1 + o); print }' "$out/merged$k.tum" >>"$out/joint_est.tum"
+  awk -v o=$((k * 1000)) '/^#/ { next } { $1 = sprintf("%.6f", $1 + o); print }' "$out/agent$k/groundtruth.tum" >>"$out/joint_gt.tum"
+done
+echo "  all three in the server's map, one alignment: $(ate "$out/joint_est.tum" "$out/joint_gt.tum")"
