@@ -16,6 +16,7 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
   if (inserted) {
     sessions_.push_back(Session{message.agent, message.session, Map()});
     index_.emplace_back();
+    stale_points_.emplace_back();
   }
   Session& session = sessions_[it->second];
   Index& index = index_[it->second];
@@ -36,8 +37,7 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
     kf = known->second;
     map.keyframe(kf).T_cam_world = message.keyframe.T_cam_world;
   }
-  std::vector<PointHandle>& touched = touched_;
-  touched.clear();
+  std::vector<PointHandle>& touched = stale_points_[it->second];
   for (uint32_t k = 0; k < message.keypoint_point.size(); ++k) {
     const uint32_t i = message.keypoint_point[k];
     const PointHandle bound = map.keyframe(kf).points[k];
@@ -60,11 +60,21 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
     for (const Observation& o : map.point(p).observations) seen = seen || o.keyframe == kf;
     if (!seen) map.AddObservation(p, kf, k);
   }
-  // Viewing direction, distance range and descriptor from the observations the server holds.
-  for (PointHandle p : touched)
-    if (map.points().contains(p)) map.UpdatePointStats(p, message.camera.scales);
   map.UpdateCovisibility(kf);
   return added;
+}
+
+void AgentMaps::RefreshPointStats() {
+  if (!camera_) return;
+  for (size_t i = 0; i < sessions_.size(); ++i) {
+    Map& map = sessions_[i].map;
+    std::vector<PointHandle>& stale = stale_points_[i];
+    std::sort(stale.begin(), stale.end());
+    stale.erase(std::unique(stale.begin(), stale.end()), stale.end());
+    for (PointHandle p : stale)
+      if (map.points().contains(p)) map.UpdatePointStats(p, camera_->scales);
+    stale.clear();
+  }
 }
 
 size_t AgentMaps::Cull(const KeyFramesCulled& message) {
@@ -104,6 +114,7 @@ void AgentMaps::ComputeBow(const Vocabulary& vocabulary) {
 
 AgentMaps::RunMaps AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
   ComputeBow(vocabulary);
+  RefreshPointStats();
   RunMaps taken;
   for (size_t i : MergeOrder()) {
     taken.maps.push_back(std::move(sessions_[i].map));
@@ -111,12 +122,14 @@ AgentMaps::RunMaps AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
   }
   sessions_.clear();
   index_.clear();
+  stale_points_.clear();
   by_session_.clear();
   return taken;
 }
 
 AgentMaps::RunMaps AgentMaps::CopyMaps(const Vocabulary& vocabulary) {
   ComputeBow(vocabulary);
+  RefreshPointStats();
   RunMaps copies;
   for (size_t i : MergeOrder()) {
     copies.maps.push_back(sessions_[i].map);

@@ -52,6 +52,12 @@ class AgentMaps {
   };
   // Moves them out: the sessions are left empty.
   [[nodiscard]] RunMaps TakeMaps(const Vocabulary& vocabulary);
+  // Messages carry points as positions: a point's viewing direction, distance range and
+  // representative descriptor follow from the observations held here (Map::UpdatePointStats),
+  // computed once per point named since the last time, when the maps are taken or copied (a point
+  // seen by n keyframes would otherwise be computed n times over, in O(n^2) each, as its keyframes
+  // arrive and again in the final update). sessions() shows them as last computed.
+  void RefreshPointStats();
   // Copies, for a merge while messages keep arriving.
   [[nodiscard]] RunMaps CopyMaps(const Vocabulary& vocabulary);
 
@@ -68,7 +74,8 @@ class AgentMaps {
   std::vector<Index> index_;
   std::map<std::pair<uint32_t, uint64_t>, size_t> by_session_;
   std::optional<AgentCamera> camera_;
-  std::vector<PointHandle> touched_;  // Add's buffer: the points of the message being applied
+  // Per session: points a message named since their statistics were last computed.
+  std::vector<std::vector<PointHandle>> stale_points_;
 };
 
 // A map's keyframe poses (T_world_cam) by frame timestamp (one agent run never keyframes a frame

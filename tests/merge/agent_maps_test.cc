@@ -52,6 +52,7 @@ TEST(AgentMaps, JoinPointsAcrossKeyFramesAndKeepSessionsApart) {
   EXPECT_EQ(got.Validate(), "");
   // Points arrive as positions; the server computes viewing direction and representative
   // descriptor from the observations it holds, as the agent does from the same ones.
+  maps.RefreshPointStats();
   Map expected = map;
   for (PointHandle p : expected.points().handles()) expected.UpdatePointStats(p, testing::TestAgentCamera().scales);
   std::map<int64_t, KeyFrameHandle> by_time;
