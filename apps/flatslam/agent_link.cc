@@ -100,10 +100,8 @@ size_t AgentLink::Send(const Map& map, KeyFrameHandle keyframe) {
   payload.sequence = sequence_++;
   // In the run's own frame, the one the server keeps the run's map in.
   const Similarity3 S_run_map = map_frames_.back().inverse();
-  Eigen::Isometry3d T_run_map = Eigen::Isometry3d::Identity();
-  T_run_map.linear() = S_run_map.R;
-  T_run_map.translation() = S_run_map.t;
-  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, T_run_map, S_run_map.s);
+  payload.bytes =
+      EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, S_run_map.RigidPart(), S_run_map.s);
   if (!keyframes_->Write(payload)) {
     ++failed_;
     return 0;
@@ -145,10 +143,7 @@ void AgentLink::MoveToNewestCorrection(SlamSession& slam) {
     map_frames_.push_back(S_merged_run);
     moved_revision_ = correction_->revision;
   }
-  Eigen::Isometry3d T_new_old = Eigen::Isometry3d::Identity();
-  T_new_old.linear() = S_new_old.R;
-  T_new_old.translation() = S_new_old.t;
-  slam.MoveMapFrame(T_new_old, S_new_old.s);
+  slam.MoveMapFrame(S_new_old.RigidPart(), S_new_old.s);
   ++map_moves_;
 }
 

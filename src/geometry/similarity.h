@@ -16,6 +16,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include "ecs/map.h"
 #include "io/types.h"
 
 namespace flatslam {
@@ -38,7 +39,20 @@ struct Similarity3 {
     const Eigen::Matrix3d Rt = R.transpose();
     return {Rt, -(Rt * t) / s, 1.0 / s};
   }
+  // [R|t] with the scale left out (X_new = s * (R X) + t = RigidPart() * (s X)): the form
+  // Map::MoveFrame and MovedCameraPose take, beside s.
+  [[nodiscard]] Eigen::Isometry3d RigidPart() const {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = R;
+    T.translation() = t;
+    return T;
+  }
 };
+
+// A camera pose after its world moved by S (ecs/map.h's MovedCameraPose).
+[[nodiscard]] inline Eigen::Isometry3d MovedCameraPose(const Eigen::Isometry3d& T_cam_world, const Similarity3& S) {
+  return MovedCameraPose(T_cam_world, S.RigidPart(), S.s);
+}
 
 // Least-squares S with X2 ~ S * X1 (Umeyama). nullopt for fewer than 3 points or a degenerate set.
 [[nodiscard]] std::optional<Similarity3> AlignPoints(std::span<const Eigen::Vector3d> X1,

@@ -87,23 +87,13 @@ bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFram
   return false;
 }
 
-FrameMove FrameMove::Then(const FrameMove& later) const {
-  // later(this(X)) = s2 R2 (s1 R1 X + t1) + t2.
-  FrameMove out;
-  out.T_new_old.linear() = later.T_new_old.linear() * T_new_old.linear();
-  out.T_new_old.translation() = later.scale * (later.T_new_old.linear() * T_new_old.translation()) +
-                                later.T_new_old.translation();
-  out.scale = later.scale * scale;
-  return out;
-}
-
 Eigen::Isometry3d ResolveFramePose(const Map& map, const CulledKeyFrames& culled, const AnchoredFramePose& f,
-                                   const FrameMove& since) {
+                                   const Similarity3& since) {
   Eigen::Isometry3d T_cam_ref = f.T_cam_ref.isometry();
-  T_cam_ref.translation() *= since.scale;
+  T_cam_ref.translation() *= since.s;
   KeyFrameHandle ref = f.reference;
   if (FollowToLiveKeyFrame(map, culled, &ref, &T_cam_ref)) return T_cam_ref * map.keyframe(ref).T_cam_world;
-  return MovedCameraPose(f.T_cam_world.isometry(), since.T_new_old, since.scale);
+  return MovedCameraPose(f.T_cam_world.isometry(), since);
 }
 
 void ApplySightings(Map& map, std::span<const PointHandle> visible, std::span<const PointHandle> found) {

@@ -21,6 +21,7 @@
 #include "config/context.h"
 #include "ecs/map.h"
 #include "frontend/frame.h"
+#include "geometry/similarity.h"
 #include "mapping/map_bundle_adjustment.h"
 #include "optimization/bundle_adjustment.h"
 
@@ -50,21 +51,12 @@ using CulledKeyFrames = std::unordered_map<KeyFrameHandle, CulledKeyFrame>;
 // when none is left to follow.
 bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFrameHandle* ref,
                           Eigen::Isometry3d* T_cam_ref);
-// How the map's world frame moved after a frame's pose was recorded (SlamSession::MoveMapFrame):
-// X_new = scale * R X_old + t, T_new_old = [R|t].
-struct FrameMove {
-  Eigen::Isometry3d T_new_old = Eigen::Isometry3d::Identity();
-  double scale = 1.0;
-  // This move, then `later`.
-  [[nodiscard]] FrameMove Then(const FrameMove& later) const;
-};
-
 // A tracked frame's pose through its reference keyframe, or through the parents of culled ones;
-// the pose as tracked when no live keyframe is left to follow. `since`: how the map moved after
-// the frame was recorded (its pose relative to the keyframe scales with a monocular move; its
-// pose as tracked moves).
+// the pose as tracked when no live keyframe is left to follow. `since`: how the map's world frame
+// moved after the frame was recorded (SlamSession::MoveMapFrame; X_new = since * X_old): its pose
+// relative to the keyframe scales with a monocular move, its pose as tracked moves.
 [[nodiscard]] Eigen::Isometry3d ResolveFramePose(const Map& map, const CulledKeyFrames& culled,
-                                                 const AnchoredFramePose& frame, const FrameMove& since = {});
+                                                 const AnchoredFramePose& frame, const Similarity3& since = {});
 
 // A monocular map's start, found by tracking from two frames: the first frame (at its pose), the
 // keypoint pairs between the two, and the points triangulated from them (world coordinates;

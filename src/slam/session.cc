@@ -303,7 +303,7 @@ void SlamSession::MoveMapFrame(const Eigen::Isometry3d& T_new_old, double scale)
   if (tracker_.init_frame)
     tracker_.init_frame->T_cam_world = MovedCameraPose(tracker_.init_frame->T_cam_world, T_new_old, scale);
   for (auto& [handle, culled] : mapping_.culled) culled.T_kf_parent.translation() *= scale;
-  frame_moves_.push_back({frame_poses_.size(), FrameMove{T_new_old, scale}});
+  frame_moves_.push_back({frame_poses_.size(), Similarity3{T_new_old.linear(), T_new_old.translation(), scale}});
   map_corrected_ = true;
   ++map_epoch_;
   ++map_frame_moves_;
@@ -370,14 +370,14 @@ void SlamSession::State::AnchoredToMap(std::vector<AnchoredFramePose>* out) cons
   out->reserve(frames.size());
   size_t i = 0;
   frames.ForEach([&](AnchoredFramePose a) {
-    const FrameMove since = MovesSince(moves, i++);
+    const Similarity3 since = MovesSince(moves, i++);
     Eigen::Isometry3d T_cam_ref = a.T_cam_ref.isometry();
-    T_cam_ref.translation() *= since.scale;
+    T_cam_ref.translation() *= since.s;
     if (FollowToLiveKeyFrame(map, culled, &a.reference, &T_cam_ref))
       a.T_cam_ref = CompactPose(T_cam_ref);
     else
       a.reference = KeyFrameHandle::null();
-    if (!moves.empty()) a.T_cam_world = CompactPose(MovedCameraPose(a.T_cam_world.isometry(), since.T_new_old, since.scale));
+    if (!moves.empty()) a.T_cam_world = CompactPose(MovedCameraPose(a.T_cam_world.isometry(), since));
     out->push_back(a);
   });
 }
@@ -400,10 +400,10 @@ Trajectory SlamSession::FrameTrajectory() const {
   return out;
 }
 
-FrameMove SlamSession::MovesSince(std::span<const FrameMoveRecord> moves, size_t i) {
-  FrameMove since;
+Similarity3 SlamSession::MovesSince(std::span<const FrameMoveRecord> moves, size_t i) {
+  Similarity3 since;
   for (const FrameMoveRecord& m : moves)
-    if (m.frames_before > i) since = since.Then(m.move);
+    if (m.frames_before > i) since = m.move * since;  // the later move after the earlier ones
   return since;
 }
 

@@ -93,17 +93,18 @@ class SlamSession {
   // resumed checkpoint of the same dataset): tracking goes on from the last two frames' motion
   // (ResumeTracking) rather than relocalizing, and relocalizes only if that fails.
   void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {}, bool resume_tracking = false);
+  // A move of the map's frame (MoveMapFrame, X_new = move * X_old) after the first
+  // `frames_before` frame records.
+  struct FrameMoveRecord {
+    size_t frames_before = 0;
+    Similarity3 move;
+  };
   // The session between two frames, for a checkpoint: a copy of the map (Map::AssignForSnapshot:
   // no bags of words), a view of every tracked frame's pose as recorded, the culled keyframes
   // those records may still name, and the frame after the last one tracked. Any thread; reads the
   // map while copying (its writers, tracking among them, wait meanwhile). Pass the same State each time: the
   // copy then moves little more than what changed since the last. The frame view reads the
   // session's own records: use a State only while its session lives.
-  // A move of the map's frame (MoveMapFrame) after the first `frames_before` frame records.
-  struct FrameMoveRecord {
-    size_t frames_before = 0;
-    FrameMove move;
-  };
   struct State {
     Map map;
     ChunkLog<AnchoredFramePose>::View frames;
@@ -167,7 +168,7 @@ class SlamSession {
   uint32_t map_frame_moves_ = 0;  // kMap: MoveMapFrame calls so far
   std::vector<FrameMoveRecord> frame_moves_;  // kTrajectory: each move, after how many frame records
   // How the map moved after frame record i was written (moves: the session's or a State's).
-  [[nodiscard]] static FrameMove MovesSince(std::span<const FrameMoveRecord> moves, size_t i);
+  [[nodiscard]] static Similarity3 MovesSince(std::span<const FrameMoveRecord> moves, size_t i);
 
   // Between tracking and mapping, without the lock.
   std::atomic<int> pending_keyframes_{0};
