@@ -1,5 +1,6 @@
 #include "agent_link.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <random>
 
@@ -100,8 +101,7 @@ size_t AgentLink::Send(const Map& map, KeyFrameHandle keyframe) {
   payload.sequence = sequence_++;
   // In the run's own frame, the one the server keeps the run's map in.
   const Similarity3 S_run_map = map_frames_.back().inverse();
-  payload.bytes =
-      EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, S_run_map.RigidPart(), S_run_map.s);
+  payload.bytes = EncodeKeyFrameMessage(map, keyframe, agent_, session_, camera_, S_run_map.RigidPart(), S_run_map.s);
   if (!keyframes_->Write(payload)) {
     ++failed_;
     return 0;
@@ -157,7 +157,18 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
       answered_matches_ = matches;
       for (const auto& [h, id] : sent_)
         if (Send(map, h) > 0) ++resent_;
+    } else if (const uint64_t corrections = slam.map_corrections(); corrections > corrections_sent_) {
+      // A loop correction or a global bundle adjustment moved keyframes sent long ago: the
+      // server's copies of them are stale until they come again.
+      for (const auto& [h, id] : sent_) {
+        if (const size_t bytes = Send(map, h); bytes > 0) {
+          ++corrected_sent_;
+          corrected_bytes_ += bytes;
+        }
+      }
     }
+    // Whichever branch sent the map again sent it as these corrections left it.
+    corrections_sent_ = std::max(corrections_sent_, slam.map_corrections());
     if (const size_t bytes = Send(map, keyframe); bytes > 0) {
       ++keyframes_sent_;
       keyframe_bytes_ += bytes;
@@ -216,6 +227,9 @@ std::string AgentLink::Summary() const {
                 AgentPoseTopic(agent_).c_str(), keyframes_->matches_ever(), keyframes_->matched(),
                 static_cast<unsigned long long>(failed_.load()));
   std::string summary = line;
+  std::snprintf(line, sizeof(line), "; %llu sent again after its map's loop corrections (%.1f KiB)",
+                static_cast<unsigned long long>(corrected_sent_.load()), corrected_bytes_ / 1024.0);
+  summary += line;
   std::snprintf(line, sizeof(line), "; run %016llx", static_cast<unsigned long long>(session_));
   summary += line;
   const std::lock_guard<std::mutex> lock(correction_mutex_);

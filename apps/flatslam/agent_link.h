@@ -2,7 +2,8 @@
 // flatslam-live only, see live.h):
 // every tracked frame's pose as a ROS 2 geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose
 // (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable;
-// when a server joins later, every keyframe of the map again before the next one), with byte
+// when a server joins later, and after a loop correction or global bundle adjustment of the map,
+// every keyframe sent before again, before the next one), with byte
 // counts for the bandwidth report. It listens on
 // flatslam/corrections for the server's corrections of its run: once its map has been merged with
 // others', the poses it publishes are in the merged map's frame (frame_id flatslam_map_<run of
@@ -82,7 +83,9 @@ class AgentLink : public AgentPublisher {
   // Matches of the keyframe writer already answered with the whole map (mapping lane).
   int answered_matches_ = 0;
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
-      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0}, frames_tracked_{0}, map_moves_{0};
+      failed_{0}, sequence_{0}, culled_sent_{0}, resent_{0}, frames_tracked_{0}, map_moves_{0}, corrected_sent_{0},
+      corrected_bytes_{0};
+  uint64_t corrections_sent_ = 0;  // the session's map corrections when keyframes were last sent again
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
 };
 

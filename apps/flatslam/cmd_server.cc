@@ -18,6 +18,7 @@
 #include "core/error.h"
 #include "jobs/background_worker.h"
 #include "merge/agent_maps.h"
+#include "merge/live_merge.h"
 #include "merge_and_save.h"
 #include "net/dds.h"
 #include "place/vocabulary.h"
@@ -51,6 +52,9 @@ struct LiveMerge {
   double place_ms = 0, fuse_ms = 0, graph_ms = 0, weld_ms = 0;
   size_t loops = 0;  // closed in the merged maps, beyond the seams
   double loops_ms = 0;
+  // Grown from the previous merge's maps (GrowingMerge) instead of merged again from the agents'.
+  bool grown = false;
+  GrowReport growth;
 };
 
 SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabulary) {
@@ -77,6 +81,20 @@ MergeInputs InputsOf(const AgentMaps::RunMaps& maps, LiveMerge* job) {
     job->keyframes += maps.maps[i].keyframes().size();
   }
   return inputs;
+}
+
+// The report of a growth of the kept merged maps by the messages since the last merge.
+void RecordGrowth(const GrowingMerge& growing, GrowReport growth, LiveMerge* job) {
+  job->grown = true;
+  job->runs = growing.runs();
+  job->members = growing.merged().members;
+  job->frames = growing.frames();
+  job->keyframes = growing.keyframes();
+  job->loops = growth.loops.size();
+  job->loops_ms = growth.loops_ms;
+  job->weld_ms = growth.weld_ms;
+  job->growth = growth;
+  job->ready = Clock::now();
 }
 
 void Record(const MultiMapMerge& merged, const MergeInputs& inputs, bool monocular, LiveMerge* job) {
@@ -152,6 +170,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
   BackgroundWorker merger;
   std::mutex merged_mutex;
   std::optional<LiveMerge> merged_result;  // handed from the merge thread
+  // The last live merge's maps, grown by later messages; used by one merge job at a time, and read
+  // by the receive loop only while no job runs.
+  std::unique_ptr<GrowingMerge> growing;
+  std::vector<KeyFrameMessage> since_cut;  // keyframe messages applied since the last merge began
+  size_t updates_since_cut = 0;            // of them, keyframes the maps held already
   bool merging = false;
   uint64_t revision = 0;
   size_t merged_messages = 0;  // messages held by the maps the last merge started from
@@ -170,13 +193,27 @@ int RunServerLive(const std::vector<std::string>& argv) {
     ++revision;
     size_t joined_maps = 0;
     for (const auto& group : m.members) joined_maps += group.size() > 1;
-    std::printf(
-        "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
-        "(merge steps: place recognition %.0f, fuse %.0f, essential graph %.0f, weld %.0f; %zu loops closed in "
-        "%.0f)\n",
-        what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), joined_maps,
-        m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.place_ms, m.fuse_ms, m.graph_ms, m.weld_ms,
-        m.loops, m.loops_ms);
+    if (m.grown) {
+      const GrowReport& g = m.growth;
+      std::printf(
+          "%s %-3llu grown at %.1f s: %zu keyframes added (%zu updates, %zu of runs in no merged map), %zu keyframes "
+          "of %zu runs, %.0f ms (join %.0f, weld %.0f of %zu keyframes, %zu loops closed in %.0f, fit %.0f)\n",
+          what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), g.added, g.updated, g.skipped,
+          m.keyframes, m.runs.size(), 1000 * Seconds(m.cut, m.ready), g.join_ms, g.weld_ms, g.welded_keyframes, m.loops,
+          m.loops_ms, g.fit_ms);
+      for (const LoopClosure& c : g.loops)
+        std::printf(
+            "              loop: agent %u keyframe at %.2f s to agent %u's at %.2f s: %d points, moved %.3f m\n",
+            c.agent, c.t_ns * 1e-9, c.matched_agent, c.matched_t_ns * 1e-9, c.matches, c.correction_m);
+    } else {
+      std::printf(
+          "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
+          "(merge steps: place recognition %.0f, fuse %.0f, essential graph %.0f, weld %.0f; %zu loops closed in "
+          "%.0f)\n",
+          what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(),
+          joined_maps, m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.place_ms, m.fuse_ms,
+          m.graph_ms, m.weld_ms, m.loops, m.loops_ms);
+    }
     for (const auto& group : m.members) {
       for (size_t a = 0; a < group.size(); ++a) {
         for (size_t b = a + 1; b < group.size(); ++b) {
@@ -218,13 +255,27 @@ int RunServerLive(const std::vector<std::string>& argv) {
     }
     std::fflush(stdout);
   };
-  // Starts a merge of copies of the maps as they are now (the receive loop goes on meanwhile).
+  // Starts a merge while the receive loop goes on: a growth of the kept merged maps by the
+  // messages since the last merge when every run is in one of them with another run and those
+  // messages only add keyframes, else a full merge of copies of the agents' maps as they are now.
   auto start_merge = [&](Clock::time_point now) {
     auto job = std::make_shared<LiveMerge>();
     job->cut = now;
     job->first_new = first_after_cut;
-    AgentMaps::RunMaps copies = maps.CopyMaps(vocabulary);
-    MergeInputs inputs = InputsOf(copies, job.get());
+    std::vector<GrowingMerge::Run> runs;
+    for (const AgentMaps::Session& session : maps.sessions()) runs.emplace_back(session.agent, session.session);
+    std::vector<KeyFrameMessage> messages = std::move(since_cut);
+    since_cut.clear();
+    // A keyframe sent again (after the agent's loop correction, or its final update) moved in the
+    // agent's map: the kept merged map's copy of it is stale, a full merge takes the new one.
+    const bool grow = growing && growing->Covers(runs) && updates_since_cut == 0;
+    updates_since_cut = 0;
+    AgentMaps::RunMaps copies;
+    MergeInputs inputs;
+    if (!grow) {
+      copies = maps.CopyMaps(vocabulary);
+      inputs = InputsOf(copies, job.get());
+    }
     const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
     const MergeCamera camera =
         MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
@@ -232,12 +283,25 @@ int RunServerLive(const std::vector<std::string>& argv) {
       const std::lock_guard<std::mutex> lock(merged_mutex);
       merging = true;
     }
-    merger.Start([&, job, camera, inputs = std::move(inputs), copied = std::move(copies.maps)]() mutable {
+    merger.Start([&, job, camera, grow, inputs = std::move(inputs), copies = std::move(copies),
+                  messages = std::move(messages)]() mutable {
       std::optional<LiveMerge> done;
       try {
-        Record(MergeAllMaps(std::move(copied), vocabulary, camera, live_options), inputs, camera.monocular, job.get());
+        if (grow) {
+          RecordGrowth(*growing, growing->Grow(messages, vocabulary), job.get());
+        } else {
+          growing.reset();
+          std::vector<RunSightings> sightings;
+          for (size_t i = 0; i < copies.maps.size(); ++i)
+            sightings.push_back(SightingsOf(copies.maps[i], copies.ids[i]));
+          MultiMapMerge merged = MergeAllMaps(std::move(copies.maps), vocabulary, camera, live_options);
+          Record(merged, inputs, camera.monocular, job.get());
+          growing = std::make_unique<GrowingMerge>(std::move(merged), copies.runs, sightings, inputs.poses, camera,
+                                                   live_options, kCorrectionKeyFrames);
+        }
         done = std::move(*job);
       } catch (const Error& e) {
+        growing.reset();
         std::fprintf(stderr, "warning: live merge failed: %s\n", e.what());
       }
       {
@@ -308,7 +372,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
                          what, ": its camera differs from the first agent's (one server merges one camera model)");
         }
         heard.insert(message.agent);
-        if (!maps.Add(std::move(message))) ++updates;
+        if (live_merge_s > 0) since_cut.push_back(message);
+        if (!maps.Add(std::move(message))) {
+          ++updates;
+          ++updates_since_cut;
+        }
       } catch (const Error& e) {
         ++dropped;
         std::fprintf(stderr, "warning: dropped %s\n", e.what());

@@ -19,7 +19,7 @@ bool AgentMaps::Add(KeyFrameMessage&& message) {
     stale_points_.emplace_back();
   }
   Session& session = sessions_[it->second];
-  Index& index = index_[it->second];
+  Ids& index = index_[it->second];
   if (!camera_) camera_ = message.camera;
   Map& map = session.map;
   // A keyframe sent again carries the agent's latest estimate of its pose and of its points, and
@@ -119,6 +119,7 @@ AgentMaps::RunMaps AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
   for (size_t i : MergeOrder()) {
     taken.maps.push_back(std::move(sessions_[i].map));
     taken.runs.emplace_back(sessions_[i].agent, sessions_[i].session);
+    taken.ids.push_back(std::move(index_[i]));
   }
   sessions_.clear();
   index_.clear();
@@ -134,6 +135,7 @@ AgentMaps::RunMaps AgentMaps::CopyMaps(const Vocabulary& vocabulary) {
   for (size_t i : MergeOrder()) {
     copies.maps.push_back(sessions_[i].map);
     copies.runs.emplace_back(sessions_[i].agent, sessions_[i].session);
+    copies.ids.push_back(index_[i]);
   }
   return copies;
 }

@@ -44,11 +44,17 @@ class AgentMaps {
   [[nodiscard]] const std::vector<Session>& sessions() const { return sessions_; }
   // The camera of the first message (the agents of one server share a camera model).
   [[nodiscard]] const std::optional<AgentCamera>& camera() const { return camera_; }
+  // The agent's ids of a run's keyframes and points, and the handles they have in its map.
+  struct Ids {
+    std::unordered_map<uint64_t, PointHandle> points;
+    std::unordered_map<uint64_t, KeyFrameHandle> keyframes;
+  };
   // The maps, by agent, with their keyframes' bags of words (computed once per keyframe), ready
   // for MergeAllMaps, and the agent run of each.
   struct RunMaps {
     std::vector<Map> maps;
     std::vector<std::pair<uint32_t, uint64_t>> runs;  // agent, session
+    std::vector<Ids> ids;                             // per map
   };
   // Moves them out: the sessions are left empty.
   [[nodiscard]] RunMaps TakeMaps(const Vocabulary& vocabulary);
@@ -62,16 +68,12 @@ class AgentMaps {
   [[nodiscard]] RunMaps CopyMaps(const Vocabulary& vocabulary);
 
  private:
-  struct Index {
-    std::unordered_map<uint64_t, PointHandle> points;        // the agent's point id -> this map's point
-    std::unordered_map<uint64_t, KeyFrameHandle> keyframes;  // the agent's keyframe id -> this map's
-  };
   // Session indices by agent, then in the order each run was first heard: the merge keeps the
   // first map's frame, so the result does not depend on which agent happened to send first.
   [[nodiscard]] std::vector<size_t> MergeOrder() const;
   void ComputeBow(const Vocabulary& vocabulary);
   std::vector<Session> sessions_;
-  std::vector<Index> index_;
+  std::vector<Ids> index_;
   std::map<std::pair<uint32_t, uint64_t>, size_t> by_session_;
   std::optional<AgentCamera> camera_;
   // Per session: points a message named since their statistics were last computed.

@@ -273,11 +273,33 @@ PointHandle MapRemap::operator()(const Map& from, PointHandle h) const {
   return points[h.index()];
 }
 
+KeyFrame MovedKeyFrameColumns(const KeyFrame& source, const Similarity3& S_into_from) {
+  KeyFrame copy;
+  copy.frame_index = source.frame_index;
+  copy.t_ns = source.t_ns;
+  copy.T_cam_world = (Similarity3::FromIsometry(source.T_cam_world) * S_into_from.inverse()).ToIsometry();
+  copy.uv = source.uv;
+  copy.right_u = source.right_u;
+  copy.depth = source.depth;
+  if (const double s = S_into_from.s; s != 1.0) {
+    float* depth = copy.depth.mutable_data();
+    for (size_t k = 0; k < copy.depth.size(); ++k)
+      if (depth[k] > 0) depth[k] = static_cast<float>(depth[k] * s);
+  }
+  copy.angle = source.angle;
+  copy.octave = source.octave;
+  copy.descriptor = source.descriptor;
+  copy.points.assign(source.size(), PointHandle::null());
+  copy.bow = source.bow;
+  copy.bow_features = source.bow_features;
+  copy.agent = source.agent;
+  return copy;
+}
+
 MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
   MapRemap remap;
   remap.keyframes.assign(from.keyframes().slot_count(), KeyFrameHandle::null());
   remap.points.assign(from.points().slot_count(), PointHandle::null());
-  const Similarity3 S_from_into = S_into_from.inverse();
   const double s = S_into_from.s;
 
   // Fresh handles first (keyframes in id order, so new ids keep from's order), then every
@@ -290,26 +312,7 @@ MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from) {
   into.points().reserve(into.points().size() + from.points().size());
   for (KeyFrameHandle h : order) {
     const KeyFrame& source = from.keyframe(h);
-    KeyFrame copy;
-    copy.frame_index = source.frame_index;
-    copy.t_ns = source.t_ns;
-    copy.T_cam_world = (Similarity3::FromIsometry(source.T_cam_world) * S_from_into).ToIsometry();
-    copy.uv = source.uv;
-    copy.right_u = source.right_u;
-    copy.depth = source.depth;
-    if (s != 1.0) {
-      float* depth = copy.depth.mutable_data();
-      for (size_t k = 0; k < copy.depth.size(); ++k)
-        if (depth[k] > 0) depth[k] = static_cast<float>(depth[k] * s);
-    }
-    copy.angle = source.angle;
-    copy.octave = source.octave;
-    copy.descriptor = source.descriptor;
-    copy.points.assign(source.size(), PointHandle::null());
-    copy.bow = source.bow;
-    copy.bow_features = source.bow_features;
-    copy.agent = source.agent;
-    const KeyFrameHandle added = into.AddKeyFrame(std::move(copy));
+    const KeyFrameHandle added = into.AddKeyFrame(MovedKeyFrameColumns(source, S_into_from));
     remap.keyframes[h.index()] = added;
     new_id[source.id] = into.keyframe(added).id;
   }
@@ -367,6 +370,23 @@ std::vector<KeyFrameHandle> SelectWeldWindow(const Map& map, std::span<const Sea
     }
   }
   return window;
+}
+
+size_t WeldBundleAdjustment(Map& map, const MergeCamera& camera, const BundleAdjustmentOptions& options,
+                            std::vector<KeyFrameHandle> free, KeyFrameHandle anchor) {
+  size_t outliers = 0;
+  MapBundleAdjustment ba;
+  BuildMapBundleAdjustment(map, camera.geometry, camera.stereo_depth, free, anchor, 1, &ba);
+  if (!ba.problem.observations.empty()) {
+    BundleAdjustmentOptions ba_options = options;
+    if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
+      ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+    const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
+    if (result.success) outliers = ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &map);
+  }
+  std::erase_if(free, [&](KeyFrameHandle h) { return !map.keyframes().contains(h); });
+  UpdateCovisibilities(free, &map);
+  return outliers;
 }
 
 MergeReport MergeMaps(Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
@@ -517,17 +537,7 @@ MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeC
     }
     report.refined = options.refine;
     report.welded_keyframes = free.size();
-    MapBundleAdjustment ba;
-    BuildMapBundleAdjustment(into, camera.geometry, camera.stereo_depth, free, anchor, 1, &ba);
-    if (!ba.problem.observations.empty()) {
-      BundleAdjustmentOptions ba_options = options.bundle_adjustment;
-      if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
-        ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
-      const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
-      if (result.success) report.weld_outliers += ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &into);
-    }
-    std::erase_if(free, [&](KeyFrameHandle h) { return !into.keyframes().contains(h); });
-    UpdateCovisibilities(free, &into);
+    report.weld_outliers = WeldBundleAdjustment(into, camera, options.bundle_adjustment, free, anchor);
   }
   report.weld_ms = MsSince(start) - report.fuse_ms - report.graph_ms;
   const std::vector<PointHandle> all_points(into.points().handles().begin(), into.points().handles().end());
@@ -584,6 +594,16 @@ std::vector<MergeStep> PlanMergeOrder(size_t count, const std::vector<OverlapEdg
   return steps;
 }
 
+SystemContext MergedMapContext(const MergeCamera& camera) {
+  // Loop closing as a SLAM session runs it, with the default options resolved for the camera.
+  SlamOptions slam;
+  slam.rgbd_virtual_baseline_m =
+      camera.rgbd_virtual_baseline_m > 0 ? camera.rgbd_virtual_baseline_m : slam.rgbd_virtual_baseline_m;
+  slam.far_stereo_baselines = camera.far_stereo_baselines;
+  return SystemContext(camera.calibration, ResolvedOptions(slam, camera.calibration),
+                       ScalePyramid::Make(camera.scales.levels, camera.scales.scale_factor));
+}
+
 MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
                            const MapMergeOptions& options) {
   MultiMapMerge out;
@@ -628,17 +648,13 @@ MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, 
     out.members.push_back(std::move(members[i]));
   }
   if (options.close_loops) {
-    // Loop closing as a SLAM session runs it, with the default options resolved for the camera.
-    SlamOptions slam;
-    slam.rgbd_virtual_baseline_m =
-        camera.rgbd_virtual_baseline_m > 0 ? camera.rgbd_virtual_baseline_m : slam.rgbd_virtual_baseline_m;
-    slam.far_stereo_baselines = camera.far_stereo_baselines;
-    const SystemContext context(camera.calibration, ResolvedOptions(slam, camera.calibration),
-                                ScalePyramid::Make(camera.scales.levels, camera.scales.scale_factor));
+    const SystemContext context = MergedMapContext(camera);
     out.loops.resize(out.maps.size());
-    for (size_t g = 0; g < out.maps.size(); ++g)
+    for (size_t g = 0; g < out.maps.size(); ++g) {
+      out.loop_closers.emplace_back(vocabulary, options.seed);
       if (out.members[g].size() > 1)
-        out.loops[g] = CloseLoopsInMergedMap(out.maps[g], vocabulary, context, options.seed);
+        out.loops[g] = CloseLoopsInMergedMap(out.maps[g], vocabulary, context, options.seed, &out.loop_closers[g]);
+    }
   }
   return out;
 }

@@ -131,6 +131,11 @@ struct MapRemap {
 // rewritten to the fresh handles. Keyframes get new ids after into's, in from's id order.
 MapRemap AppendMap(Map& into, const Map& from, const Similarity3& S_into_from);
 
+// A keyframe's own columns (identity, keypoints, descriptors, depths, bag of words, agent) with
+// its pose moved by S_into_from (depths scaled with it), every handle null and no graph: what
+// AppendMap and a live map server's growing merge (merge/live_merge.h) add to a map.
+[[nodiscard]] KeyFrame MovedKeyFrameColumns(const KeyFrame& source, const Similarity3& S_into_from);
+
 struct MergeReport {
   MapOverlap overlap;
   bool merged = false;
@@ -154,6 +159,12 @@ struct SeamPair {
 };
 [[nodiscard]] std::vector<KeyFrameHandle> SelectWeldWindow(const Map& map, std::span<const SeamPair> seam,
                                                            size_t neighbours, size_t max_keyframes);
+
+// The weld's bundle adjustment: `free` keyframes free (`anchor` among them held, or none), every
+// other keyframe that sees their points fixed; outlier observations are erased and the free
+// keyframes' covisibility recomputed. Returns how many observations it erased.
+size_t WeldBundleAdjustment(Map& map, const MergeCamera& camera, const BundleAdjustmentOptions& options,
+                            std::vector<KeyFrameHandle> free, KeyFrameHandle anchor);
 
 // Merges `from` into `into` when they overlap (into's frame is kept); leaves `into` untouched
 // otherwise. `from` is never modified. Both maps need bags of words (ComputeKeyFrameBow).
@@ -196,7 +207,13 @@ struct MultiMapMerge {
   std::vector<OverlapEdge> overlaps;         // every pair of inputs, as first measured
   std::vector<MergeAttempt> attempts;        // in the order they were made
   std::vector<MergedMapLoops> loops;         // per output map, with close_loops (else empty)
+  // Per output map, with close_loops: what its loop closing built, to continue it over keyframes
+  // added later (empty for a map of one input, where no loop was searched).
+  std::vector<MergedMapLoopCloser> loop_closers;
 };
+
+// What loop closing in a merged map runs with: a SLAM context of the camera, default options.
+[[nodiscard]] SystemContext MergedMapContext(const MergeCamera& camera);
 
 // Merges several maps (bags of words are computed where a keyframe has none; one it has must come
 // from this vocabulary): place recognition between every pair of inputs (the overlap graph), then

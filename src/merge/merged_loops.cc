@@ -8,35 +8,44 @@
 
 namespace flatslam {
 
-MergedMapLoops CloseLoopsInMergedMap(Map& map, const Vocabulary& vocabulary, const SystemContext& context,
-                                     uint64_t seed) {
+void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyframes, const SystemContext& context,
+                                 MergedMapLoops* out) {
   const auto start = std::chrono::steady_clock::now();
-  ComputeKeyFrameBow(map, vocabulary, true);
-  // Agent by agent, each in the order its keyframes were made: temporal consistency needs a
-  // run's consecutive keyframes, and each agent's keyframes then meet every earlier agent's.
-  const auto handles = map.keyframes().handles();
-  std::vector<KeyFrameHandle> order(handles.begin(), handles.end());
+  for (KeyFrameHandle h : keyframes) {
+    if (!map.keyframes().contains(h)) continue;
+    if (const uint32_t agent = map.keyframe(h).agent; agent != agent_) {
+      groups_[agent_] = std::move(state_.consistent_groups);
+      state_.consistent_groups = std::move(groups_[agent]);
+      agent_ = agent;
+    }
+    ++out->keyframes;
+    const size_t closed = state_.closures.size();
+    if (const auto loop = DetectLoop(map, database_, state_, context, h, true))
+      CorrectLoop(map, state_, context, h, *loop);
+    out->closures.insert(out->closures.end(), state_.closures.begin() + static_cast<std::ptrdiff_t>(closed),
+                         state_.closures.end());
+  }
+  out->ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+std::vector<KeyFrameHandle> ReplayOrder(const Map& map, std::span<const KeyFrameHandle> keyframes) {
+  std::vector<KeyFrameHandle> order(keyframes.begin(), keyframes.end());
   std::sort(order.begin(), order.end(), [&](KeyFrameHandle a, KeyFrameHandle b) {
     const KeyFrame &ka = map.keyframe(a), &kb = map.keyframe(b);
     return std::tie(ka.agent, ka.id) < std::tie(kb.agent, kb.id);
   });
-  KeyFrameDatabase database(vocabulary.word_count());
-  LoopClosingState state(seed);
+  return order;
+}
+
+MergedMapLoops CloseLoopsInMergedMap(Map& map, const Vocabulary& vocabulary, const SystemContext& context,
+                                     uint64_t seed, MergedMapLoopCloser* closer) {
+  ComputeKeyFrameBow(map, vocabulary, true);
+  MergedMapLoopCloser local(vocabulary, seed);
+  MergedMapLoopCloser& replay = closer ? *closer : local;
+  if (closer) *closer = MergedMapLoopCloser(vocabulary, seed);
   MergedMapLoops out;
-  uint32_t agent = order.empty() ? 0 : map.keyframe(order.front()).agent;
-  for (KeyFrameHandle h : order) {
-    if (!map.keyframes().contains(h)) continue;
-    // A new agent's first keyframes continue no consistent group of the previous agent's.
-    if (map.keyframe(h).agent != agent) {
-      agent = map.keyframe(h).agent;
-      state.consistent_groups.clear();
-    }
-    ++out.keyframes;
-    if (const auto loop = DetectLoop(map, database, state, context, h, true))
-      CorrectLoop(map, state, context, h, *loop);
-  }
-  out.closures = state.closures;
-  out.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
+  replay.Replay(map, order, context, &out);
   return out;
 }
 

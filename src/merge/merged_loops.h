@@ -5,15 +5,21 @@
 // replayed before (bag-of-words candidates that are not covisible, temporal consistency,
 // geometric verification), and corrects each verified loop as a session does (CorrectLoop: the
 // keyframe and its neighbours moved by the loop's transform, points fused, the essential graph
-// optimized with the matched keyframe held).
-// Concurrency: writes the map (exclusive access), on the caller's thread.
+// optimized with the matched keyframe held). A MergedMapLoopCloser keeps what the replay built
+// (keyframe database, each agent's consistent groups), so that keyframes added to the map later
+// continue it (merge/live_merge.h).
+// Concurrency: writes the map (exclusive access), on the caller's thread; a closer is used by one
+// caller at a time.
 #pragma once
 
 #include <cstdint>
+#include <map>
+#include <span>
 #include <vector>
 
 #include "config/context.h"
 #include "ecs/map.h"
+#include "place/keyframe_database.h"
 #include "place/loop_closing.h"
 #include "place/vocabulary.h"
 
@@ -25,8 +31,28 @@ struct MergedMapLoops {
   double ms = 0;
 };
 
+class MergedMapLoopCloser {
+ public:
+  MergedMapLoopCloser(const Vocabulary& vocabulary, uint64_t seed) : database_(vocabulary.word_count()), state_(seed) {}
+  // Replays `keyframes` of `map` (each with its bag of words), in the order given, after those of
+  // earlier calls; each agent's keyframes continue its own consistent groups (temporal
+  // consistency needs a run's consecutive keyframes). Adds to *out.
+  void Replay(Map& map, std::span<const KeyFrameHandle> keyframes, const SystemContext& context, MergedMapLoops* out);
+
+ private:
+  KeyFrameDatabase database_;
+  LoopClosingState state_;
+  uint32_t agent_ = 0;                                                         // whose consistent groups state_ holds
+  std::map<uint32_t, std::vector<LoopClosingState::ConsistentGroup>> groups_;  // the other agents'
+};
+
+// The keyframes of `map` in replay order: agent by agent, each in the order its keyframes were
+// made (each agent's keyframes then meet every earlier agent's).
+[[nodiscard]] std::vector<KeyFrameHandle> ReplayOrder(const Map& map, std::span<const KeyFrameHandle> keyframes);
+
+// Every keyframe of `map` replayed through a new closer, returned in *closer when given.
 // Keyframes without a bag of words get one. `seed` seeds the verification's RANSAC.
 MergedMapLoops CloseLoopsInMergedMap(Map& map, const Vocabulary& vocabulary, const SystemContext& context,
-                                     uint64_t seed = 2);
+                                     uint64_t seed = 2, MergedMapLoopCloser* closer = nullptr);
 
 }  // namespace flatslam

@@ -118,8 +118,8 @@ FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandl
   if (tracker_.state != TrackingState::kNotInitialized && map_corrected_ && tracker_.last_frame &&
       !frame_poses_.empty()) {
     // A loop correction or global BA moved the map: the last frame follows its reference keyframe.
-    tracker_.last_frame->T_cam_world = ResolveFramePose(map_, mapping_.culled, frame_poses_.back(),
-                                                        MovesSince(frame_moves_, frame_poses_.size() - 1));
+    tracker_.last_frame->T_cam_world =
+        ResolveFramePose(map_, mapping_.culled, frame_poses_.back(), MovesSince(frame_moves_, frame_poses_.size() - 1));
     map_corrected_ = false;
   }
   // Tracking reads the map; the mapping system then writes what it found.
@@ -247,6 +247,7 @@ void SlamSession::DetectAndCloseLoop(KeyFrameHandle current) {
     CorrectLoop(map_, loops_, context_, current, *match);
     map_corrected_ = true;
     ++map_epoch_;
+    ++map_corrections_;
     if (!context_.options.global_bundle_adjustment || abandon_background_) return;
     global_ba_running_ = true;
     loops = loops_.closures.size();
@@ -291,6 +292,7 @@ void SlamSession::GlobalBundleAdjustment(size_t loops) {
   ApplyGlobalBundleAdjustment(map_, context_, ba, result);
   map_corrected_ = true;
   ++map_epoch_;
+  ++map_corrections_;
 }
 
 void SlamSession::MoveMapFrame(const Eigen::Isometry3d& T_new_old, double scale) {

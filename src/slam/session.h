@@ -64,6 +64,9 @@ class SlamSession {
   // Tracking wanted a keyframe on the last frame but local mapping was busy; local BA stops early
   // while it is set, and a batch run waits for mapping instead of tracking on.
   [[nodiscard]] bool keyframe_wanted() const { return keyframe_wanted_; }
+  // Loop corrections and global bundle adjustments applied to the map so far: each moved keyframes
+  // made long before (a map server's copy of them is stale after one). Any thread.
+  [[nodiscard]] uint64_t map_corrections() const { return map_corrections_.load(); }
   // Loop closures so far (call when no stage is running).
   [[nodiscard]] const std::vector<LoopClosure>& loop_closures() const { return loops_.closures; }
   [[nodiscard]] size_t database_size() const { return database_.size(); }
@@ -165,7 +168,8 @@ class SlamSession {
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;
-  uint32_t map_frame_moves_ = 0;  // kMap: MoveMapFrame calls so far
+  uint32_t map_frame_moves_ = 0;              // kMap: MoveMapFrame calls so far
+  std::atomic<uint64_t> map_corrections_{0};  // loop corrections and global BAs applied so far
   std::vector<FrameMoveRecord> frame_moves_;  // kTrajectory: each move, after how many frame records
   // How the map moved after frame record i was written (moves: the session's or a State's).
   [[nodiscard]] static Similarity3 MovesSince(std::span<const FrameMoveRecord> moves, size_t i);

@@ -14,6 +14,9 @@
 
 #include "io/dataset.h"
 #include "jobs/slam_runner.h"
+#include "merge/agent_maps.h"
+#include "merge/live_merge.h"
+#include "storage/keyframe_message.h"
 #include "frontend/orb_extractor.h"
 #include "place/vocabulary.h"
 #include "joint_ate.h"
@@ -33,6 +36,7 @@ struct AgentRun {
   Calibration calibration;
   double own_ate_m = 0;  // keyframes of its own map against its ground truth, own alignment
   double own_scale = 1;  // of that alignment (monocular maps have an arbitrary scale)
+  size_t loops = 0;      // closed by the run
 };
 
 Trajectory KeyFrameTrajectory(const Map& map, uint32_t agent) {
@@ -52,7 +56,10 @@ AgentRun RunAgent(const std::string& spec, uint32_t agent, Alignment alignment =
   options.loop_closing = loop_closing;
   SlamRunOptions run;
   AgentRun out;
-  run.on_finished = [&](const SlamSession& slam) { out.map = slam.map(); };
+  run.on_finished = [&](const SlamSession& slam) {
+    out.map = slam.map();
+    out.loops = slam.loop_closures().size();
+  };
   (void)RunSlam(*dataset, options, run);
   out.gt = *dataset->ground_truth();
   out.calibration = dataset->calibration();
@@ -214,6 +221,156 @@ TEST(MapMerge, LoopClosingInTheMergedMapTakesOutDriftTheMergeLeft) {
               before[0], after[0], a0.own_ate_m, before[1], after[1], a1.own_ate_m);
   EXPECT_LT(after[1], 0.75 * before[1]);
   EXPECT_LE(after[0], 1.5 * a0.own_ate_m);
+}
+
+// A live map server's merged map grown by later keyframes (merge/live_merge.h). Town agents 0
+// and 1 send their keyframes; the server merges what it holds at a cut in full, then grows that
+// merged map by the keyframes sent after the cut without merging again. The grown map holds every
+// keyframe once, joins the later keyframes to the points the earlier ones saw, and keeps each
+// agent's keyframes as close to the truth (one alignment for both) as a full merge of the same
+// keyframes does.
+TEST(LiveMerge, AGrownMergedMapHoldsLaterKeyFramesAsAFullMergeDoes) {
+  auto town = [](int agent, int seconds) {
+    return "synth:town:agent=" + std::to_string(agent) +
+           ",width=480,height=360,fps=10,duration=" + std::to_string(seconds);
+  };
+  // What the server holds at the cut (the runs' maps at 30 and 45 s), and what the agents send
+  // after it (the keyframes after those times in the maps of 36- and 50-s runs: the synthetic runs
+  // are deterministic, so a shorter run is the longer one's past).
+  const AgentRun early_runs[] = {RunAgent(town(0, 30), 0), RunAgent(town(1, 45), 1)};
+  const AgentRun late_runs[] = {RunAgent(town(0, 36), 0), RunAgent(town(1, 50), 1)};
+  const AgentRun &a0 = late_runs[0], &a1 = late_runs[1];
+  // Neither closes a loop after the cut (agent 1 closes its loop at 53 s): a loop correction
+  // would move keyframes the server holds, and the agent would send them again, for a full merge.
+  for (const AgentRun& run : late_runs) ASSERT_EQ(run.loops, 0u);
+  const MergeCamera camera = CameraOf(a0);
+  const AgentCamera sender{a0.calibration, camera.scales, 0};
+  std::vector<KeyFrameMessage> early, late;
+  std::vector<std::pair<int64_t, KeyFrameHandle>> first_late;  // per agent: time, handle in its map
+  for (uint32_t agent = 0; agent < 2; ++agent) {
+    const Map& before = early_runs[agent].map;
+    int64_t cut = 0;
+    for (KeyFrameHandle h : before.keyframes().handles()) {
+      early.push_back(DecodeKeyFrameMessage(EncodeKeyFrameMessage(before, h, agent, 100 + agent, sender), "m"));
+      cut = std::max(cut, before.keyframe(h).t_ns);
+    }
+    const Map& map = late_runs[agent].map;
+    std::vector<KeyFrameHandle> order(map.keyframes().handles().begin(), map.keyframes().handles().end());
+    std::sort(order.begin(), order.end(),
+              [&](KeyFrameHandle a, KeyFrameHandle b) { return map.keyframe(a).id < map.keyframe(b).id; });
+    for (KeyFrameHandle h : order) {
+      if (map.keyframe(h).t_ns <= cut) continue;
+      if (late.empty() || late.back().agent != agent) first_late.emplace_back(map.keyframe(h).t_ns, h);
+      late.push_back(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, h, agent, 100 + agent, sender), "m"));
+    }
+  }
+  ASSERT_EQ(first_late.size(), 2u);
+  AgentMaps maps;
+  for (const KeyFrameMessage& m : early) EXPECT_TRUE(maps.Add(KeyFrameMessage(m)));
+  AgentMaps::RunMaps copies = maps.CopyMaps(DefaultVocabulary());
+  std::vector<RunSightings> sightings;
+  std::vector<KeyFramePoses> poses;
+  for (size_t i = 0; i < copies.maps.size(); ++i) {
+    sightings.push_back(SightingsOf(copies.maps[i], copies.ids[i]));
+    poses.push_back(PosesOf(copies.maps[i]));
+  }
+  MapMergeOptions options;
+  options.close_loops = true;
+  MultiMapMerge merged = MergeAllMaps(copies.maps, DefaultVocabulary(), camera, options);
+  ASSERT_EQ(merged.maps.size(), 1u) << "the first four fifths overlap";
+  const size_t merged_keyframes = merged.maps[0].keyframes().size();
+  GrowingMerge growing(std::move(merged), copies.runs, sightings, poses, camera, options, 10);
+  ASSERT_TRUE(growing.Covers(copies.runs));
+  EXPECT_FALSE(growing.Covers({{0, 100}, {1, 101}, {2, 102}})) << "a run it has never seen";
+
+  // The late keyframes interleaved by time, as two agents running at once send them.
+  std::stable_sort(late.begin(), late.end(), [](const KeyFrameMessage& a, const KeyFrameMessage& b) {
+    return a.keyframe.t_ns < b.keyframe.t_ns;
+  });
+  late.push_back(early.front());  // an update of a keyframe held: moves the run's poses only
+  KeyFrameMessage stranger = late.front();
+  stranger.session = 999;
+  late.push_back(stranger);
+  std::unordered_set<KeyFrameHandle> before(growing.merged().maps[0].keyframes().handles().begin(),
+                                            growing.merged().maps[0].keyframes().handles().end());
+  const GrowReport report = growing.Grow(late, DefaultVocabulary());
+  std::printf(
+      "grown: %zu keyframes added to %zu, %zu updates, %zu skipped, weld %zu keyframes (%zu outliers), %zu loops; "
+      "join %.0f ms, weld %.0f ms, loops %.0f ms, fit %.0f ms\n",
+      report.added, merged_keyframes, report.updated, report.skipped, report.welded_keyframes, report.weld_outliers,
+      report.loops.size(), report.join_ms, report.weld_ms, report.loops_ms, report.fit_ms);
+  for (const LoopClosure& c : report.loops)
+    std::printf("loop: agent %u at %.1f s to agent %u at %.1f s, %d points, moved %.3f m\n", c.agent, c.t_ns * 1e-9,
+                c.matched_agent, c.matched_t_ns * 1e-9, c.matches, c.correction_m);
+  EXPECT_EQ(report.added, late.size() - 2);
+  EXPECT_EQ(report.updated, 1u);
+  EXPECT_EQ(report.skipped, 1u);
+  EXPECT_GE(report.welded_keyframes, report.added);
+  const Map& map = growing.merged().maps[0];
+  EXPECT_EQ(map.Validate(), "");
+  EXPECT_EQ(map.keyframes().size(), a0.map.keyframes().size() + a1.map.keyframes().size());
+
+  // Each agent's first late keyframe sees points that its earlier keyframes saw: in the grown map
+  // they are the same points (joined by the agent's ids), not copies (new points would join none).
+  // Points that a single earlier keyframe saw are left out: the merge before drops points with one
+  // observer. The merge also fused or dropped some of the others where the maps met (here about
+  // three quarters of them join).
+  for (uint32_t agent = 0; agent < 2; ++agent) {
+    const Map& own = (agent == 0 ? a0 : a1).map;
+    const auto [t_ns, own_kf] = first_late[agent];
+    const KeyFrame* grown = nullptr;
+    for (const KeyFrame& kf : map.keyframes().values())
+      if (kf.agent == agent && kf.t_ns == t_ns) grown = &kf;
+    ASSERT_NE(grown, nullptr);
+    auto seen_before = [&](const Map& m, PointHandle p) {
+      size_t n = 0;
+      for (const Observation& o : m.point(p).observations)
+        n += m.keyframe(o.keyframe).agent == agent && m.keyframe(o.keyframe).t_ns < t_ns;
+      return n;
+    };
+    size_t shared_own = 0, shared_grown = 0, unbound = 0;
+    for (size_t k = 0; k < grown->size(); ++k) {
+      const PointHandle p = own.keyframe(own_kf).points[k];
+      if (p.is_null() || seen_before(own, p) < 2) continue;
+      ++shared_own;
+      const PointHandle q = grown->points[k];
+      if (q.is_null()) {
+        ++unbound;  // two of its points fused into one at the seam, or an outlier of the weld
+        continue;
+      }
+      const auto& seen = map.point(q).observations;
+      shared_grown +=
+          std::any_of(seen.begin(), seen.end(), [&](const Observation& o) { return before.count(o.keyframe) > 0; });
+    }
+    std::printf(
+        "agent %u, first late keyframe: %zu points that earlier keyframes saw, %zu of them joined, %zu unbound\n",
+        agent, shared_own, shared_grown, unbound);
+    EXPECT_GT(shared_own, 50u);
+    EXPECT_GE(shared_grown, shared_own * 2 / 3);
+  }
+
+  const std::vector<double> ate = JointAte({&map}, {&a0, &a1});
+  const MultiMapMerge full = MergeAllMaps({a0.map, a1.map}, DefaultVocabulary(), camera, options);
+  ASSERT_EQ(full.maps.size(), 1u);
+  const std::vector<double> full_ate = JointAte({&full.maps[0]}, {&a0, &a1});
+
+  for (size_t k = 0; k < 2; ++k) {
+    const double own = (k == 0 ? a0 : a1).own_ate_m;
+    std::printf("agent %zu keyframe ATE, one alignment: own %.3f m, grown %.3f m, merged in full %.3f m\n", k, own,
+                ate[k], full_ate[k]);
+    // A fifth more than the full merge's at most. (Agent 1 has not closed its loop yet and drifts:
+    // under one alignment both agents are off by more than 1.5x their own, merged in full too.)
+    EXPECT_LE(ate[k], 1.2 * full_ate[k]);
+  }
+  // Each run's frame (its agent's correction) is fitted again on its newest keyframes in the grown
+  // map; the fit's residual is how much the merged map bent them (a loop closed on the way), less
+  // than the run's own error.
+  for (size_t k = 0; k < 2; ++k) {
+    const auto& frame = growing.frames().at(k);
+    ASSERT_TRUE(frame);
+    EXPECT_EQ(frame->keyframes, 10u);
+    EXPECT_LT(frame->rms, (k == 0 ? a0 : a1).own_ate_m);
+  }
 }
 
 // Two monocular runs of the room with different noise: the maps have different arbitrary scales,

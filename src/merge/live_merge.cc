@@ -1,0 +1,226 @@
+#include "merge/live_merge.h"
+
+#include <algorithm>
+#include <chrono>
+#include <map>
+#include <optional>
+
+#include "core/error.h"
+#include "merge/merged_loops.h"
+#include "optimization/pose_optimizer.h"
+#include "place/vocabulary.h"
+
+namespace flatslam {
+namespace {
+
+// Points of the merged map a new keyframe must see to be placed by them (else its run's frame
+// places it): well above the 6 unknowns of a pose, as tracking asks of a frame.
+constexpr size_t kMinPlacingPoints = 30;
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
+RunSightings SightingsOf(const Map& map, const AgentMaps::Ids& ids) {
+  RunSightings out;
+  for (const auto& [id, h] : ids.keyframes)
+    if (map.keyframes().contains(h)) out.keyframes.emplace(id, map.keyframe(h).t_ns);
+  for (const auto& [id, p] : ids.points) {
+    if (!map.points().contains(p)) continue;
+    std::vector<std::pair<int64_t, uint32_t>>& seen = out.points[id];
+    for (const Observation& o : map.point(p).observations) seen.emplace_back(map.keyframe(o.keyframe).t_ns, o.keypoint);
+  }
+  return out;
+}
+
+GrowingMerge::GrowingMerge(MultiMapMerge merged, std::vector<Run> runs, const std::vector<RunSightings>& sightings,
+                           std::vector<KeyFramePoses> poses, const MergeCamera& camera, const MapMergeOptions& options,
+                           size_t newest)
+    : merged_(std::move(merged)),
+      runs_(std::move(runs)),
+      index_(runs_.size()),
+      poses_(std::move(poses)),
+      frames_(runs_.size()),
+      camera_(camera),
+      options_(options),
+      context_(MergedMapContext(camera)),
+      newest_(newest) {
+  FLATSLAM_CHECK(sightings.size() == runs_.size() && poses_.size() == runs_.size(),
+                 "growing merge: one sighting table and one pose table per run");
+  for (size_t g = 0; g < merged_.maps.size(); ++g) {
+    const Map& map = merged_.maps[g];
+    // A run's keyframe is found by agent and timestamp (a timestamp two runs of one agent share
+    // in one map is ambiguous and left out, as in FitRunFrames).
+    std::map<std::pair<uint32_t, int64_t>, KeyFrameHandle> by_time;
+    for (KeyFrameHandle h : map.keyframes().handles()) {
+      const KeyFrame& kf = map.keyframe(h);
+      auto [it, inserted] = by_time.try_emplace({kf.agent, kf.t_ns}, h);
+      if (!inserted) it->second = KeyFrameHandle::null();
+    }
+    auto find = [&](uint32_t agent, int64_t t_ns) {
+      const auto it = by_time.find({agent, t_ns});
+      return it == by_time.end() ? KeyFrameHandle::null() : it->second;
+    };
+    for (size_t r : merged_.members[g]) {
+      const uint32_t agent = runs_[r].first;
+      RunIndex& index = index_[r];
+      for (const auto& [id, t_ns] : sightings[r].keyframes)
+        if (const KeyFrameHandle h = find(agent, t_ns); !h.is_null()) index.keyframes.emplace(id, h);
+      // A point is where a keyframe that saw it binds the same keypoint now (the merge may have
+      // fused it into another point, which the binding follows).
+      for (const auto& [id, seen] : sightings[r].points) {
+        for (const auto& [t_ns, keypoint] : seen) {
+          const KeyFrameHandle h = find(agent, t_ns);
+          if (h.is_null()) continue;
+          const PointHandle p = map.keyframe(h).points[keypoint];
+          if (p.is_null() || !map.points().contains(p)) continue;
+          index.points.emplace(id, p);
+          break;
+        }
+      }
+    }
+  }
+  Fit();
+}
+
+bool GrowingMerge::Covers(const std::vector<Run>& runs) const {
+  for (const Run& run : runs) {
+    const auto it = std::find(runs_.begin(), runs_.end(), run);
+    if (it == runs_.end() || !frames_[static_cast<size_t>(it - runs_.begin())]) return false;
+  }
+  return true;
+}
+
+size_t GrowingMerge::keyframes() const {
+  size_t n = 0;
+  for (const Map& map : merged_.maps) n += map.keyframes().size();
+  return n;
+}
+
+void GrowingMerge::Fit() {
+  std::vector<uint32_t> agents;
+  for (const Run& run : runs_) agents.push_back(run.first);
+  frames_ = FitRunFrames(merged_, agents, poses_, !camera_.monocular, newest_);
+}
+
+GrowReport GrowingMerge::Grow(const std::vector<KeyFrameMessage>& messages, const Vocabulary& vocabulary) {
+  GrowReport report;
+  auto start = std::chrono::steady_clock::now();
+  std::vector<std::vector<KeyFrameHandle>> added(merged_.maps.size());
+  std::vector<std::vector<PointHandle>> touched(merged_.maps.size());
+  for (const KeyFrameMessage& message : messages) {
+    const auto run = std::find(runs_.begin(), runs_.end(), Run{message.agent, message.session});
+    const size_t r = static_cast<size_t>(run - runs_.begin());
+    if (run == runs_.end() || !frames_[r]) {
+      ++report.skipped;
+      continue;
+    }
+    poses_[r][message.keyframe.t_ns] = message.keyframe.T_cam_world.inverse();
+    RunIndex& index = index_[r];
+    if (index.keyframes.count(message.keyframe.id)) {
+      ++report.updated;
+      continue;
+    }
+    const RunFrame& frame = *frames_[r];
+    Map& map = merged_.maps[frame.output];
+    const Similarity3& S = frame.S_output_input;
+    const KeyFrame& sent = message.keyframe;
+    // The points the merged map holds already, by the agent's ids.
+    std::vector<PointHandle> joined(sent.size(), PointHandle::null());
+    std::vector<PoseObservation> observations;
+    for (uint32_t k = 0; k < sent.size(); ++k) {
+      const uint32_t i = message.keypoint_point[k];
+      if (i == KeyFrameMessage::kNoPoint) continue;
+      const auto found = index.points.find(message.point_ids[i]);
+      if (found == index.points.end() || !map.points().contains(found->second)) continue;
+      joined[k] = found->second;
+      const Eigen::Vector2f uv = sent.uv[k];
+      observations.push_back({map.point(found->second).position, uv.cast<double>(), -1,
+                              camera_.geometry.pyramid.inv_sigma2[sent.octave[k]]});
+    }
+    KeyFrame columns = MovedKeyFrameColumns(sent, S);
+    // The keyframe goes where those points put it (pose optimization, as tracking places a frame),
+    // from where the run's frame puts it: the run's frame is fitted on keyframes the agent may
+    // have moved since (a loop it closed), and the merged map may have moved its own copies of them.
+    if (observations.size() >= kMinPlacingPoints) {
+      const PoseOptimizationResult placed =
+          OptimizePose(camera_.geometry.camera, 0, columns.T_cam_world, observations, PoseOptimizerOptions{});
+      if (placed.success && placed.num_inliers >= static_cast<int>(kMinPlacingPoints)) {
+        columns.T_cam_world = placed.T_cam_world;
+        ++report.placed_by_points;
+      }
+    }
+    columns.agent = message.agent;
+    columns.bow.clear();
+    columns.bow_features.clear();
+    vocabulary.Transform(columns.descriptor, &columns.bow, &columns.bow_features);
+    const Eigen::Isometry3d T_world_cam = columns.T_cam_world.inverse();
+    const KeyFrameHandle kf = map.AddKeyFrame(std::move(columns));
+    index.keyframes.emplace(sent.id, kf);
+    added[frame.output].push_back(kf);
+    ++report.added;
+    for (uint32_t k = 0; k < sent.size(); ++k) {
+      const uint32_t i = message.keypoint_point[k];
+      if (i == KeyFrameMessage::kNoPoint) continue;
+      PointHandle p = joined[k];
+      if (p.is_null()) {
+        // A new point where this keyframe sees it (in the merged map's units).
+        const Eigen::Vector3d X_cam = S.s * (sent.T_cam_world * message.positions[i]);
+        p = map.AddPoint(T_world_cam * X_cam, kf);
+        index.points[message.point_ids[i]] = p;
+      }
+      // Two keypoints of one keyframe on one point (a fuse in the merged map): the first stays.
+      const auto& seen = map.point(p).observations;
+      if (std::any_of(seen.begin(), seen.end(), [&](const Observation& o) { return o.keyframe == kf; })) continue;
+      map.AddObservation(p, kf, k);
+      touched[frame.output].push_back(p);
+    }
+  }
+  for (size_t g = 0; g < merged_.maps.size(); ++g) {
+    Map& map = merged_.maps[g];
+    for (KeyFrameHandle kf : added[g]) map.UpdateCovisibility(kf);
+    std::sort(touched[g].begin(), touched[g].end());
+    touched[g].erase(std::unique(touched[g].begin(), touched[g].end()), touched[g].end());
+    for (PointHandle p : touched[g])
+      if (map.points().contains(p)) map.UpdatePointStats(p, camera_.scales);
+  }
+  report.join_ms = MsSince(start);
+
+  // The weld around the new keyframes, newest first, each with its best covisible neighbours.
+  start = std::chrono::steady_clock::now();
+  for (size_t g = 0; g < merged_.maps.size(); ++g) {
+    if (added[g].empty()) continue;
+    Map& map = merged_.maps[g];
+    std::vector<SeamPair> around;
+    for (auto it = added[g].rbegin(); it != added[g].rend(); ++it) around.push_back({*it, *it});
+    std::vector<KeyFrameHandle> free =
+        SelectWeldWindow(map, around, options_.weld_neighbours, options_.max_weld_keyframes);
+    // Every new keyframe is free, however many came since the last growth.
+    for (KeyFrameHandle kf : added[g])
+      if (std::find(free.begin(), free.end(), kf) == free.end()) free.push_back(kf);
+    report.welded_keyframes += free.size();
+    report.weld_outliers +=
+        WeldBundleAdjustment(map, camera_, options_.bundle_adjustment, std::move(free), KeyFrameHandle::null());
+    for (PointHandle p : touched[g])
+      if (map.points().contains(p)) map.UpdatePointStats(p, camera_.scales);
+  }
+  report.weld_ms = MsSince(start);
+
+  start = std::chrono::steady_clock::now();
+  for (size_t g = 0; g < merged_.maps.size() && g < merged_.loop_closers.size(); ++g) {
+    if (added[g].empty()) continue;
+    MergedMapLoops loops;
+    merged_.loop_closers[g].Replay(merged_.maps[g], ReplayOrder(merged_.maps[g], added[g]), context_, &loops);
+    report.loops.insert(report.loops.end(), loops.closures.begin(), loops.closures.end());
+  }
+  report.loops_ms = MsSince(start);
+
+  start = std::chrono::steady_clock::now();
+  Fit();
+  report.fit_ms = MsSince(start);
+  return report;
+}
+
+}  // namespace flatslam
