@@ -196,11 +196,12 @@ int RunServerLive(const std::vector<std::string>& argv) {
     if (m.grown) {
       const GrowReport& g = m.growth;
       std::printf(
-          "%s %-3llu grown at %.1f s: %zu keyframes added (%zu updates, %zu of runs in no merged map), %zu keyframes "
+          "%s %-3llu grown at %.1f s: %zu keyframes added (%zu placed by the points they see; %zu updates, %zu of runs "
+          "in no merged map), %zu keyframes "
           "of %zu runs, %.0f ms (join %.0f, weld %.0f of %zu keyframes, %zu loops closed in %.0f, fit %.0f)\n",
-          what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), g.added, g.updated, g.skipped,
-          m.keyframes, m.runs.size(), 1000 * Seconds(m.cut, m.ready), g.join_ms, g.weld_ms, g.welded_keyframes, m.loops,
-          m.loops_ms, g.fit_ms);
+          what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), g.added, g.placed_by_points,
+          g.updated, g.skipped, m.keyframes, m.runs.size(), 1000 * Seconds(m.cut, m.ready), g.join_ms, g.weld_ms,
+          g.welded_keyframes, m.loops, m.loops_ms, g.fit_ms);
       for (const LoopClosure& c : g.loops)
         std::printf(
             "              loop: agent %u keyframe at %.2f s to agent %u's at %.2f s: %d points, moved %.3f m\n",

@@ -295,14 +295,16 @@ TEST(LiveMerge, AGrownMergedMapHoldsLaterKeyFramesAsAFullMergeDoes) {
                                             growing.merged().maps[0].keyframes().handles().end());
   const GrowReport report = growing.Grow(late, DefaultVocabulary());
   std::printf(
-      "grown: %zu keyframes added to %zu, %zu updates, %zu skipped, weld %zu keyframes (%zu outliers), %zu loops; "
+      "grown: %zu keyframes added to %zu (%zu placed by their points), %zu updates, %zu skipped, weld %zu keyframes "
+      "(%zu outliers), %zu loops; "
       "join %.0f ms, weld %.0f ms, loops %.0f ms, fit %.0f ms\n",
-      report.added, merged_keyframes, report.updated, report.skipped, report.welded_keyframes, report.weld_outliers,
-      report.loops.size(), report.join_ms, report.weld_ms, report.loops_ms, report.fit_ms);
+      report.added, merged_keyframes, report.placed_by_points, report.updated, report.skipped, report.welded_keyframes,
+      report.weld_outliers, report.loops.size(), report.join_ms, report.weld_ms, report.loops_ms, report.fit_ms);
   for (const LoopClosure& c : report.loops)
     std::printf("loop: agent %u at %.1f s to agent %u at %.1f s, %d points, moved %.3f m\n", c.agent, c.t_ns * 1e-9,
                 c.matched_agent, c.matched_t_ns * 1e-9, c.matches, c.correction_m);
   EXPECT_EQ(report.added, late.size() - 2);
+  EXPECT_GT(report.placed_by_points, report.added / 2) << "most later keyframes see points the merged map holds";
   EXPECT_EQ(report.updated, 1u);
   EXPECT_EQ(report.skipped, 1u);
   EXPECT_GE(report.welded_keyframes, report.added);
