@@ -51,16 +51,19 @@ echo "server"
 grep -E "^(live merge|met|ended|finished|received|agent|loops|final merge|output map|wrote|time) |^ +loop: " "$out/server.log" | sed 's/^/  /'
 
 # Accuracy: each agent's keyframes as it saved them, and as the server's map holds them, each
-# aligned alone (SE(3)); then all three agents' keyframes in the server's map under one alignment
-# (timestamps offset by 1000 s per agent so that they pair with their own ground truth).
+# aligned alone (SE(3)); then all three agents' keyframes in the server's map under one alignment,
+# each one's error under it against its own saved keyframes' (the 1.5x bar of a merged map).
 ate() { "$app" eval "$1" "$2" 2>&1 | awk '/ATE \[m\]/ { print $3; exit }'; }
-: >"$out/joint_est.tum"
-: >"$out/joint_gt.tum"
 echo "accuracy (keyframe ATE, m)"
+pairs=()
 for k in 0 1 2; do
   "$app" map export "$out/server/map.fsmap" --trajectory "$out/merged$k.tum" --agent $k >/dev/null
-  echo "  agent $k: own $(ate "$out/agent$k/keyframes.tum" "$out/agent$k/groundtruth.tum"), in the server's map $(ate "$out/merged$k.tum" "$out/agent$k/groundtruth.tum")"
-  awk -v o=$((k * 1000)) '/^#/ { next } { $1 = sprintf("%.6f", $1 + o); print }' "$out/merged$k.tum" >>"$out/joint_est.tum"
-  awk -v o=$((k * 1000)) '/^#/ { next } { $1 = sprintf("%.6f", $1 + o); print }' "$out/agent$k/groundtruth.tum" >>"$out/joint_gt.tum"
+  own[$k]=$(ate "$out/agent$k/keyframes.tum" "$out/agent$k/groundtruth.tum")
+  echo "  agent $k: own ${own[$k]}, in the server's map $(ate "$out/merged$k.tum" "$out/agent$k/groundtruth.tum")"
+  pairs+=("$out/merged$k.tum" "$out/agent$k/groundtruth.tum")
 done
-echo "  all three in the server's map, one alignment: $(ate "$out/joint_est.tum" "$out/joint_gt.tum")"
+"$app" eval "${pairs[@]}" >"$out/joint.txt"
+awk -v o0="${own[0]}" -v o1="${own[1]}" -v o2="${own[2]}" '
+  BEGIN { own[1] = o0; own[2] = o1; own[3] = o2 }
+  /^estimate/ { for (i = 1; i <= NF; ++i) if ($i == "rmse") { printf "  agent %d in the server'"'"'s map, one alignment for all three: %s (%.2fx its own)\n", $2 - 1, $(i + 1), $(i + 1) / own[$2] } }
+  /^all/ { for (i = 1; i <= NF; ++i) if ($i == "rmse") print "  all three, one alignment: " $(i + 1) }' "$out/joint.txt"

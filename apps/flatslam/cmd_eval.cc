@@ -15,9 +15,13 @@ namespace flatslam::app {
 
 const char* const kEvalUsage =
     "usage: flatslam eval EST GT [options]\n"
+    "       flatslam eval EST1 GT1 EST2 GT2 [...] [options]\n"
     "\n"
     "Scores the estimated trajectory EST against the ground truth GT: ATE after alignment,\n"
     "RPE per frame and per distance, and the KITTI odometry metric (segments of 100..800 m).\n"
+    "Several pairs: estimates in one frame (the agents of a merged map, each exported with\n"
+    "`flatslam map export --agent N`), each paired with its own ground truth, under ONE alignment\n"
+    "of all of them; prints each one's ATE under it and aligned alone, and all together.\n"
     "Files may be TUM (t tx ty tz qx qy qz qw), KITTI (12 numbers a line) or EuRoC csv;\n"
     "the format is detected unless given. Poses are paired by timestamp (nearest, as evo);\n"
     "two KITTI files without times and of equal length are paired by index.\n"
@@ -189,6 +193,32 @@ void PrintText(const Input& est, const Input& gt, const EvalOptions& options, co
   }
 }
 
+// Several estimates under one alignment (EvaluateJointAte).
+void PrintJoint(const std::vector<Input>& est, const std::vector<Input>& gt, const EvalOptions& options,
+                const JointAteResult& r, bool json) {
+  if (json) {
+    std::ostringstream out;
+    out << "{\n  \"alignment\": {\"type\": \"" << AlignmentName(options.alignment)
+        << "\", \"scale\": " << JsonNumber(r.alignment.scale) << "},\n  \"estimates\": [";
+    for (size_t k = 0; k < est.size(); ++k) {
+      out << (k ? ",\n    " : "\n    ") << "{\"estimate\": " << JsonInput(est[k])
+          << ", \"ground_truth\": " << JsonInput(gt[k]) << ", \"pairs\": " << r.pairs[k]
+          << ",\n     \"ate_m\": " << JsonStats(r.ate_m[k])
+          << ",\n     \"own_alignment_ate_m\": " << JsonStats(r.own_ate_m[k]) << "}";
+    }
+    out << "],\n  \"ate_m\": " << JsonStats(r.all_m) << "\n}\n";
+    std::fputs(out.str().c_str(), stdout);
+    return;
+  }
+  std::printf("alignment     %s, one for all %zu estimates, scale %.6f\n", AlignmentName(options.alignment), est.size(),
+              r.alignment.scale);
+  for (size_t k = 0; k < est.size(); ++k) {
+    std::printf("estimate %-4zu %s against %s: %zu pairs, ATE rmse %.6f m (aligned alone %.6f m)\n", k + 1,
+                est[k].path.c_str(), gt[k].path.c_str(), r.pairs[k], r.ate_m[k].rmse, r.own_ate_m[k].rmse);
+  }
+  std::printf("all           %zu pairs, ATE rmse %.6f m\n", r.all_m.count, r.all_m.rmse);
+}
+
 }  // namespace
 
 int RunEval(const std::vector<std::string>& argv) {
@@ -198,8 +228,11 @@ int RunEval(const std::vector<std::string>& argv) {
     std::fputs(kEvalUsage, stdout);
     return 0;
   }
-  if (args.positional().size() != 2)
-    throw UsageError{"expected 2 files (EST GT), got " + std::to_string(args.positional().size())};
+  const size_t files = args.positional().size();
+  if (files < 2 || files % 2 != 0)
+    throw UsageError{"expected pairs of files (EST GT [EST2 GT2 ...]), got " + std::to_string(files)};
+  if (files > 2 && (args.get("est-times") || args.get("gt-times")))
+    throw UsageError{"--est-times and --gt-times take one pair of files (EST GT)"};
 
   EvalOptions options;
   const std::string align = args.get_or("align", "se3");
@@ -213,6 +246,21 @@ int RunEval(const std::vector<std::string>& argv) {
   const TrajectoryFormat est_format = FormatFlag(args, "est-format");
   const TrajectoryFormat gt_format = FormatFlag(args, "gt-format");
 
+  if (files > 2) {
+    std::vector<Input> est, gt;
+    std::vector<Trajectory> est_trajectories, gt_trajectories;
+    for (size_t i = 0; i < files; i += 2) {
+      est.push_back(Load(args.positional()[i], est_format, std::nullopt, "est"));
+      gt.push_back(Load(args.positional()[i + 1], gt_format, std::nullopt, "gt"));
+      for (const Input* input : {&est.back(), &gt.back()})
+        FLATSLAM_CHECK(input->has_times, input->path,
+                       " is a KITTI file without timestamps: several pairs are paired by time (TUM or EuRoC files)");
+      est_trajectories.push_back(est.back().trajectory);
+      gt_trajectories.push_back(gt.back().trajectory);
+    }
+    PrintJoint(est, gt, options, EvaluateJointAte(gt_trajectories, est_trajectories, options), args.has("json"));
+    return 0;
+  }
   const Input est = Load(args.positional()[0], est_format, args.get("est-times"), "est");
   const Input gt = Load(args.positional()[1], gt_format, args.get("gt-times"), "gt");
 

@@ -307,4 +307,45 @@ EvalResult Evaluate(const Trajectory& gt, const Trajectory& est, const EvalOptio
   return result;
 }
 
+JointAteResult EvaluateJointAte(const std::vector<Trajectory>& gt, const std::vector<Trajectory>& est,
+                                const EvalOptions& options) {
+  FLATSLAM_CHECK(options.Check(), "EvaluateJointAte: invalid options");
+  FLATSLAM_CHECK(gt.size() == est.size() && !gt.empty(), "joint ATE: one ground truth per estimate");
+  JointAteResult result;
+  std::vector<std::vector<Eigen::Isometry3d>> gt_poses(gt.size()), est_poses(gt.size());
+  std::vector<Eigen::Vector3d> gt_positions, est_positions;
+  for (size_t k = 0; k < gt.size(); ++k) {
+    const std::vector<IndexPair> pairs =
+        options.pair_by_index ? AssociateByIndex(gt[k], est[k]) : AssociateByTime(gt[k], est[k], options.association);
+    FLATSLAM_CHECK(!pairs.empty(), "estimate ", k + 1, " has no pose paired with its ground truth");
+    std::vector<Eigen::Vector3d> own_gt, own_est;
+    for (const IndexPair& p : pairs) {
+      gt_poses[k].push_back(gt[k][p.gt_index].T_world_cam);
+      est_poses[k].push_back(est[k][p.est_index].T_world_cam);
+      own_gt.push_back(gt_poses[k].back().translation());
+      own_est.push_back(est_poses[k].back().translation());
+    }
+    gt_positions.insert(gt_positions.end(), own_gt.begin(), own_gt.end());
+    est_positions.insert(est_positions.end(), own_est.begin(), own_est.end());
+    result.pairs.push_back(pairs.size());
+    // Aligned alone (none when its positions do not spread: count 0).
+    const AlignmentResult own = AlignUmeyama(own_gt, own_est, options.alignment);
+    std::vector<Eigen::Isometry3d> aligned = est_poses[k];
+    for (Eigen::Isometry3d& pose : aligned) pose = own.Apply(pose);
+    result.own_ate_m.push_back(own.valid ? ComputeAte(gt_poses[k], aligned) : ErrorStats{});
+  }
+  result.alignment = AlignUmeyama(gt_positions, est_positions, options.alignment);
+  FLATSLAM_CHECK(result.alignment.valid, "cannot align the estimates together (", AlignmentName(options.alignment),
+                 ") on ", gt_positions.size(), " pose pairs: their positions do not spread");
+  std::vector<Eigen::Isometry3d> all_gt, all_est;
+  for (size_t k = 0; k < gt.size(); ++k) {
+    for (Eigen::Isometry3d& pose : est_poses[k]) pose = result.alignment.Apply(pose);
+    result.ate_m.push_back(ComputeAte(gt_poses[k], est_poses[k]));
+    all_gt.insert(all_gt.end(), gt_poses[k].begin(), gt_poses[k].end());
+    all_est.insert(all_est.end(), est_poses[k].begin(), est_poses[k].end());
+  }
+  result.all_m = ComputeAte(all_gt, all_est);
+  return result;
+}
+
 }  // namespace flatslam

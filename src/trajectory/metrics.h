@@ -159,4 +159,19 @@ struct EvalResult {
 // match or the alignment is degenerate.
 [[nodiscard]] EvalResult Evaluate(const Trajectory& gt, const Trajectory& est, const EvalOptions& options = {});
 
+// Several estimates in one frame (the agents of a merged map), each against its own ground truth
+// (associated within the pair, by time or index as options say), under ONE alignment of all of
+// them: a per-pair alignment would hide an estimate misplaced in the shared frame.
+struct JointAteResult {
+  AlignmentResult alignment;          // of every pair's positions together
+  std::vector<size_t> pairs;          // pose pairs per estimate
+  std::vector<ErrorStats> ate_m;      // per estimate, under the one alignment
+  std::vector<ErrorStats> own_ate_m;  // per estimate, aligned alone (options.alignment)
+  ErrorStats all_m;                   // every pair together
+};
+// Throws flatslam::Error naming the estimate that has no pose pairs, or when the positions do not
+// spread enough to align.
+[[nodiscard]] JointAteResult EvaluateJointAte(const std::vector<Trajectory>& gt, const std::vector<Trajectory>& est,
+                                              const EvalOptions& options = {});
+
 }  // namespace flatslam

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 #include <string>
 
 #include <gtest/gtest.h>
@@ -79,6 +80,50 @@ TEST(FlatslamCli, EvalReproducesPublishedAte) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(Contains(r.output, "2225")) << r.output;
   EXPECT_TRUE(Contains(r.output, "0.0081")) << r.output;
+}
+
+// Several estimates in one frame under one alignment (the agents of a merged map): the same
+// estimate twice scores as it does alone; a copy moved 1 m in the shared frame cannot be aligned
+// with it by one transform, and each one's error shows it.
+TEST(FlatslamCli, EvalScoresSeveralEstimatesUnderOneAlignment) {
+  const auto traj = testing::DatasetsDir() / "trajectories";
+  const std::string est = (traj / "fr2_desk_ORB.txt").string(), gt = (traj / "fr2_desk_groundtruth.txt").string();
+  Result r = RunApp("eval " + est + " " + gt + " " + est + " " + gt);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "one for all 2 estimates")) << r.output;
+  EXPECT_TRUE(Contains(r.output, "2225 pairs, ATE rmse 0.0081")) << r.output;
+  EXPECT_TRUE(Contains(r.output, "(aligned alone 0.0081")) << r.output;
+
+  const auto dir = testing::FreshTempDir("cli_eval_joint");
+  const std::string moved = (dir / "moved.txt").string();
+  {
+    std::ifstream in(est);
+    std::ofstream out(moved);
+    std::string line;
+    while (std::getline(in, line)) {
+      if (line.empty() || line[0] == '#') continue;
+      std::istringstream fields(line);
+      double v[8];
+      for (double& x : v) fields >> x;
+      char row[256];
+      std::snprintf(row, sizeof(row), "%.6f %.6f %.6f %.6f %.6f %.6f %.6f %.6f\n", v[0], v[1] + 1.0, v[2], v[3], v[4],
+                    v[5], v[6], v[7]);
+      out << row;
+    }
+  }
+  r = RunApp("eval " + est + " " + gt + " " + moved + " " + gt + " --json");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  // Each one is half the offset away from where one alignment puts it.
+  for (const char* key : {"\"ate_m\": {\"count\": 2225, \"rmse\": 0.500", "\"ate_m\": {\"count\": 4450, \"rmse\": 0.500"})
+    EXPECT_TRUE(Contains(r.output, key)) << r.output;
+  EXPECT_TRUE(Contains(r.output, "\"own_alignment_ate_m\": {\"count\": 2225, \"rmse\": 0.0081")) << r.output;
+
+  r = RunApp("eval " + est + " " + gt + " " + est);
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_TRUE(Contains(r.output, "expected pairs of files")) << r.output;
+  r = RunApp("eval " + est + " " + gt + " " + est + " " + gt + " --est-times " + est);
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_TRUE(Contains(r.output, "take one pair of files")) << r.output;
 }
 
 }  // namespace
