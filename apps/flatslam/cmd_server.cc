@@ -175,6 +175,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   std::unique_ptr<GrowingMerge> growing;
   std::vector<KeyFrameMessage> since_cut;  // keyframe messages applied since the last merge began
   size_t updates_since_cut = 0;            // of them, keyframes the maps held already
+  bool may_grow = false;                   // a merge runs, or left maps to grow: keep since_cut
   bool merging = false;
   uint64_t revision = 0;
   size_t merged_messages = 0;  // messages held by the maps the last merge started from
@@ -271,6 +272,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
     // agent's map: the kept merged map's copy of it is stale, a full merge takes the new one.
     const bool grow = growing && growing->Covers(runs) && updates_since_cut == 0;
     updates_since_cut = 0;
+    may_grow = true;
     AgentMaps::RunMaps copies;
     MergeInputs inputs;
     if (!grow) {
@@ -373,7 +375,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
                          what, ": its camera differs from the first agent's (one server merges one camera model)");
         }
         heard.insert(message.agent);
-        if (live_merge_s > 0) since_cut.push_back(message);
+        if (may_grow) since_cut.push_back(message);
         if (!maps.Add(std::move(message))) {
           ++updates;
           ++updates_since_cut;
@@ -391,6 +393,9 @@ int RunServerLive(const std::vector<std::string>& argv) {
       finished.swap(merged_result);
       busy = merging;
     }
+    // No merge runs: whether the next one could grow the kept maps (else the messages since its
+    // cut are not needed, and a server whose maps never merge keeps none of them).
+    if (!busy) may_grow = growing != nullptr;
     if (finished) {
       last_merge_s = Seconds(finished->cut, finished->ready);
       last_merge_end = finished->ready;
