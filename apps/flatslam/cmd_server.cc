@@ -375,11 +375,13 @@ int RunServerLive(const std::vector<std::string>& argv) {
                          what, ": its camera differs from the first agent's (one server merges one camera model)");
         }
         heard.insert(message.agent);
-        if (may_grow) since_cut.push_back(message);
+        std::optional<KeyFrameMessage> kept;  // for the next merge, once the maps took it
+        if (may_grow) kept = message;
         if (!maps.Add(std::move(message))) {
           ++updates;
           ++updates_since_cut;
         }
+        if (kept) since_cut.push_back(std::move(*kept));
       } catch (const Error& e) {
         ++dropped;
         std::fprintf(stderr, "warning: dropped %s\n", e.what());

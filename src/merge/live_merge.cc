@@ -105,6 +105,64 @@ void GrowingMerge::Fit() {
   frames_ = FitRunFrames(merged_, agents, poses_, !camera_.monocular, newest_);
 }
 
+KeyFrameHandle GrowingMerge::AddKeyFrame(const KeyFrameMessage& message, size_t r, const Vocabulary& vocabulary,
+                                         GrowReport* report, std::vector<PointHandle>* touched) {
+  RunIndex& index = index_[r];
+  const RunFrame& frame = *frames_[r];
+  Map& map = merged_.maps[frame.output];
+  const Similarity3& S = frame.S_output_input;
+  const KeyFrame& sent = message.keyframe;
+  // The points the merged map holds already, by the agent's ids.
+  std::vector<PointHandle> joined(sent.size(), PointHandle::null());
+  std::vector<PoseObservation> observations;
+  for (uint32_t k = 0; k < sent.size(); ++k) {
+    const uint32_t i = message.keypoint_point[k];
+    if (i == KeyFrameMessage::kNoPoint) continue;
+    const auto found = index.points.find(message.point_ids[i]);
+    if (found == index.points.end() || !map.points().contains(found->second)) continue;
+    joined[k] = found->second;
+    const Eigen::Vector2f uv = sent.uv[k];
+    observations.push_back({map.point(found->second).position, uv.cast<double>(), -1,
+                            camera_.geometry.pyramid.inv_sigma2[sent.octave[k]]});
+  }
+  KeyFrame columns = MovedKeyFrameColumns(sent, S);
+  // The keyframe goes where those points put it (pose optimization, as tracking places a frame),
+  // from where the run's frame puts it: the run's frame is fitted on keyframes the agent may
+  // have moved since, and the merged map may have moved its own copies of them.
+  if (observations.size() >= kMinPlacingPoints) {
+    const PoseOptimizationResult placed =
+        OptimizePose(camera_.geometry.camera, 0, columns.T_cam_world, observations, PoseOptimizerOptions{});
+    if (placed.success && placed.num_inliers >= static_cast<int>(kMinPlacingPoints)) {
+      columns.T_cam_world = placed.T_cam_world;
+      ++report->placed_by_points;
+    }
+  }
+  columns.agent = message.agent;
+  columns.bow.clear();
+  columns.bow_features.clear();
+  vocabulary.Transform(columns.descriptor, &columns.bow, &columns.bow_features);
+  const Eigen::Isometry3d T_world_cam = columns.T_cam_world.inverse();
+  const KeyFrameHandle kf = map.AddKeyFrame(std::move(columns));
+  index.keyframes.emplace(sent.id, kf);
+  for (uint32_t k = 0; k < sent.size(); ++k) {
+    const uint32_t i = message.keypoint_point[k];
+    if (i == KeyFrameMessage::kNoPoint) continue;
+    PointHandle p = joined[k];
+    if (p.is_null()) {
+      // A new point where this keyframe sees it (in the merged map's units).
+      const Eigen::Vector3d X_cam = S.s * (sent.T_cam_world * message.positions[i]);
+      p = map.AddPoint(T_world_cam * X_cam, kf);
+      index.points[message.point_ids[i]] = p;
+    }
+    // Two keypoints of one keyframe on one point (a fuse in the merged map): the first stays.
+    const auto& seen = map.point(p).observations;
+    if (std::any_of(seen.begin(), seen.end(), [&](const Observation& o) { return o.keyframe == kf; })) continue;
+    map.AddObservation(p, kf, k);
+    touched->push_back(p);
+  }
+  return kf;
+}
+
 GrowReport GrowingMerge::Grow(const std::vector<KeyFrameMessage>& messages, const Vocabulary& vocabulary) {
   GrowReport report;
   auto start = std::chrono::steady_clock::now();
@@ -118,65 +176,13 @@ GrowReport GrowingMerge::Grow(const std::vector<KeyFrameMessage>& messages, cons
       continue;
     }
     poses_[r][message.keyframe.t_ns] = message.keyframe.T_cam_world.inverse();
-    RunIndex& index = index_[r];
-    if (index.keyframes.count(message.keyframe.id)) {
+    if (index_[r].keyframes.count(message.keyframe.id)) {
       ++report.updated;
       continue;
     }
-    const RunFrame& frame = *frames_[r];
-    Map& map = merged_.maps[frame.output];
-    const Similarity3& S = frame.S_output_input;
-    const KeyFrame& sent = message.keyframe;
-    // The points the merged map holds already, by the agent's ids.
-    std::vector<PointHandle> joined(sent.size(), PointHandle::null());
-    std::vector<PoseObservation> observations;
-    for (uint32_t k = 0; k < sent.size(); ++k) {
-      const uint32_t i = message.keypoint_point[k];
-      if (i == KeyFrameMessage::kNoPoint) continue;
-      const auto found = index.points.find(message.point_ids[i]);
-      if (found == index.points.end() || !map.points().contains(found->second)) continue;
-      joined[k] = found->second;
-      const Eigen::Vector2f uv = sent.uv[k];
-      observations.push_back({map.point(found->second).position, uv.cast<double>(), -1,
-                              camera_.geometry.pyramid.inv_sigma2[sent.octave[k]]});
-    }
-    KeyFrame columns = MovedKeyFrameColumns(sent, S);
-    // The keyframe goes where those points put it (pose optimization, as tracking places a frame),
-    // from where the run's frame puts it: the run's frame is fitted on keyframes the agent may
-    // have moved since (a loop it closed), and the merged map may have moved its own copies of them.
-    if (observations.size() >= kMinPlacingPoints) {
-      const PoseOptimizationResult placed =
-          OptimizePose(camera_.geometry.camera, 0, columns.T_cam_world, observations, PoseOptimizerOptions{});
-      if (placed.success && placed.num_inliers >= static_cast<int>(kMinPlacingPoints)) {
-        columns.T_cam_world = placed.T_cam_world;
-        ++report.placed_by_points;
-      }
-    }
-    columns.agent = message.agent;
-    columns.bow.clear();
-    columns.bow_features.clear();
-    vocabulary.Transform(columns.descriptor, &columns.bow, &columns.bow_features);
-    const Eigen::Isometry3d T_world_cam = columns.T_cam_world.inverse();
-    const KeyFrameHandle kf = map.AddKeyFrame(std::move(columns));
-    index.keyframes.emplace(sent.id, kf);
-    added[frame.output].push_back(kf);
+    const size_t g = frames_[r]->output;
+    added[g].push_back(AddKeyFrame(message, r, vocabulary, &report, &touched[g]));
     ++report.added;
-    for (uint32_t k = 0; k < sent.size(); ++k) {
-      const uint32_t i = message.keypoint_point[k];
-      if (i == KeyFrameMessage::kNoPoint) continue;
-      PointHandle p = joined[k];
-      if (p.is_null()) {
-        // A new point where this keyframe sees it (in the merged map's units).
-        const Eigen::Vector3d X_cam = S.s * (sent.T_cam_world * message.positions[i]);
-        p = map.AddPoint(T_world_cam * X_cam, kf);
-        index.points[message.point_ids[i]] = p;
-      }
-      // Two keypoints of one keyframe on one point (a fuse in the merged map): the first stays.
-      const auto& seen = map.point(p).observations;
-      if (std::any_of(seen.begin(), seen.end(), [&](const Observation& o) { return o.keyframe == kf; })) continue;
-      map.AddObservation(p, kf, k);
-      touched[frame.output].push_back(p);
-    }
   }
   for (size_t g = 0; g < merged_.maps.size(); ++g) {
     Map& map = merged_.maps[g];

@@ -12,9 +12,9 @@
 //  - loop closing continues over the new keyframes (MergedMapLoopCloser), where agents meet again;
 //  - each run's frame is fitted again on its newest keyframes.
 // Its cost follows the keyframes added, not the maps. Not followed: an agent's later changes to
-// keyframes it sent before (a new pose after its local bundle adjustment or a loop, a cull) move
-// only the run's poses its frame is fitted on; the next full merge (the server's final one) takes
-// everything from the agents' maps again.
+// keyframes it sent before (sent again after its loop corrections, culls) move only the run's
+// poses its frame is fitted on; the map server merges in full instead when a keyframe comes again
+// (apps/flatslam/cmd_server.cc), and its final merge takes everything from the agents' maps.
 // Concurrency: one thread at a time (the server's merge thread).
 #pragma once
 
@@ -81,6 +81,10 @@ class GrowingMerge {
 
  private:
   void Fit();
+  // Adds the keyframe of `message` (run r, in a merged map) and joins or adds its points; the points
+  // it observes go to *touched.
+  KeyFrameHandle AddKeyFrame(const KeyFrameMessage& message, size_t r, const Vocabulary& vocabulary, GrowReport* report,
+                             std::vector<PointHandle>* touched);
 
   struct RunIndex {
     std::unordered_map<uint64_t, KeyFrameHandle> keyframes;  // the agent's id -> merged map's
