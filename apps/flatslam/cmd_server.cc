@@ -55,6 +55,8 @@ struct LiveMerge {
   // Grown from the previous merge's maps (GrowingMerge) instead of merged again from the agents'.
   bool grown = false;
   GrowReport growth;
+  size_t runs_apart = 0;       // grown: runs it could not grow (in no merged map with another)
+  bool overlap_apart = false;  // grown: one of them overlaps a merged map or another of them
 };
 
 SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabulary) {
@@ -176,6 +178,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   std::vector<KeyFrameMessage> since_cut;  // keyframe messages applied since the last merge began
   size_t updates_since_cut = 0;            // of them, keyframes the maps held already
   bool may_grow = false;                   // a merge runs, or left maps to grow: keep since_cut
+  bool overlap_seen = false;               // a grown merge found runs apart overlapping: merge in full
   bool merging = false;
   uint64_t revision = 0;
   size_t merged_messages = 0;  // messages held by the maps the last merge started from
@@ -203,6 +206,9 @@ int RunServerLive(const std::vector<std::string>& argv) {
           what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), g.added, g.placed_by_points,
           g.updated, g.skipped, m.keyframes, m.runs.size(), 1000 * Seconds(m.cut, m.ready), g.join_ms, g.weld_ms,
           g.welded_keyframes, m.loops, m.loops_ms, g.fit_ms);
+      if (m.runs_apart > 0)
+        std::printf("              %zu run(s) apart: %s\n", m.runs_apart,
+                    m.overlap_apart ? "one overlaps, the next merge joins it" : "no overlap yet");
       for (const LoopClosure& c : g.loops)
         std::printf(
             "              loop: agent %u keyframe at %.2f s to agent %u's at %.2f s: %d points, moved %.3f m\n",
@@ -270,14 +276,18 @@ int RunServerLive(const std::vector<std::string>& argv) {
     since_cut.clear();
     // A keyframe sent again (after the agent's loop correction, or its final update) moved in the
     // agent's map: the kept merged map's copy of it is stale, a full merge takes the new one.
-    const bool grow = growing && growing->Covers(runs) && updates_since_cut == 0;
+    const bool grow = growing && updates_since_cut == 0 && !overlap_seen;
     updates_since_cut = 0;
+    overlap_seen = false;
     may_grow = true;
     AgentMaps::RunMaps copies;
     MergeInputs inputs;
     if (!grow) {
       copies = maps.CopyMaps(vocabulary);
       inputs = InputsOf(copies, job.get());
+    } else if (const auto apart = growing->Uncovered(runs); !apart.empty()) {
+      // Runs in no merged map with another (alone, or new): only their maps, to look for an overlap.
+      copies = maps.CopyMaps(vocabulary, apart);
     }
     const SnapshotMetadata metadata = MetadataOf(*maps.camera(), vocabulary);
     const MergeCamera camera =
@@ -292,6 +302,9 @@ int RunServerLive(const std::vector<std::string>& argv) {
       try {
         if (grow) {
           RecordGrowth(*growing, growing->Grow(messages, vocabulary), job.get());
+          // A run apart that now overlaps: the next merge is a full one, which joins it.
+          job->runs_apart = copies.runs.size();
+          job->overlap_apart = growing->FindsNewOverlap(copies.maps, vocabulary);
         } else {
           growing.reset();
           std::vector<RunSightings> sightings;
@@ -399,6 +412,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
     // cut are not needed, and a server whose maps never merge keeps none of them).
     if (!busy) may_grow = growing != nullptr;
     if (finished) {
+      overlap_seen = finished->overlap_apart;
       last_merge_s = Seconds(finished->cut, finished->ready);
       last_merge_end = finished->ready;
       take_merge(*finished, "live merge");

@@ -128,11 +128,14 @@ AgentMaps::RunMaps AgentMaps::TakeMaps(const Vocabulary& vocabulary) {
   return taken;
 }
 
-AgentMaps::RunMaps AgentMaps::CopyMaps(const Vocabulary& vocabulary) {
+AgentMaps::RunMaps AgentMaps::CopyMaps(const Vocabulary& vocabulary,
+                                       const std::vector<std::pair<uint32_t, uint64_t>>& only) {
   ComputeBow(vocabulary);
   RefreshPointStats();
   RunMaps copies;
   for (size_t i : MergeOrder()) {
+    const std::pair<uint32_t, uint64_t> run{sessions_[i].agent, sessions_[i].session};
+    if (!only.empty() && std::find(only.begin(), only.end(), run) == only.end()) continue;
     copies.maps.push_back(sessions_[i].map);
     copies.runs.emplace_back(sessions_[i].agent, sessions_[i].session);
     copies.ids.push_back(index_[i]);

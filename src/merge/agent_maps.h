@@ -64,8 +64,9 @@ class AgentMaps {
   // seen by n keyframes would otherwise be computed n times over, in O(n^2) each, as its keyframes
   // arrive and again in the final update). sessions() shows them as last computed.
   void RefreshPointStats();
-  // Copies, for a merge while messages keep arriving.
-  [[nodiscard]] RunMaps CopyMaps(const Vocabulary& vocabulary);
+  // Copies, for a merge while messages keep arriving; of the runs in `only` when it is not empty.
+  [[nodiscard]] RunMaps CopyMaps(const Vocabulary& vocabulary,
+                                 const std::vector<std::pair<uint32_t, uint64_t>>& only = {});
 
  private:
   // Session indices by agent, then in the order each run was first heard: the merge keeps the

@@ -85,12 +85,25 @@ GrowingMerge::GrowingMerge(MultiMapMerge merged, std::vector<Run> runs, const st
   Fit();
 }
 
-bool GrowingMerge::Covers(const std::vector<Run>& runs) const {
+std::vector<GrowingMerge::Run> GrowingMerge::Uncovered(const std::vector<Run>& runs) const {
+  std::vector<Run> out;
   for (const Run& run : runs) {
     const auto it = std::find(runs_.begin(), runs_.end(), run);
-    if (it == runs_.end() || !frames_[static_cast<size_t>(it - runs_.begin())]) return false;
+    if (it == runs_.end() || !frames_[static_cast<size_t>(it - runs_.begin())]) out.push_back(run);
   }
-  return true;
+  return out;
+}
+
+bool GrowingMerge::FindsNewOverlap(const std::vector<Map>& others, const Vocabulary& vocabulary) const {
+  for (size_t i = 0; i < others.size(); ++i) {
+    for (size_t g = 0; g < merged_.maps.size(); ++g)
+      if (merged_.members[g].size() > 1 &&
+          FindMapOverlap(merged_.maps[g], others[i], vocabulary, camera_, options_).found)
+        return true;
+    for (size_t j = i + 1; j < others.size(); ++j)
+      if (FindMapOverlap(others[i], others[j], vocabulary, camera_, options_).found) return true;
+  }
+  return false;
 }
 
 size_t GrowingMerge::keyframes() const {

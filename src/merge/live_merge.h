@@ -74,9 +74,15 @@ class GrowingMerge {
   [[nodiscard]] const std::vector<Run>& runs() const { return runs_; }
   // Per run: its frame in the output map that holds it (none: alone, or too few keyframes).
   [[nodiscard]] const std::vector<std::optional<RunFrame>>& frames() const { return frames_; }
-  // True when every run of `runs` is here and in a merged map with another run: only then can
-  // their messages grow the maps.
-  [[nodiscard]] bool Covers(const std::vector<Run>& runs) const;
+  // The runs of `runs` that are not here in a merged map with another run: their messages cannot
+  // grow the maps (Grow skips them).
+  [[nodiscard]] std::vector<Run> Uncovered(const std::vector<Run>& runs) const;
+  [[nodiscard]] bool Covers(const std::vector<Run>& runs) const { return Uncovered(runs).empty(); }
+  // Whether any of `others` (the current maps of runs it does not cover, with bags of words)
+  // overlaps one of the merged maps here or another of them (FindMapOverlap): then a full merge
+  // joins them; else the merged maps can go on growing while those runs stay apart. Costs place
+  // recognition of the others' keyframes, not a merge.
+  [[nodiscard]] bool FindsNewOverlap(const std::vector<Map>& others, const Vocabulary& vocabulary) const;
   [[nodiscard]] size_t keyframes() const;
 
  private:

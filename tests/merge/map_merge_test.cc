@@ -281,7 +281,14 @@ TEST(LiveMerge, AGrownMergedMapHoldsLaterKeyFramesAsAFullMergeDoes) {
   const size_t merged_keyframes = merged.maps[0].keyframes().size();
   GrowingMerge growing(std::move(merged), copies.runs, sightings, poses, camera, options, 10);
   ASSERT_TRUE(growing.Covers(copies.runs));
-  EXPECT_FALSE(growing.Covers({{0, 100}, {1, 101}, {2, 102}})) << "a run it has never seen";
+  EXPECT_EQ(growing.Uncovered({{0, 100}, {1, 101}, {2, 102}}), (std::vector<GrowingMerge::Run>{{2, 102}}))
+      << "a run it has never seen";
+  // A run kept apart is looked for in the merged maps without merging: agent 1's own map overlaps
+  // them, a room far from the town does not.
+  EXPECT_TRUE(growing.FindsNewOverlap({copies.maps[1]}, DefaultVocabulary()));
+  Map room = RunAgent("synth:room:duration=6,width=480,height=360", 3).map;
+  ComputeKeyFrameBow(room, DefaultVocabulary(), /*missing_only=*/true);
+  EXPECT_FALSE(growing.FindsNewOverlap({room}, DefaultVocabulary()));
 
   // The late keyframes interleaved by time, as two agents running at once send them.
   std::stable_sort(late.begin(), late.end(), [](const KeyFrameMessage& a, const KeyFrameMessage& b) {
