@@ -157,9 +157,10 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
       answered_matches_ = matches;
       for (const auto& [h, id] : sent_)
         if (Send(map, h) > 0) ++resent_;
-    } else if (const uint64_t corrections = slam.map_corrections(); corrections > corrections_sent_) {
+    } else if (slam.map_corrections() > corrections_sent_ && !slam.global_bundle_adjustment_running()) {
       // A loop correction or a global bundle adjustment moved keyframes sent long ago: the
-      // server's copies of them are stale until they come again.
+      // server's copies of them are stale until they come again. After a loop, once the global
+      // bundle adjustment that follows it has ended: the map moves once more then.
       for (const auto& [h, id] : sent_) {
         if (const size_t bytes = Send(map, h); bytes > 0) {
           ++corrected_sent_;
@@ -168,7 +169,8 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
       }
     }
     // Whichever branch sent the map again sent it as these corrections left it.
-    corrections_sent_ = std::max(corrections_sent_, slam.map_corrections());
+    if (!slam.global_bundle_adjustment_running())
+      corrections_sent_ = std::max(corrections_sent_, slam.map_corrections());
     if (const size_t bytes = Send(map, keyframe); bytes > 0) {
       ++keyframes_sent_;
       keyframe_bytes_ += bytes;

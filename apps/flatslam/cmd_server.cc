@@ -55,6 +55,7 @@ struct LiveMerge {
   // Grown from the previous merge's maps (GrowingMerge) instead of merged again from the agents'.
   bool grown = false;
   GrowReport growth;
+  size_t updates = 0;          // keyframes sent again between the previous merge's cut and this one's
   size_t runs_apart = 0;       // grown: runs it could not grow (in no merged map with another)
   bool overlap_apart = false;  // grown: one of them overlaps a merged map or another of them
 };
@@ -175,10 +176,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
   // The last live merge's maps, grown by later messages; used by one merge job at a time, and read
   // by the receive loop only while no job runs.
   std::unique_ptr<GrowingMerge> growing;
-  std::vector<KeyFrameMessage> since_cut;  // keyframe messages applied since the last merge began
-  size_t updates_since_cut = 0;            // of them, keyframes the maps held already
-  bool may_grow = false;                   // a merge runs, or left maps to grow: keep since_cut
-  bool overlap_seen = false;               // a grown merge found runs apart overlapping: merge in full
+  std::vector<KeyFrameMessage> since_cut;                // keyframe messages applied since the last merge began
+  size_t updates_since_cut = 0;                          // of them, keyframes the maps held already
+  std::set<std::pair<uint32_t, uint64_t>> updated_runs;  // whose those were
+  bool may_grow = false;                                 // a merge runs, or left maps to grow: keep since_cut
+  bool overlap_seen = false;                             // a grown merge found runs apart overlapping: merge in full
   bool merging = false;
   uint64_t revision = 0;
   size_t merged_messages = 0;  // messages held by the maps the last merge started from
@@ -215,10 +217,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
             c.agent, c.t_ns * 1e-9, c.matched_agent, c.matched_t_ns * 1e-9, c.matches, c.correction_m);
     } else {
       std::printf(
-          "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs, %zu merged map(s), %zu alone, %.0f ms "
+          "%s %-3llu maps at %.1f s: %zu keyframes of %zu runs (%zu sent again), %zu merged map(s), %zu alone, "
+          "%.0f ms "
           "(merge steps: place recognition %.0f, fuse %.0f, essential graph %.0f, weld %.0f; %zu loops closed in "
           "%.0f)\n",
-          what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(),
+          what, static_cast<unsigned long long>(revision), Seconds(start, m.cut), m.keyframes, m.runs.size(), m.updates,
           joined_maps, m.members.size() - joined_maps, 1000 * Seconds(m.cut, m.ready), m.place_ms, m.fuse_ms,
           m.graph_ms, m.weld_ms, m.loops, m.loops_ms);
     }
@@ -275,9 +278,13 @@ int RunServerLive(const std::vector<std::string>& argv) {
     std::vector<KeyFrameMessage> messages = std::move(since_cut);
     since_cut.clear();
     // A keyframe sent again (after the agent's loop correction, or its final update) moved in the
-    // agent's map: the kept merged map's copy of it is stale, a full merge takes the new one.
-    const bool grow = growing && updates_since_cut == 0 && !overlap_seen;
+    // agent's map: the kept merged map's copy of it is stale, a full merge takes the new one. (A
+    // run apart is not in the kept maps: its map is searched as it is now.)
+    const std::vector<GrowingMerge::Run> updated(updated_runs.begin(), updated_runs.end());
+    const bool grow = growing && growing->Uncovered(updated).size() == updated.size() && !overlap_seen;
+    job->updates = updates_since_cut;
     updates_since_cut = 0;
+    updated_runs.clear();
     overlap_seen = false;
     may_grow = true;
     AgentMaps::RunMaps copies;
@@ -390,9 +397,11 @@ int RunServerLive(const std::vector<std::string>& argv) {
         heard.insert(message.agent);
         std::optional<KeyFrameMessage> kept;  // for the next merge, once the maps took it
         if (may_grow) kept = message;
+        const std::pair<uint32_t, uint64_t> run{message.agent, message.session};
         if (!maps.Add(std::move(message))) {
           ++updates;
           ++updates_since_cut;
+          updated_runs.insert(run);
         }
         if (kept) since_cut.push_back(std::move(*kept));
       } catch (const Error& e) {

@@ -67,6 +67,9 @@ class SlamSession {
   // Loop corrections and global bundle adjustments applied to the map so far: each moved keyframes
   // made long before (a map server's copy of them is stale after one). Any thread.
   [[nodiscard]] uint64_t map_corrections() const { return map_corrections_.load(); }
+  // A global bundle adjustment after a loop runs in the background: the map will move again when
+  // it ends (a correction). Any thread.
+  [[nodiscard]] bool global_bundle_adjustment_running() const { return global_ba_running_.load(); }
   // Loop closures so far (call when no stage is running).
   [[nodiscard]] const std::vector<LoopClosure>& loop_closures() const { return loops_.closures; }
   [[nodiscard]] size_t database_size() const { return database_.size(); }
