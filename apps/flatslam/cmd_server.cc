@@ -281,7 +281,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
     // agent's map: the kept merged map's copy of it is stale, a full merge takes the new one. (A
     // run apart is not in the kept maps: its map is searched as it is now.)
     const std::vector<GrowingMerge::Run> updated(updated_runs.begin(), updated_runs.end());
-    const bool grow = growing && growing->Uncovered(updated).size() == updated.size() && !overlap_seen;
+    // Before any run has joined another there is nothing to grow: a full merge searches and joins
+    // in one go.
+    const bool grow = growing && growing->Uncovered(runs).size() < runs.size() &&
+                      growing->Uncovered(updated).size() == updated.size() && !overlap_seen;
     job->updates = updates_since_cut;
     updates_since_cut = 0;
     updated_runs.clear();
@@ -428,8 +431,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
     }
     // A live merge starts when keyframes arrived since the last one, at most every --live-merge
     // seconds and never sooner after one ends than it took: merging takes at most half a core.
-    if (live_merge_s > 0 && !busy && maps.sessions().size() >= 2 && received - dropped > merged_messages &&
-        Seconds(last_merge_end, now) >= std::max(live_merge_s, last_merge_s)) {
+    // A grown merge that found runs apart overlapping starts the full merge that joins them at once.
+    if (live_merge_s > 0 && !busy && maps.sessions().size() >= 2 &&
+        (overlap_seen || (received - dropped > merged_messages &&
+                          Seconds(last_merge_end, now) >= std::max(live_merge_s, last_merge_s)))) {
       merged_messages = received - dropped;
       previous_cut = now;
       start_merge(now);
