@@ -2,8 +2,8 @@
 // flatslam-live only, see live.h):
 // every tracked frame's pose as a ROS 2 geometry_msgs/PoseStamped on rt/flatslam/agent_N/pose
 // (best effort), every mapped keyframe as a keyframe message on flatslam/keyframes (reliable;
-// when a server joins later, and after a loop correction or global bundle adjustment of the map,
-// every keyframe sent before again, before the next one), with byte
+// when a server joins later, and after a loop correction of the map once the global bundle
+// adjustment after it ended, every keyframe sent before again, before the next one), with byte
 // counts for the bandwidth report. It listens on
 // flatslam/corrections for the server's corrections of its run: once its map has been merged with
 // others', the poses it publishes are in the merged map's frame (frame_id flatslam_map_<run of
