@@ -60,7 +60,7 @@ struct AgentFrame {
   uint64_t session = 0;
   unsigned long long moves = 0, by = 0;
   Eigen::Isometry3d T_map_run = Eigen::Isometry3d::Identity();  // X_map = scale * R X_run + t
-  double scale = 1.0;                                            // a monocular run's
+  double scale = 1.0;                                           // a monocular run's
 };
 // The number just before `what` in `text` (-1 when `what` is not there).
 long NumberBefore(const std::string& text, const std::string& what) {
@@ -156,15 +156,14 @@ struct LastCorrectionCheck {
 };
 std::optional<LastCorrectionCheck> CheckAgainstLastCorrection(const fs::path& map, uint32_t agent,
                                                               const Trajectory& keyframes, const AgentFrame& frame,
-                                                              const HeardCorrections& heard,
-                                                              const fs::path& exported) {
+                                                              const HeardCorrections& heard, const fs::path& exported) {
   const CorrectionMessage* last = nullptr;
   for (const auto& [key, c] : heard)
     if (key.first == frame.session) last = &c;  // ordered by session, then merge
   EXPECT_NE(last, nullptr) << "no correction heard for agent " << agent;
   if (!last) return std::nullopt;
-  const auto r = RunApp("map export " + map.string() + " --trajectory " + exported.string() + " --agent " +
-                        std::to_string(agent));
+  const auto r =
+      RunApp("map export " + map.string() + " --trajectory " + exported.string() + " --agent " + std::to_string(agent));
   EXPECT_EQ(r.exit_code, 0) << r.output;
   if (r.exit_code != 0) return std::nullopt;
   LastCorrectionCheck out;
@@ -346,6 +345,47 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   if (!heard.empty()) {
     const std::vector<double> live = testing::JointAte(heard_gt, heard);
     for (double ate : live) std::printf("poses heard in the final merged frame: ATE %.3f m (one alignment)\n", ate);
+  }
+  fs::remove_all(dir);
+}
+
+// Once two agents' maps have joined, later live merges grow the merged map by the keyframes the
+// agents make instead of merging again (merge/live_merge.h): two town agents driving their loops
+// for 150 s (they meet after about 20 s, close their loops at about 53 s and drive on).
+TEST(AgentsCli, AServerGrowsTheMergedMapOnceAgentsJoined) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_grow");
+  const std::string d = std::to_string(100 + getpid() % 20);
+  const pid_t server =
+      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--live-merge", "1", "--dds-domain", d},
+            dir / "server.log");
+  std::vector<pid_t> agents;
+  for (int k = 0; k < 2; ++k)
+    agents.push_back(Spawn(
+        {"agent", "synth:town:agent=" + std::to_string(k) + ",width=480,height=360,fps=10,duration=150", "--id",
+         std::to_string(k), "--quiet", "--dds-domain", d, "--out", (dir / ("agent" + std::to_string(k))).string()},
+        dir / ("agent" + std::to_string(k) + ".log")));
+  for (int k = 0; k < 2; ++k) ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string log = ReadBytes(dir / "server.log");
+  EXPECT_TRUE(Contains(log, "0 dropped as malformed")) << log;
+  EXPECT_TRUE(Contains(log, "agents [0,1]")) << log;
+  // Grown merges, each adding the keyframes since the last merge, every one placed in the map.
+  size_t grown = 0, added = 0;
+  for (size_t pos = 0; (pos = log.find(" grown at ", pos)) != std::string::npos; ++pos) {
+    const std::string line = log.substr(pos, log.find('\n', pos) - pos);
+    std::printf("%s\n", line.c_str());
+    EXPECT_TRUE(Contains(line, "0 of runs in no merged map")) << line;
+    EXPECT_TRUE(Contains(line, " of 2 runs")) << line;
+    ++grown;
+    added += static_cast<size_t>(std::max(0L, NumberBefore(line, " keyframes added")));
+  }
+  EXPECT_GT(grown, 0u) << log;
+  EXPECT_GT(added, 0u) << log;
+  // The agents heard corrections and sent their maps again after their loops.
+  for (int k = 0; k < 2; ++k) {
+    const std::string agent_log = ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+    EXPECT_TRUE(Contains(agent_log, " corrections from the server")) << agent_log;
+    EXPECT_GT(NumberBefore(agent_log, " sent again after its map's loop corrections"), 0) << agent_log;
   }
   fs::remove_all(dir);
 }
@@ -545,8 +585,7 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
                             std::to_string(k + 1), "--id", std::to_string(k), "--quiet", "--deterministic",
                             "--dds-domain", d, "--out", (dir / ("agent" + std::to_string(k))).string()},
                            dir / ("agent" + std::to_string(k) + ".log")));
-  for (int k = 0; k < 2; ++k)
-    ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
+  for (int k = 0; k < 2; ++k) ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   EXPECT_TRUE(Contains(ReadBytes(dir / "server.log"), "agents [0,1]")) << ReadBytes(dir / "server.log");
   const HeardCorrections corrections = listener.Heard();
