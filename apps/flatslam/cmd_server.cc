@@ -100,7 +100,8 @@ void RecordGrowth(const GrowingMerge& growing, GrowReport growth, LiveMerge* job
   job->ready = Clock::now();
 }
 
-void Record(const MultiMapMerge& merged, const MergeInputs& inputs, bool monocular, LiveMerge* job) {
+// The report of a full merge; `frames`: each input's frame in its output map (FitRunFrames).
+void Record(const MultiMapMerge& merged, std::vector<std::optional<RunFrame>> frames, LiveMerge* job) {
   job->members = merged.members;
   for (const MergeAttempt& a : merged.attempts) {
     job->place_ms += a.report.place_ms;
@@ -112,7 +113,7 @@ void Record(const MultiMapMerge& merged, const MergeInputs& inputs, bool monocul
     job->loops += l.closures.size();
     job->loops_ms += l.ms;
   }
-  job->frames = FitRunFrames(merged, inputs.agents, inputs.poses, !monocular, kCorrectionKeyFrames);
+  job->frames = std::move(frames);
   job->ready = Clock::now();
 }
 
@@ -320,10 +321,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
           std::vector<RunSightings> sightings;
           for (size_t i = 0; i < copies.maps.size(); ++i)
             sightings.push_back(SightingsOf(copies.maps[i], copies.ids[i]));
-          MultiMapMerge merged = MergeAllMaps(std::move(copies.maps), vocabulary, camera, live_options);
-          Record(merged, inputs, camera.monocular, job.get());
-          growing = std::make_unique<GrowingMerge>(std::move(merged), copies.runs, sightings, inputs.poses, camera,
-                                                   live_options, kCorrectionKeyFrames);
+          growing = std::make_unique<GrowingMerge>(
+              MergeAllMaps(std::move(copies.maps), vocabulary, camera, live_options), copies.runs, sightings,
+              inputs.poses, camera, live_options, kCorrectionKeyFrames);
+          Record(growing->merged(), growing->frames(), job.get());
         }
         done = std::move(*job);
       } catch (const Error& e) {
@@ -480,7 +481,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
   const MergeInputs inputs = InputsOf(all, &final_merge);
   const MergeTimes times =
       MergeAndSave(std::move(all.maps), vocabulary, metadata, merge_options, out_dir / "map.fsmap",
-                   [&](const MultiMapMerge& merged) { Record(merged, inputs, monocular, &final_merge); });
+                   [&](const MultiMapMerge& merged) {
+                     Record(merged, FitRunFrames(merged, inputs.agents, inputs.poses, !monocular, kCorrectionKeyFrames),
+                            &final_merge);
+                   });
   take_merge(final_merge, "final merge");
   if (!corrections->WaitForAcknowledgments(5))
     std::fprintf(stderr, "warning: not every subscriber acknowledged the final corrections within 5 s\n");

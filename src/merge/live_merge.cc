@@ -202,8 +202,6 @@ GrowReport GrowingMerge::Grow(const std::vector<KeyFrameMessage>& messages, cons
     for (KeyFrameHandle kf : added[g]) map.UpdateCovisibility(kf);
     std::sort(touched[g].begin(), touched[g].end());
     touched[g].erase(std::unique(touched[g].begin(), touched[g].end()), touched[g].end());
-    for (PointHandle p : touched[g])
-      if (map.points().contains(p)) map.UpdatePointStats(p, camera_.scales);
   }
   report.join_ms = MsSince(start);
 
@@ -222,6 +220,7 @@ GrowReport GrowingMerge::Grow(const std::vector<KeyFrameMessage>& messages, cons
     report.welded_keyframes += free.size();
     report.weld_outliers +=
         WeldBundleAdjustment(map, camera_, options_.bundle_adjustment, std::move(free), KeyFrameHandle::null());
+    // The points' statistics once, as the weld left them (loop closing reads them).
     for (PointHandle p : touched[g])
       if (map.points().contains(p)) map.UpdatePointStats(p, camera_.scales);
   }

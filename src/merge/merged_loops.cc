@@ -40,12 +40,10 @@ std::vector<KeyFrameHandle> ReplayOrder(const Map& map, std::span<const KeyFrame
 MergedMapLoops CloseLoopsInMergedMap(Map& map, const Vocabulary& vocabulary, const SystemContext& context,
                                      uint64_t seed, MergedMapLoopCloser* closer) {
   ComputeKeyFrameBow(map, vocabulary, true);
-  MergedMapLoopCloser local(vocabulary, seed);
-  MergedMapLoopCloser& replay = closer ? *closer : local;
-  if (closer) *closer = MergedMapLoopCloser(vocabulary, seed);
+  MergedMapLoopCloser replay(vocabulary, seed);
   MergedMapLoops out;
-  const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
-  replay.Replay(map, order, context, &out);
+  replay.Replay(map, ReplayOrder(map, map.keyframes().handles()), context, &out);
+  if (closer) *closer = std::move(replay);
   return out;
 }
 
