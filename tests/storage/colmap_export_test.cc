@@ -236,8 +236,8 @@ void ExpectModelMatchesMap(const fs::path& dir, const Map& map, const Calibratio
 
 void ExpectColmapAgrees(const fs::path& dir, const ColmapExportCounts& counts) {
   // The text model as exported, and as COLMAP's model_converter rewrites it in its binary format.
-  const fs::path binary = dir.parent_path() / (dir.filename().string() + "_bin");
-  fs::create_directories(binary);
+  // In a temp dir of its own (removed at exit), never beside `dir`, which may be a temp dir itself.
+  const fs::path binary = testing::FreshTempDir("colmap_bin_" + dir.filename().string());
   const std::string convert = std::string(kColmap) + " model_converter --input_path '" + dir.string() +
                               "' --output_path '" + binary.string() + "' --output_type BIN > /dev/null 2>&1";
   ASSERT_EQ(std::system(convert.c_str()), 0) << convert;
