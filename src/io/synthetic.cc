@@ -392,7 +392,7 @@ Eigen::Isometry3d SceneMover::PoseAt(double t) const {
 bool SyntheticOptions::Check() const {
   return (width == 0 || width >= 32) && (height == 0 || height >= 32) && fx >= 0 && fy >= 0 && frame_rate_hz >= 0 &&
          duration_s >= 0 && baseline_m >= 0 && pixel_noise_sigma >= 0 && depth_noise_k >= 0 && max_depth_m > 0 &&
-         agent >= 0 && dynamic_fraction >= 0 && dynamic_fraction <= 0.3;
+         agent >= 0 && dynamic_fraction >= 0 && dynamic_fraction <= 0.3 && std::abs(rig_error_px) <= 5;
 }
 
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options) {
@@ -441,10 +441,14 @@ void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOp
       FLATSLAM_CHECK(v >= 0 && v <= 0.3, "synthetic spec '", spec, "': dynamic=", value,
                      " is outside [0, 0.3] (the largest fraction of the image a moving object covers)");
       options->dynamic_fraction = v;
+    } else if (key == "rig_error") {
+      FLATSLAM_CHECK(std::abs(v) <= 5, "synthetic spec '", spec, "': rig_error=", value,
+                     " is outside [-5, 5] (pixels of disparity)");
+      options->rig_error_px = v;
     } else {
       Fail("synthetic spec '", spec, "': unknown key '", key,
            "' (known: width, height, fx, fps, duration, baseline, noise, depth_noise, agent, seed, sensor, "
-           "dynamic)");
+           "dynamic, rig_error)");
     }
   }
 }
@@ -887,7 +891,10 @@ void SyntheticScene::RenderExposure(const std::vector<double>& times, double off
   auto pose = [&](double t) -> Eigen::Isometry3d {
     const Eigen::Isometry3d T_world_cam = PoseAt(t);
     if (offset_x == 0) return T_world_cam;
-    return T_world_cam * Eigen::Translation3d(offset_x, 0, 0);
+    // The right camera, turned by the rig error: a point at depth z lands fx * angle pixels left
+    // of where the exact rig shows it, so its disparity grows by rig_error_px.
+    const double angle = options_.rig_error_px / calibration_.camera.fx;
+    return T_world_cam * Eigen::Translation3d(offset_x, 0, 0) * Eigen::AngleAxisd(angle, Eigen::Vector3d::UnitY());
   };
   thread_local std::vector<float> value, sub;
   value.resize(n);

@@ -209,6 +209,61 @@ TEST(SyntheticScene, TownAgentsOverlapOnlyInPart) {
   }
 }
 
+// A rig error moves the right image by that many pixels of disparity: the horizontal shift that
+// best warps the left image into the right one (central columns, where a turned camera shifts
+// every pixel alike) is -rig_error, and the exact rig's warp is off by it.
+TEST(SyntheticScene, ARigErrorAddsItsPixelsToEveryDisparity) {
+  for (const double rig_error : {0.0, 0.4, -1.0}) {
+    SyntheticOptions o = SmallOptions(Sensor::kStereo);
+    o.pixel_noise_sigma = 0;
+    o.rig_error_px = rig_error;
+    SyntheticScene scene(MakeScene("street"), o);
+    const size_t i = 101;
+    const Eigen::Isometry3d T_left = scene.PoseAt(scene.timestamp_ns(i) * 1e-9);
+    cv::Mat left, depth;
+    scene.RenderView(T_left, 0, &left, &depth);
+    const Frame f = scene.Render(i);
+    EXPECT_EQ(cv::norm(f.left, left, cv::NORM_INF), 0.0) << "the left image does not change";
+    const PinholeCamera& cam = scene.calibration().camera;
+    const double bf = cam.fx * scene.calibration().baseline_m;
+    auto warp_error = [&](double du) {
+      std::vector<double> errors;
+      for (int v = 4; v < left.rows - 4; v += 2) {
+        for (int u = static_cast<int>(cam.cx - left.cols / 6.0); u < cam.cx + left.cols / 6.0; u += 2) {
+          const float z = depth.at<float>(v, u);
+          if (z <= 0) continue;
+          const double ur = u - bf / z + du;
+          if (ur < 1 || ur > f.right.cols - 2) continue;
+          errors.push_back(std::abs(left.at<uint8_t>(v, u) - Bilinear(f.right, ur, v)));
+        }
+      }
+      std::nth_element(errors.begin(), errors.begin() + errors.size() / 2, errors.end());
+      return errors[errors.size() / 2];
+    };
+    double best_du = 0, best = 1e9;
+    for (double du = -1.5; du <= 1.5 + 1e-9; du += 0.05) {
+      if (const double e = warp_error(du); e < best) {
+        best = e;
+        best_du = du;
+      }
+    }
+    std::printf("rig_error %+.1f px: best shift %+.2f px (median warp error %.2f), exact rig's %.2f\n", rig_error,
+                best_du, best, warp_error(0));
+    EXPECT_NEAR(best_du, -rig_error, 0.1);
+    if (rig_error != 0) EXPECT_GT(warp_error(0), best + 0.5) << "the exact rig's warp must be worse";
+  }
+  std::string name;
+  SyntheticOptions o;
+  ParseSyntheticSpec("street:rig_error=-0.1", &name, &o);
+  EXPECT_EQ(o.rig_error_px, -0.1);
+  try {
+    ParseSyntheticSpec("street:rig_error=6", &name, &o);
+    ADD_FAILURE() << "rig_error=6 accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("rig_error"), std::string::npos) << e.what();
+  }
+}
+
 TEST(SyntheticScene, RejectsBadSpecsAndOptions) {
   std::string scene;
   SyntheticOptions o;
