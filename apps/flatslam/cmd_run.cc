@@ -25,6 +25,7 @@
 #include "io/orb_settings.h"
 #include "jobs/sequence_run.h"
 #include "jobs/slam_runner.h"
+#include "mapping/rig_check.h"
 #include "storage/snapshot.h"
 #include "config/slam_config.h"
 #include "place/vocabulary.h"
@@ -339,10 +340,19 @@ int RunRun(const std::vector<std::string>& original_argv) {
     const std::filesystem::path dir = file.has_parent_path() ? file.parent_path() : ".";
     FLATSLAM_CHECK(std::filesystem::is_directory(dir), flag, " ", file, ": directory ", dir, " does not exist");
   };
+  // Stereo: how far the rig's disparities sit from the map's points, measured once every stage
+  // has drained (a real rig's rectification error; see mapping/rig_check.h).
+  std::optional<DisparityOffsetFit> rig_fit;
+  const bool stereo = dataset->calibration().sensor == Sensor::kStereo;
+  if (stereo)
+    run.on_finished = [&](const SlamSession& slam) {
+      rig_fit = FitDisparityOffset(slam.map(), slam.context().geometry);
+    };
   if (auto m = args.get("save-map")) {
     save_map = *m;
     check_directory("--save-map", *save_map);
-    run.on_finished = [&](const SlamSession& slam) {
+    run.on_finished = [&, measure_rig = run.on_finished](const SlamSession& slam) {
+      if (measure_rig) measure_rig(slam);
       const auto start = std::chrono::steady_clock::now();
       try {
         const SnapshotMapRef ref{0, &slam.map()};
@@ -476,6 +486,19 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (!loaded_note.empty())
     std::printf("continued     %s%s\n", loaded_note.c_str(), options.localization_only ? " (localization only)" : "");
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
+  if (rig_fit && rig_fit->ok) {
+    // Taken off already: the offset the run corrected for, plus what the map still measures.
+    const double set = options.stereo.disparity_offset_px, total = set + rig_fit->offset_px;
+    std::printf(
+        "stereo rig    disparities %+.3f +- %.3f px off the map's multi-view points (%zu observations of %zu points)",
+        rig_fit->offset_px, rig_fit->offset_sigma_px, rig_fit->observations, rig_fit->points);
+    // A rectification error worth correcting: beyond the fit's noise and above 0.05 px, which moves
+    // a depth 1% at 5 px of disparity.
+    if (std::abs(rig_fit->offset_px) > std::max(0.05, 3 * rig_fit->offset_sigma_px))
+      std::printf("; if the rig's rectification is off by that, --set stereo.disparity_offset_px=%.2f takes it off",
+                  total);
+    std::printf("\n");
+  }
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               extract_ms.Median(), mean_extract, track_ms.Median(), mean_track);
   if (const MappingTimes& m = result.mapping; m.keyframes > 0) {

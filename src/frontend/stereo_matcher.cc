@@ -219,11 +219,13 @@ StereoStats MatchStereo(const Keypoints& right, const ImagePyramid& left_pyramid
 
       const float xr = static_cast<float>(xr0 + best_offset + delta);
       const float ur = right_pyramid.FromLevel(Eigen::Vector2f(xr, static_cast<float>(yl)), level).x();
-      const float disparity = ul - ur;
+      // The rig's own offset comes off: where an exact rig would have shown the point.
+      const float exact_ur = ur + static_cast<float>(options.disparity_offset_px);
+      const float disparity = ul - exact_ur;
       if (disparity <= min_disparity || disparity >= max_disparity) continue;
       stage[i] = 2;
       sad_score[i] = best_sad;
-      left->right_u[i] = ur;
+      left->right_u[i] = exact_ur;
       left->depth[i] = static_cast<float>(bf / disparity);
     }
   });

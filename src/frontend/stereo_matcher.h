@@ -5,6 +5,7 @@
 // (MatchStereo runs a tbb::parallel_for over the left keypoints inside).
 #pragma once
 
+#include <cmath>
 #include <string>
 
 #include <opencv2/core/mat.hpp>
@@ -16,18 +17,21 @@
 namespace flatslam {
 
 // Stereo matching's options: X(type, name, default, requirement, description) (core/option_fields.h).
-#define FLATSLAM_STEREO_OPTIONS(X)                                                                                 \
-  X(double, min_depth_m, 0, min_depth_m >= 0, "nearest accepted depth; 0 = one baseline (max disparity = fx)")     \
-  X(int, descriptor_threshold, 75, descriptor_threshold >= 1 && descriptor_threshold <= 257,                       \
-    "Hamming distance accepted when below (mean of 100 and 50)")                                                   \
-  X(float, row_radius, 2.0f, row_radius >= 0,                                                                      \
-    "candidate rows: |v_right - v_left| <= row_radius x scale of the right keypoint's octave")                     \
-  X(int, octave_radius, 1, octave_radius >= 0, "candidate octaves: |octave_right - octave_left| <= octave_radius") \
-  X(int, sad_half_window, 5, sad_half_window >= 1 && sad_half_window <= 15,                                        \
-    "SAD patch (2w+1)^2 on the left keypoint's pyramid level")                                                     \
-  X(int, sad_search_radius, 5, sad_search_radius >= 1 && sad_search_radius <= 64,                                  \
-    "level pixels searched either side of the descriptor match")                                                   \
-  X(float, outlier_factor, 2.1f, outlier_factor > 0, "drop matches whose SAD exceeds factor x median SAD (1.5 x 1.4)")
+#define FLATSLAM_STEREO_OPTIONS(X)                                                                                     \
+  X(double, min_depth_m, 0, min_depth_m >= 0, "nearest accepted depth; 0 = one baseline (max disparity = fx)")         \
+  X(int, descriptor_threshold, 75, descriptor_threshold >= 1 && descriptor_threshold <= 257,                           \
+    "Hamming distance accepted when below (mean of 100 and 50)")                                                       \
+  X(float, row_radius, 2.0f, row_radius >= 0,                                                                          \
+    "candidate rows: |v_right - v_left| <= row_radius x scale of the right keypoint's octave")                         \
+  X(int, octave_radius, 1, octave_radius >= 0, "candidate octaves: |octave_right - octave_left| <= octave_radius")     \
+  X(int, sad_half_window, 5, sad_half_window >= 1 && sad_half_window <= 15,                                            \
+    "SAD patch (2w+1)^2 on the left keypoint's pyramid level")                                                         \
+  X(int, sad_search_radius, 5, sad_search_radius >= 1 && sad_search_radius <= 64,                                      \
+    "level pixels searched either side of the descriptor match")                                                       \
+  X(float, outlier_factor, 2.1f, outlier_factor > 0, "drop matches whose SAD exceeds factor x median SAD (1.5 x 1.4)") \
+  X(double, disparity_offset_px, 0, std::abs(disparity_offset_px) <= 5,                                                \
+    "pixels the rig adds to every disparity (its rectification error), taken off each match; `flatslam run` "          \
+    "prints the offset its map measures")
 
 struct StereoOptions {
   FLATSLAM_STEREO_OPTIONS(FLATSLAM_OPTION_FIELD)

@@ -60,6 +60,7 @@ class SlamSession {
   [[nodiscard]] Trajectory KeyFrameTrajectory() const;
   // Direct map access when no stage is running.
   [[nodiscard]] const Map& map() const { return map_; }
+  [[nodiscard]] const SystemContext& context() const { return context_; }
   [[nodiscard]] int pending_keyframes() const { return pending_keyframes_; }
   // Tracking wanted a keyframe on the last frame but local mapping was busy; local BA stops early
   // while it is set, and a batch run waits for mapping instead of tracking on.

@@ -1,6 +1,7 @@
 // End-to-end checks of the flatslam command line: exit codes, messages, and the
 // synth -> info -> eval chain a user runs.
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -85,6 +86,32 @@ TEST(FlatslamCli, EvalReproducesPublishedAte) {
 // Several estimates in one frame under one alignment (the agents of a merged map): the same
 // estimate twice scores as it does alone; a copy moved 1 m in the shared frame cannot be aligned
 // with it by one transform, and each one's error shows it.
+// The number after `key` in a run's summary (NaN when absent).
+double NumberAfter(const std::string& output, const std::string& key) {
+  const size_t at = output.find(key);
+  return at == std::string::npos ? std::nan("") : std::stod(output.substr(at + key.size()));
+}
+
+// A stereo run measures its rig against the map: a rig that adds -0.2 px to every disparity
+// (synthetic rig_error) is reported with the setting that takes it off; with that setting the map
+// measures about nothing left and the trajectory is better.
+TEST(FlatslamCli, ARunMeasuresItsStereoRigAndTheOffsetTakesItOff) {
+  const std::string run =
+      "run synth:street:duration=20,width=480,height=360,rig_error=-0.2 --deterministic --quiet --vocabulary none";
+  Result as_is = RunApp(run);
+  ASSERT_EQ(as_is.exit_code, 0) << as_is.output;
+  const double measured = NumberAfter(as_is.output, "stereo rig    disparities ");
+  EXPECT_NEAR(measured, -0.2, 0.05) << as_is.output;
+  EXPECT_TRUE(Contains(as_is.output, "--set stereo.disparity_offset_px=-0.")) << as_is.output;
+  Result corrected = RunApp(run + " --set stereo.disparity_offset_px=-0.2");
+  ASSERT_EQ(corrected.exit_code, 0) << corrected.output;
+  EXPECT_NEAR(NumberAfter(corrected.output, "stereo rig    disparities "), 0.0, 0.04) << corrected.output;
+  EXPECT_FALSE(Contains(corrected.output, "--set stereo.disparity_offset_px")) << corrected.output;
+  // Measured: 0.42 m as it is, 0.11 m corrected.
+  const double ate_as_is = NumberAfter(as_is.output, "ATE  "), ate_corrected = NumberAfter(corrected.output, "ATE  ");
+  EXPECT_LT(ate_corrected, 0.5 * ate_as_is) << as_is.output << corrected.output;
+}
+
 TEST(FlatslamCli, EvalScoresSeveralEstimatesUnderOneAlignment) {
   const auto traj = testing::DatasetsDir() / "trajectories";
   const std::string est = (traj / "fr2_desk_ORB.txt").string(), gt = (traj / "fr2_desk_groundtruth.txt").string();
@@ -114,7 +141,8 @@ TEST(FlatslamCli, EvalScoresSeveralEstimatesUnderOneAlignment) {
   r = RunApp("eval " + est + " " + gt + " " + moved + " " + gt + " --json");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   // Each one is half the offset away from where one alignment puts it.
-  for (const char* key : {"\"ate_m\": {\"count\": 2225, \"rmse\": 0.500", "\"ate_m\": {\"count\": 4450, \"rmse\": 0.500"})
+  for (const char* key :
+       {"\"ate_m\": {\"count\": 2225, \"rmse\": 0.500", "\"ate_m\": {\"count\": 4450, \"rmse\": 0.500"})
     EXPECT_TRUE(Contains(r.output, key)) << r.output;
   EXPECT_TRUE(Contains(r.output, "\"own_alignment_ate_m\": {\"count\": 2225, \"rmse\": 0.0081")) << r.output;
 
