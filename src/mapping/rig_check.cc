@@ -106,6 +106,13 @@ DisparityOffsetFit FitDisparityOffset(const Map& map, const CameraGeometry& geom
       kept[i] = residuals[i].w * e * e < 9 * variance;
     }
   }
+  std::vector<double> disparities;
+  for (size_t i = 0; i < residuals.size(); ++i)
+    if (kept[i]) disparities.push_back(residuals[i].d);
+  if (!disparities.empty()) {
+    std::nth_element(disparities.begin(), disparities.begin() + disparities.size() / 2, disparities.end());
+    fit.median_disparity_px = disparities[disparities.size() / 2];
+  }
   return fit;
 }
 

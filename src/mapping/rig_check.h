@@ -30,8 +30,9 @@ struct DisparityOffsetFit {
   // Correlation of the offset's and the slope's errors: near +-1 when the disparities span too
   // narrow a range to tell a constant offset from a scale error.
   double correlation = 0;
-  size_t observations = 0;  // stereo observations kept after trimming
-  size_t points = 0;        // points placed from their rays
+  double median_disparity_px = 0;  // of those observations: an offset matters in proportion to it
+  size_t observations = 0;         // stereo observations kept after trimming
+  size_t points = 0;               // points placed from their rays
 };
 
 // Needs geometry.bf > 0 (stereo or RGB-D); a monocular map gives ok = false.
