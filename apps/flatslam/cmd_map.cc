@@ -17,6 +17,7 @@
 #include "core/error.h"
 #include "storage/colmap_export.h"
 #include "storage/snapshot.h"
+#include "mapping/rig_check.h"
 #include "merge/map_merge.h"
 #include "slam/session.h"
 #include "place/vocabulary.h"
@@ -36,7 +37,9 @@ const char* const kMapUsage =
     "  info     format version, file size, vocabulary checksum, calibration, and per map: id,\n"
     "           agents, keyframes, map points, observations, bounding box (read in place: fast)\n"
     "  verify   checks everything: structure, every index, the content hash, that each map\n"
-    "           rebuilds consistently; prints 'ok' and exits 0, else the problem and exits 1\n"
+    "           rebuilds consistently; prints 'ok' and exits 0, else the problem and exits 1;\n"
+    "           for a stereo map, also how far its disparities sit from its multi-view points\n"
+    "           (a rig's rectification error, as `flatslam run` prints it)\n"
     "  export   map points as a PLY point cloud (all maps; ascii by default), the keyframe\n"
     "           trajectory (T_world_cam sorted by time, --format tum (default), kitti (with the\n"
     "           times in FILE.times.txt) or euroc csv; with several maps the poses of each stay\n"
@@ -133,6 +136,16 @@ int Verify(const std::string& file, const Args& args) {
     }
     std::printf("ok: %s (format version %u, %zu maps, %zu keyframes, %zu map points)\n", file.c_str(),
                 loaded.format_version, loaded.maps.size(), keyframes, points);
+    // Stereo: the rig as each map measures it (mapping/rig_check.h); the offset its run took off
+    // is not stored, so what it names is to be added to that one.
+    if (loaded.metadata.calibration.sensor == Sensor::kStereo) {
+      const CameraGeometry geometry = CameraGeometry::FromCalibration(
+          loaded.metadata.calibration, 0,
+          ScalePyramid::Make(loaded.metadata.scales.levels, loaded.metadata.scales.scale_factor));
+      for (const LoadedMap& m : loaded.maps)
+        if (const DisparityOffsetFit fit = FitDisparityOffset(m.map, geometry); fit.ok)
+          std::printf("stereo rig    map %u: %s\n", m.id, DescribeDisparityOffset(fit, std::nan("")).c_str());
+    }
     return 0;
   } catch (const Error& e) {
     std::printf("failed: %s\n", e.what());

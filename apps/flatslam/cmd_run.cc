@@ -486,23 +486,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (!loaded_note.empty())
     std::printf("continued     %s%s\n", loaded_note.c_str(), options.localization_only ? " (localization only)" : "");
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
-  if (rig_fit && rig_fit->ok) {
-    // Taken off already: the offset the run corrected for, plus what the map still measures.
-    const double set = options.stereo.disparity_offset_px, total = set + rig_fit->offset_px;
-    std::printf(
-        "stereo rig    disparities %+.3f +- %.3f px off the map's multi-view points (%zu observations of %zu points, "
-        "median disparity %.1f px)",
-        rig_fit->offset_px, rig_fit->offset_sigma_px, rig_fit->observations, rig_fit->points,
-        rig_fit->median_disparity_px);
-    // A rectification error worth correcting: beyond the fit's noise, above 0.05 px (a depth 1% at
-    // 5 px of disparity) and moving the median observation's depth 0.5% or more (near scenes with
-    // large disparities barely feel it, and there the map's scale takes it up instead).
-    if (std::abs(rig_fit->offset_px) > std::max(0.05, 3 * rig_fit->offset_sigma_px) &&
-        std::abs(rig_fit->offset_px) >= 0.005 * rig_fit->median_disparity_px)
-      std::printf("; if the rig's rectification is off by that, --set stereo.disparity_offset_px=%.2f takes it off",
-                  total);
-    std::printf("\n");
-  }
+  if (rig_fit && rig_fit->ok)
+    std::printf("stereo rig    %s\n", DescribeDisparityOffset(*rig_fit, options.stereo.disparity_offset_px).c_str());
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               extract_ms.Median(), mean_extract, track_ms.Median(), mean_track);
   if (const MappingTimes& m = result.mapping; m.keyframes > 0) {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <vector>
 
 #include <Eigen/Dense>
@@ -114,6 +115,30 @@ DisparityOffsetFit FitDisparityOffset(const Map& map, const CameraGeometry& geom
     fit.median_disparity_px = disparities[disparities.size() / 2];
   }
   return fit;
+}
+
+std::string DescribeDisparityOffset(const DisparityOffsetFit& fit, double offset_set_px) {
+  if (!fit.ok) return {};
+  char line[320];
+  int n = std::snprintf(line, sizeof(line),
+                        "disparities %+.3f +- %.3f px off the map's multi-view points (%zu observations of %zu "
+                        "points, median disparity %.1f px)",
+                        fit.offset_px, fit.offset_sigma_px, fit.observations, fit.points, fit.median_disparity_px);
+  std::string out(line, static_cast<size_t>(std::max(0, n)));
+  const double size = std::abs(fit.offset_px);
+  if (size > std::max(0.05, 3 * fit.offset_sigma_px) && size >= 0.005 * fit.median_disparity_px) {
+    n = std::isnan(offset_set_px)
+            ? std::snprintf(line, sizeof(line),
+                            "; if the rig's rectification is off by that, adding %.2f to the run's "
+                            "stereo.disparity_offset_px takes it off",
+                            fit.offset_px)
+            : std::snprintf(line, sizeof(line),
+                            "; if the rig's rectification is off by that, --set stereo.disparity_offset_px=%.2f takes "
+                            "it off",
+                            offset_set_px + fit.offset_px);
+    out.append(line, static_cast<size_t>(std::max(0, n)));
+  }
+  return out;
 }
 
 }  // namespace flatslam

@@ -9,6 +9,7 @@
 #pragma once
 
 #include <cstddef>
+#include <string>
 
 #include "ecs/map.h"
 #include "geometry/camera.h"
@@ -38,5 +39,13 @@ struct DisparityOffsetFit {
 // Needs geometry.bf > 0 (stereo or RGB-D); a monocular map gives ok = false.
 [[nodiscard]] DisparityOffsetFit FitDisparityOffset(const Map& map, const CameraGeometry& geometry,
                                                     const DisparityOffsetOptions& options = {});
+
+// One line for a user: the offset with its noise, and the setting that takes it off (offset_set_px,
+// what the map's run took off already, plus the fit; NaN when not known: what to add to it) when it
+// is a rectification error worth
+// correcting: beyond 3 sigma, above 0.05 px (a depth 1% at 5 px of disparity) and moving the median
+// observation's depth 0.5% or more (near scenes with large disparities barely feel it, and there
+// the map's scale takes it up instead). Empty when !fit.ok.
+[[nodiscard]] std::string DescribeDisparityOffset(const DisparityOffsetFit& fit, double offset_set_px);
 
 }  // namespace flatslam

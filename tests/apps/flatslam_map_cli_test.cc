@@ -54,6 +54,14 @@ TEST_F(MapCli, RunSavesAMapThatVerifies) {
   const Result r = RunApp("map verify " + (dir_ / "room.fsmap").string());
   EXPECT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(Contains(r.output, "ok")) << r.output;
+  // The rig as the saved map measures it: the figure the run printed from the same map.
+  auto offset = [](const std::string& output, const std::string& key) {
+    const size_t at = output.find(key);
+    return at == std::string::npos ? std::string("none") : output.substr(at + key.size(), 6);
+  };
+  EXPECT_NE(offset(r.output, "stereo rig    map 0: disparities "), "none") << r.output;
+  EXPECT_EQ(offset(r.output, "stereo rig    map 0: disparities "), offset(run_.output, "stereo rig    disparities "))
+      << r.output << run_.output;
 }
 
 TEST_F(MapCli, InfoPrintsCountsAgentsBoundsAndVersion) {
