@@ -340,19 +340,10 @@ int RunRun(const std::vector<std::string>& original_argv) {
     const std::filesystem::path dir = file.has_parent_path() ? file.parent_path() : ".";
     FLATSLAM_CHECK(std::filesystem::is_directory(dir), flag, " ", file, ": directory ", dir, " does not exist");
   };
-  // Stereo: how far the rig's disparities sit from the map's points, measured once every stage
-  // has drained (a real rig's rectification error; see mapping/rig_check.h).
-  std::optional<DisparityOffsetFit> rig_fit;
-  const bool stereo = dataset->calibration().sensor == Sensor::kStereo;
-  if (stereo)
-    run.on_finished = [&](const SlamSession& slam) {
-      rig_fit = FitDisparityOffset(slam.map(), slam.context().geometry);
-    };
   if (auto m = args.get("save-map")) {
     save_map = *m;
     check_directory("--save-map", *save_map);
-    run.on_finished = [&, measure_rig = run.on_finished](const SlamSession& slam) {
-      if (measure_rig) measure_rig(slam);
+    run.on_finished = [&](const SlamSession& slam) {
       const auto start = std::chrono::steady_clock::now();
       try {
         const SnapshotMapRef ref{0, &slam.map()};
@@ -486,8 +477,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (!loaded_note.empty())
     std::printf("continued     %s%s\n", loaded_note.c_str(), options.localization_only ? " (localization only)" : "");
   std::printf("map           %zu keyframes, %zu map points\n", result.keyframe_count, result.point_count);
-  if (rig_fit && rig_fit->ok)
-    std::printf("stereo rig    %s\n", DescribeDisparityOffset(*rig_fit, options.stereo.disparity_offset_px).c_str());
+  if (result.rig.ok)
+    std::printf("stereo rig    %s\n", DescribeDisparityOffset(result.rig, options.stereo.disparity_offset_px).c_str());
   std::printf("time          extract median %.1f ms (mean %.1f), track median %.1f ms (mean %.1f) per frame\n",
               extract_ms.Median(), mean_extract, track_ms.Median(), mean_track);
   if (const MappingTimes& m = result.mapping; m.keyframes > 0) {

@@ -154,6 +154,7 @@ SequenceResult ResultOfRun(const SlamRunResult& run, const RunRecorder::Counts& 
   r.keyframes = run.keyframe_count;
   r.map_points = run.point_count;
   r.loops = run.loop_closures.size();
+  if (run.rig.ok) r.rig_offset_px = run.rig.offset_px;
   r.fps = run.wall_s > 0 ? static_cast<double>(run.frames) / run.wall_s : 0;
   // Work per frame: the time the frame pipeline's stages and local mapping took. It is CPU time
   // where each stage has a core to itself, the figure that says how many sequences a machine

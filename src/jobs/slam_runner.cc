@@ -276,6 +276,8 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   result.point_count = slam.map().points().size();
   result.loop_closures = slam.loop_closures();
   result.mapping = slam.mapping_times();
+  if (dataset.calibration().sensor == Sensor::kStereo)
+    result.rig = FitDisparityOffset(slam.map(), slam.context().geometry);
   // The last checkpoint: the whole session as it ends.
   if (checkpointing && result.frames > result.frames_skipped) {
     capture();

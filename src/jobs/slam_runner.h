@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "io/dataset.h"
+#include "mapping/rig_check.h"
 #include "slam/session.h"
 
 namespace flatslam {
@@ -86,6 +87,8 @@ struct SlamRunResult {
   size_t keyframe_count = 0, point_count = 0;
   std::vector<LoopClosure> loop_closures;
   MappingTimes mapping;  // local mapping's time per stage
+  // Stereo: the rig's disparity offset as the final map measures it (mapping/rig_check.h).
+  DisparityOffsetFit rig;
   double wall_s = 0;
   size_t frames_skipped = 0;  // unreadable frames (see SlamRunOptions::strict)
   bool interrupted = false;   // SlamRunOptions::stop ended the run

@@ -49,6 +49,7 @@ const std::vector<Column>& Columns() {
       {"path_m", &SequenceResult::path_m, 1, Combine::kMedian},
       {"kitti_t_rel_pct", &SequenceResult::kitti_t_rel_pct, 3, Combine::kMedian},
       {"kitti_r_rel_deg_per_100m", &SequenceResult::kitti_r_rel_deg_per_100m, 3, Combine::kMedian},
+      {"rig_offset_px", &SequenceResult::rig_offset_px, 3, Combine::kMedian},
       {"wall_s", &SequenceResult::wall_s, 2, Combine::kSum},
       {"fps", &SequenceResult::fps, 1, Combine::kMedian},
       {"cpu_ms_per_frame", &SequenceResult::cpu_ms_per_frame, 2, Combine::kMedian},

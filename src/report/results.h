@@ -28,6 +28,9 @@ struct SequenceResult {
   std::optional<double> rpe_m, rpe_deg;                // RPE RMSE per frame, SE(3)-aligned
   std::optional<double> path_m;                        // ground-truth path length over the trajectory
   std::optional<double> kitti_t_rel_pct, kitti_r_rel_deg_per_100m;
+  // Stereo: measured minus predicted disparity of the map's points (a rig's rectification error,
+  // mapping/rig_check.h), pixels; what the run took off already is not included.
+  std::optional<double> rig_offset_px;
   double wall_s = 0;            // from opening the dataset to the results computed
   double fps = 0;               // frames / tracking wall time
   double cpu_ms_per_frame = 0;  // work per frame: extraction, tracking and local mapping time / frames

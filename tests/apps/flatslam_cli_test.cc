@@ -12,6 +12,7 @@
 #include <sys/wait.h>
 
 #include "cli.h"
+#include "report/results.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -98,10 +99,16 @@ double NumberAfter(const std::string& output, const std::string& key) {
 TEST(FlatslamCli, ARunMeasuresItsStereoRigAndTheOffsetTakesItOff) {
   const std::string run =
       "run synth:street:duration=20,width=480,height=360,rig_error=-0.2 --deterministic --quiet --vocabulary none";
-  Result as_is = RunApp(run);
+  const auto dir = testing::FreshTempDir("cli_rig");
+  Result as_is = RunApp(run + " --out " + (dir / "as_is").string());
   ASSERT_EQ(as_is.exit_code, 0) << as_is.output;
   const double measured = NumberAfter(as_is.output, "stereo rig    disparities ");
   EXPECT_NEAR(measured, -0.2, 0.05) << as_is.output;
+  // The run's row of the results table holds the same figure.
+  const std::vector<SequenceResult> rows = ReadResultsCsv(dir / "as_is" / "results.csv");
+  ASSERT_EQ(rows.size(), 1u);
+  ASSERT_TRUE(rows[0].rig_offset_px.has_value());
+  EXPECT_NEAR(*rows[0].rig_offset_px, measured, 0.0011);
   EXPECT_TRUE(Contains(as_is.output, "--set stereo.disparity_offset_px=-0.")) << as_is.output;
   Result corrected = RunApp(run + " --set stereo.disparity_offset_px=-0.2");
   ASSERT_EQ(corrected.exit_code, 0) << corrected.output;
