@@ -100,7 +100,6 @@ DisparityOffsetFit FitDisparityOffset(const Map& map, const CameraGeometry& geom
     fit.slope = x[1];
     const Eigen::Matrix2d covariance = N.inverse();
     fit.offset_sigma_px = std::sqrt(covariance(0, 0) * variance);
-    fit.correlation = covariance(0, 1) / std::sqrt(covariance(0, 0) * covariance(1, 1));
     fit.observations = n;
     for (size_t i = 0; i < residuals.size(); ++i) {
       const double e = residuals[i].r - x[0] - x[1] * residuals[i].d;

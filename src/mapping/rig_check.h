@@ -24,13 +24,10 @@ struct DisparityOffsetOptions {
 };
 
 struct DisparityOffsetFit {
-  bool ok = false;             // enough observations (at least 100) for a fit
-  double offset_px = 0;        // measured minus predicted disparity, constant part
-  double offset_sigma_px = 0;  // its standard error
-  double slope = 0;            // part proportional to the disparity (a scale error of the map)
-  // Correlation of the offset's and the slope's errors: near +-1 when the disparities span too
-  // narrow a range to tell a constant offset from a scale error.
-  double correlation = 0;
+  bool ok = false;                 // enough observations (at least 100) for a fit
+  double offset_px = 0;            // measured minus predicted disparity, constant part
+  double offset_sigma_px = 0;      // its standard error
+  double slope = 0;                // part proportional to the disparity (a scale error of the map)
   double median_disparity_px = 0;  // of those observations: an offset matters in proportion to it
   size_t observations = 0;         // stereo observations kept after trimming
   size_t points = 0;               // points placed from their rays
