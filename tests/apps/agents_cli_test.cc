@@ -172,6 +172,14 @@ std::optional<LastCorrectionCheck> CheckAgainstLastCorrection(const fs::path& ma
   return out;
 }
 
+// A map server writing to dir/server (log dir/server.log) for `agents` agents on DDS domain d.
+pid_t SpawnServer(const fs::path& dir, int agents, const std::string& d, const std::vector<std::string>& extra = {}) {
+  std::vector<std::string> args = {"server", "--out", (dir / "server").string(), "--agents", std::to_string(agents)};
+  args.insert(args.end(), extra.begin(), extra.end());
+  args.insert(args.end(), {"--dds-domain", d});
+  return Spawn(args, dir / "server.log");
+}
+
 // The town agents of the merge tests (tests/merge/map_merge_test.cc): agents 0 and 1 share two
 // stretches of road, agent 2 shares the top road with both.
 std::string Town(int agent) {
@@ -219,8 +227,7 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
     every_correction[{c.session, c.revision}] = std::move(c);
   });
 
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "3", "--dds-domain", d}, dir / "server.log");
+  const pid_t server = SpawnServer(dir, 3, d);
   std::vector<pid_t> agents;
   for (int k = 0; k < 3; ++k)
     agents.push_back(Spawn({"agent", Town(k), "--id", std::to_string(k), "--quiet", "--deterministic", "--own-frame",
@@ -355,9 +362,7 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
 TEST(AgentsCli, AServerGrowsTheMergedMapOnceAgentsJoined) {
   const fs::path dir = testing::FreshTempDir("agents_cli_grow");
   const std::string d = std::to_string(100 + getpid() % 20);
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--live-merge", "1", "--dds-domain", d},
-            dir / "server.log");
+  const pid_t server = SpawnServer(dir, 2, d, {"--live-merge", "1"});
   std::vector<pid_t> agents;
   for (int k = 0; k < 2; ++k)
     agents.push_back(Spawn(
@@ -395,8 +400,7 @@ TEST(AgentsCli, AServerGrowsTheMergedMapOnceAgentsJoined) {
 TEST(AgentsCli, KeyFramesAnAgentCullsLeaveTheServersMap) {
   const fs::path dir = testing::FreshTempDir("agents_cli_cull");
   const std::string d = std::to_string(20 + getpid() % 60);
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--dds-domain", d}, dir / "server.log");
+  const pid_t server = SpawnServer(dir, 1, d);
   const auto r = RunApp(
       "agent synth:room:duration=40,width=480,height=360 --id 0 --quiet --deterministic "
       "--dds-domain " +
@@ -423,8 +427,7 @@ TEST(AgentsCli, ALateServerGetsTheWholeMap) {
                             dir / "agent.log");
   // The server starts once the agent has tracked 200 frames (stats.csv grows by a line a frame).
   WaitForTrackedFrames(agent_out, 200);
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--dds-domain", d}, dir / "server.log");
+  const pid_t server = SpawnServer(dir, 1, d);
   ASSERT_EQ(Wait(agent), 0) << ReadBytes(dir / "agent.log");
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
   const std::string agent_log = ReadBytes(dir / "agent.log"), log = ReadBytes(dir / "server.log");
@@ -439,9 +442,7 @@ TEST(AgentsCli, ALateServerGetsTheWholeMap) {
 TEST(AgentsCli, AServerWaitingForAKilledAgentStopsAfterItsSilence) {
   const fs::path dir = testing::FreshTempDir("agents_cli_silence");
   const std::string d = std::to_string(1 + getpid() % 19);
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "1", "--idle", "3", "--dds-domain", d},
-            dir / "server.log");
+  const pid_t server = SpawnServer(dir, 1, d, {"--idle", "3"});
   const fs::path agent_out = dir / "agent";
   const pid_t agent = Spawn({"agent", "synth:room:duration=20,width=480,height=360", "--id", "0", "--quiet",
                              "--deterministic", "--dds-domain", d, "--out", agent_out.string()},
@@ -486,8 +487,7 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const std::string d = std::to_string(domain);
   // The corrections the agents get (the agents here move their maps by them: no --own-frame).
   const CorrectionListener listener(domain);
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
+  const pid_t server = SpawnServer(dir, 2, d);
   const pid_t agent0 =
       Spawn({"agent", Town(0), "--id", "0", "--quiet", "--deterministic", "--dds-domain", d}, dir / "agent0.log");
   const fs::path first_out = dir / "agent1_first";
@@ -577,8 +577,7 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
   const uint32_t domain = 60 + static_cast<uint32_t>(getpid() % 20);
   const std::string d = std::to_string(domain);
   const CorrectionListener listener(domain);
-  const pid_t server =
-      Spawn({"server", "--out", (dir / "server").string(), "--agents", "2", "--dds-domain", d}, dir / "server.log");
+  const pid_t server = SpawnServer(dir, 2, d);
   std::vector<pid_t> agents;
   for (int k = 0; k < 2; ++k)
     agents.push_back(Spawn({"agent", "synth:room:sensor=mono,duration=20,width=480,height=360", "--seed",
