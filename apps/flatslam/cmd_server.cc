@@ -58,6 +58,9 @@ struct LiveMerge {
   size_t updates = 0;          // keyframes sent again between the previous merge's cut and this one's
   size_t runs_apart = 0;       // grown: runs it could not grow (in no merged map with another)
   bool overlap_apart = false;  // grown: one of them overlaps a merged map or another of them
+  size_t apart_queries = 0;    // grown: keyframes that queried in that search
+  size_t apart_keyframes = 0;  // grown: keyframes of the runs apart
+  double apart_ms = 0;
 };
 
 SnapshotMetadata MetadataOf(const AgentCamera& camera, const Vocabulary& vocabulary) {
@@ -210,8 +213,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
           g.updated, g.skipped, m.keyframes, m.runs.size(), 1000 * Seconds(m.cut, m.ready), g.join_ms, g.weld_ms,
           g.welded_keyframes, m.loops, m.loops_ms, g.fit_ms);
       if (m.runs_apart > 0)
-        std::printf("              %zu run(s) apart: %s\n", m.runs_apart,
-                    m.overlap_apart ? "one overlaps, the next merge joins it" : "no overlap yet");
+        std::printf("              %zu run(s) apart (%zu keyframes): %s (%zu keyframes queried, %.0f ms)\n",
+                    m.runs_apart, m.apart_keyframes,
+                    m.overlap_apart ? "one overlaps, the next merge joins it" : "no overlap yet", m.apart_queries,
+                    m.apart_ms);
       for (const LoopClosure& c : g.loops)
         std::printf(
             "              loop: agent %u keyframe at %.2f s to agent %u's at %.2f s: %d points, moved %.3f m\n",
@@ -315,7 +320,12 @@ int RunServerLive(const std::vector<std::string>& argv) {
           RecordGrowth(*growing, growing->Grow(messages, vocabulary), job.get());
           // A run apart that now overlaps: the next merge is a full one, which joins it.
           job->runs_apart = copies.runs.size();
-          job->overlap_apart = growing->FindsNewOverlap(copies.maps, vocabulary);
+          const auto search_start = Clock::now();
+          const GrowingMerge::ApartSearch search = growing->SearchRunsApart(copies.runs, copies.maps, vocabulary);
+          job->apart_ms = 1000 * Seconds(search_start, Clock::now());
+          job->overlap_apart = search.found;
+          job->apart_queries = search.queries;
+          job->apart_keyframes = search.keyframes;
         } else {
           growing.reset();
           std::vector<RunSightings> sightings;

@@ -21,6 +21,27 @@ double MsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }
 
+// The keyframes of `map` that query in a search (see GrowingMerge::SearchRunsApart): all of them
+// when it was never searched, else those newer than `through` with the `window` before them.
+std::vector<KeyFrameHandle> QueryWindow(const Map& map, std::optional<uint64_t> through, size_t window) {
+  std::vector<KeyFrameHandle> order(map.keyframes().handles().begin(), map.keyframes().handles().end());
+  std::sort(order.begin(), order.end(),
+            [&](KeyFrameHandle a, KeyFrameHandle b) { return map.keyframe(a).id < map.keyframe(b).id; });
+  if (!through) return order;
+  const auto first_new =
+      std::find_if(order.begin(), order.end(), [&](KeyFrameHandle h) { return map.keyframe(h).id > *through; });
+  if (first_new == order.end()) return {};
+  const size_t first = static_cast<size_t>(first_new - order.begin());
+  return {order.begin() + static_cast<std::ptrdiff_t>(first - std::min(window, first)), order.end()};
+}
+
+// The newest keyframe id of a map (none when it has no keyframe).
+std::optional<uint64_t> NewestId(const Map& map) {
+  std::optional<uint64_t> newest;
+  for (const KeyFrame& kf : map.keyframes().values()) newest = std::max(newest.value_or(kf.id), kf.id);
+  return newest;
+}
+
 }  // namespace
 
 RunSightings SightingsOf(const Map& map, const AgentMaps::Ids& ids) {
@@ -82,6 +103,8 @@ GrowingMerge::GrowingMerge(MultiMapMerge merged, std::vector<Run> runs, const st
       }
     }
   }
+  // The full merge searched every keyframe of every map against every other.
+  for (const Map& map : merged_.maps) merged_searched_.push_back(NewestId(map));
   Fit();
 }
 
@@ -94,16 +117,54 @@ std::vector<GrowingMerge::Run> GrowingMerge::Uncovered(const std::vector<Run>& r
   return out;
 }
 
-bool GrowingMerge::FindsNewOverlap(const std::vector<Map>& others, const Vocabulary& vocabulary) const {
+GrowingMerge::ApartSearch GrowingMerge::SearchRunsApart(const std::vector<Run>& runs, const std::vector<Map>& others,
+                                                        const Vocabulary& vocabulary) {
+  FLATSLAM_CHECK(runs.size() == others.size(), "search of runs apart: one run per map (", runs.size(), " runs, ",
+                 others.size(), " maps)");
+  ApartSearch out;
+  const size_t window = kSearchWindow * static_cast<size_t>(options_.min_consistent_pairs);
+  std::vector<std::vector<KeyFrameHandle>> apart_queries(others.size()), merged_queries(merged_.maps.size());
   for (size_t i = 0; i < others.size(); ++i) {
-    for (size_t g = 0; g < merged_.maps.size(); ++g)
-      if (merged_.members[g].size() > 1 &&
-          FindMapOverlap(merged_.maps[g], others[i], vocabulary, camera_, options_).found)
-        return true;
-    for (size_t j = i + 1; j < others.size(); ++j)
-      if (FindMapOverlap(others[i], others[j], vocabulary, camera_, options_).found) return true;
+    const auto mark = apart_searched_.find(runs[i]);
+    apart_queries[i] = QueryWindow(
+        others[i], mark == apart_searched_.end() ? std::nullopt : std::optional<uint64_t>(mark->second), window);
+    out.keyframes += others[i].keyframes().size();
   }
-  return false;
+  for (size_t g = 0; g < merged_.maps.size(); ++g) {
+    if (merged_.members[g].size() < 2) continue;
+    merged_queries[g] = QueryWindow(merged_.maps[g], merged_searched_[g], window);
+  }
+  // One direction of a pair of maps: `from`'s queries (all: every keyframe) against `into`'s
+  // keyframe database.
+  auto search = [&](const Map& into, const Map& from, std::span<const KeyFrameHandle> queries, bool all) {
+    if ((queries.empty() && !all) || into.keyframes().size() == 0 || from.keyframes().size() == 0) return false;
+    const MapOverlap overlap = FindMapOverlap(into, from, vocabulary, camera_, options_, queries);
+    out.queries += overlap.queries;
+    return overlap.found;
+  };
+  // A pair of maps: every keyframe of one querying the other's database checks every pair of their
+  // keyframes, each side's window querying the other checks every pair with a new keyframe; the
+  // cheaper of the three, in queries.
+  auto search_pair = [&](const Map& a, const std::vector<KeyFrameHandle>& qa, const Map& b,
+                         const std::vector<KeyFrameHandle>& qb) {
+    const size_t windows = qa.size() + qb.size(), na = a.keyframes().size(), nb = b.keyframes().size();
+    if (nb <= windows && nb <= na) return search(a, b, {}, true);
+    if (na <= windows) return search(b, a, {}, true);
+    return search(a, b, qb, false) || search(b, a, qa, false);
+  };
+  for (size_t i = 0; i < others.size() && !out.found; ++i) {
+    for (size_t g = 0; g < merged_.maps.size() && !out.found; ++g)
+      if (merged_.members[g].size() > 1)
+        out.found = search_pair(merged_.maps[g], merged_queries[g], others[i], apart_queries[i]);
+    for (size_t j = i + 1; j < others.size() && !out.found; ++j)
+      out.found = search_pair(others[i], apart_queries[i], others[j], apart_queries[j]);
+  }
+  if (!out.found) {
+    for (size_t i = 0; i < others.size(); ++i)
+      if (const auto newest = NewestId(others[i])) apart_searched_[runs[i]] = *newest;
+    for (size_t g = 0; g < merged_.maps.size(); ++g) merged_searched_[g] = NewestId(merged_.maps[g]);
+  }
+  return out;
 }
 
 size_t GrowingMerge::keyframes() const {

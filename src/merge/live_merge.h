@@ -19,6 +19,8 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
+#include <optional>
 #include <unordered_map>
 #include <utility>
 #include <vector>
@@ -78,11 +80,27 @@ class GrowingMerge {
   // grow the maps (Grow skips them).
   [[nodiscard]] std::vector<Run> Uncovered(const std::vector<Run>& runs) const;
   [[nodiscard]] bool Covers(const std::vector<Run>& runs) const { return Uncovered(runs).empty(); }
-  // Whether any of `others` (the current maps of runs it does not cover, with bags of words)
-  // overlaps one of the merged maps here or another of them (FindMapOverlap): then a full merge
-  // joins them; else the merged maps can go on growing while those runs stay apart. Costs place
-  // recognition of the others' keyframes, not a merge.
-  [[nodiscard]] bool FindsNewOverlap(const std::vector<Map>& others, const Vocabulary& vocabulary) const;
+  // What one search for the runs apart did.
+  struct ApartSearch {
+    bool found = false;    // an overlap: a full merge joins it
+    size_t queries = 0;    // keyframes that queried another map's keyframe database
+    size_t keyframes = 0;  // of the runs apart (what a search from all of them queries)
+  };
+  // Whether any of `others` (the current maps of `runs`, runs it does not cover, with bags of
+  // words) overlaps one of the merged maps here or another of them (FindMapOverlap): then a full
+  // merge joins them; else the merged maps can go on growing while those runs stay apart. For each
+  // pair of maps it takes the cheaper way (in keyframes that query) of two: every keyframe of one
+  // map queries the other's database (every pair of their keyframes checked), or each map queries
+  // the other with its window: its keyframes made since the last search, plus the kSearchWindow x
+  // min_consistent_pairs keyframes before them (the keyframes of one overlapping stretch, which must
+  // agree min_consistent_pairs at a time, arrive over several searches); a run searched for the
+  // first time since the full merge has all its keyframes in its window. Every pair of keyframes
+  // with at least one new keyframe is checked, and once a run apart has grown large a search costs
+  // in proportion to the keyframes made since the last one, not to the maps. Records what it
+  // searched (not when it finds an overlap: the full merge that follows starts a new GrowingMerge).
+  ApartSearch SearchRunsApart(const std::vector<Run>& runs, const std::vector<Map>& others,
+                              const Vocabulary& vocabulary);
+  static constexpr size_t kSearchWindow = 4;
   [[nodiscard]] size_t keyframes() const;
 
  private:
@@ -105,6 +123,10 @@ class GrowingMerge {
   MapMergeOptions options_;
   SystemContext context_;
   size_t newest_ = 0;
+  // The newest keyframe id each map queried with in the last search of runs apart: per run apart
+  // (its map's ids at the server), per merged map (a full merge searched all of them already).
+  std::map<Run, uint64_t> apart_searched_;
+  std::vector<std::optional<uint64_t>> merged_searched_;
 };
 
 }  // namespace flatslam

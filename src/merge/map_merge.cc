@@ -158,7 +158,7 @@ void ComputeKeyFrameBow(Map& map, const Vocabulary& vocabulary, bool missing_onl
 }
 
 MapOverlap FindMapOverlap(const Map& into, const Map& from, const Vocabulary& vocabulary, const MergeCamera& camera,
-                          const MapMergeOptions& options) {
+                          const MapMergeOptions& options, std::span<const KeyFrameHandle> only) {
   const std::string problem = options.Problem();
   FLATSLAM_CHECK(problem.empty(), "invalid map merge options: ", problem, " does not hold");
   MapOverlap overlap;
@@ -168,8 +168,13 @@ MapOverlap FindMapOverlap(const Map& into, const Map& from, const Vocabulary& vo
     if (!kf.bow.empty()) database.Add(into.keyframes().handles()[i], kf.bow);
   }
   std::vector<KeyFrameHandle> queries;
-  for (size_t i = 0; i < from.keyframes().size(); ++i)
-    if (!from.keyframes().values()[i].bow.empty()) queries.push_back(from.keyframes().handles()[i]);
+  if (only.empty()) {
+    for (size_t i = 0; i < from.keyframes().size(); ++i)
+      if (!from.keyframes().values()[i].bow.empty()) queries.push_back(from.keyframes().handles()[i]);
+  } else {
+    for (KeyFrameHandle h : only)
+      if (const KeyFrame* kf = from.keyframes().try_get(h); kf && !kf->bow.empty()) queries.push_back(h);
+  }
   std::sort(queries.begin(), queries.end(),
             [&](KeyFrameHandle a, KeyFrameHandle b) { return from.keyframe(a).id < from.keyframe(b).id; });
   overlap.queries = queries.size();

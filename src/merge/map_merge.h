@@ -113,8 +113,10 @@ struct MapOverlap {
 // candidates are verified by bag-of-words matching, RANSAC of the Sim(3)/SE(3) and a guided
 // search that must reach min_matches; the verified pairs must agree on one transform, at least
 // min_consistent_pairs of them with distinct keyframes. Bags of words must be computed.
+// queries: the from keyframes that query (empty: every one with a bag of words).
 [[nodiscard]] MapOverlap FindMapOverlap(const Map& into, const Map& from, const Vocabulary& vocabulary,
-                                        const MergeCamera& camera, const MapMergeOptions& options);
+                                        const MergeCamera& camera, const MapMergeOptions& options,
+                                        std::span<const KeyFrameHandle> queries = {});
 
 // Where each entity of the source map went: indexed by the source handle's slot index.
 struct MapRemap {

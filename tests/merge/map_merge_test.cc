@@ -285,10 +285,29 @@ TEST(LiveMerge, AGrownMergedMapHoldsLaterKeyFramesAsAFullMergeDoes) {
       << "a run it has never seen";
   // A run kept apart is looked for in the merged maps without merging: agent 1's own map overlaps
   // them, a room far from the town does not.
-  EXPECT_TRUE(growing.FindsNewOverlap({copies.maps[1]}, DefaultVocabulary()));
+  EXPECT_TRUE(growing.SearchRunsApart({copies.runs[1]}, {copies.maps[1]}, DefaultVocabulary()).found);
   Map room = RunAgent("synth:room:duration=6,width=480,height=360", 3).map;
   ComputeKeyFrameBow(room, DefaultVocabulary(), /*missing_only=*/true);
-  EXPECT_FALSE(growing.FindsNewOverlap({room}, DefaultVocabulary()));
+  const GrowingMerge::Run room_run{3, 103};
+  // Searched for the first time: every keyframe of the room queries (the cheapest way to check
+  // every pair); searched again with nothing new on either side: none does.
+  const GrowingMerge::ApartSearch first = growing.SearchRunsApart({room_run}, {room}, DefaultVocabulary());
+  EXPECT_FALSE(first.found);
+  EXPECT_EQ(first.queries, room.keyframes().size());
+  EXPECT_EQ(growing.SearchRunsApart({room_run}, {room}, DefaultVocabulary()).queries, 0u);
+  // Town agent 2 apart: its first 10 s meet neither map; its run to 40 s does (it joins agent 1's road). The
+  // second search finds that with the keyframes made since the first and the window before them, not all.
+  const GrowingMerge::Run agent2_run{2, 102};
+  Map agent2_early = RunAgent(town(2, 10), 2).map, agent2 = RunAgent(town(2, 40), 2).map;
+  for (Map* m : {&agent2_early, &agent2}) ComputeKeyFrameBow(*m, DefaultVocabulary(), /*missing_only=*/true);
+  EXPECT_FALSE(growing.SearchRunsApart({agent2_run}, {agent2_early}, DefaultVocabulary()).found);
+  const GrowingMerge::ApartSearch later = growing.SearchRunsApart({agent2_run}, {agent2}, DefaultVocabulary());
+  const size_t window = GrowingMerge::kSearchWindow * static_cast<size_t>(options.min_consistent_pairs);
+  std::printf("agent 2 apart: %zu keyframes at 10 s, %zu at 40 s; the second search queried with %zu\n",
+              agent2_early.keyframes().size(), agent2.keyframes().size(), later.queries);
+  EXPECT_TRUE(later.found);
+  EXPECT_LE(later.queries, agent2.keyframes().size() - agent2_early.keyframes().size() + window);
+  EXPECT_LT(later.queries, agent2.keyframes().size());
 
   // The late keyframes interleaved by time, as two agents running at once send them.
   std::stable_sort(late.begin(), late.end(), [](const KeyFrameMessage& a, const KeyFrameMessage& b) {
@@ -318,6 +337,11 @@ TEST(LiveMerge, AGrownMergedMapHoldsLaterKeyFramesAsAFullMergeDoes) {
   const Map& map = growing.merged().maps[0];
   EXPECT_EQ(map.Validate(), "");
   EXPECT_EQ(map.keyframes().size(), a0.map.keyframes().size() + a1.map.keyframes().size());
+  // The merged map grew: either its new keyframes and the window before them query the room, which,
+  // with nothing new, queries nothing, or every keyframe of the room queries the merged map,
+  // whichever queries less.
+  EXPECT_EQ(growing.SearchRunsApart({room_run}, {room}, DefaultVocabulary()).queries,
+            std::min(room.keyframes().size(), std::min(window, merged_keyframes) + report.added));
 
   // Each agent's first late keyframe sees points that its earlier keyframes saw: in the grown map
   // they are the same points (joined by the agent's ids), not copies (new points would join none).
