@@ -89,9 +89,9 @@ class GrowingMerge {
   // Whether any of `others` (the current maps of `runs`, runs it does not cover, with bags of
   // words) overlaps one of the merged maps here or another of them (FindMapOverlap): then a full
   // merge joins them; else the merged maps can go on growing while those runs stay apart. For each
-  // pair of maps it takes the cheaper way (in keyframes that query) of two: every keyframe of one
-  // map queries the other's database (every pair of their keyframes checked), or each map queries
-  // the other with its window: its keyframes made since the last search, plus the kSearchWindow x
+  // pair of maps it takes the cheapest (in keyframes that query) of three searches: every keyframe
+  // of either map queries the other's database (every pair of their keyframes checked), or each map
+  // queries the other with its window: its keyframes made since the last search, plus the kSearchWindow x
   // min_consistent_pairs keyframes before them (the keyframes of one overlapping stretch, which must
   // agree min_consistent_pairs at a time, arrive over several searches); a run searched for the
   // first time since the full merge has all its keyframes in its window. Every pair of keyframes

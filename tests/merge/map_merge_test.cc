@@ -295,7 +295,7 @@ TEST(LiveMerge, AGrownMergedMapHoldsLaterKeyFramesAsAFullMergeDoes) {
   EXPECT_FALSE(first.found);
   EXPECT_EQ(first.queries, room.keyframes().size());
   EXPECT_EQ(growing.SearchRunsApart({room_run}, {room}, DefaultVocabulary()).queries, 0u);
-  // Town agent 2 apart: its first 10 s meet neither map; its run to 40 s does (it joins agent 1's road). The
+  // Town agent 2 apart: the map of its first 10 s overlaps neither agent's; its map at 40 s does. The
   // second search finds that with the keyframes made since the first and the window before them, not all.
   const GrowingMerge::Run agent2_run{2, 102};
   Map agent2_early = RunAgent(town(2, 10), 2).map, agent2 = RunAgent(town(2, 40), 2).map;
