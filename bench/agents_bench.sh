@@ -11,12 +11,17 @@
 # SECONDS (optional) runs every agent for that long instead (36 s for agent 0, 55 s for the others):
 # after the first minute the agents drive roads they mapped, and the server grows its merged map by
 # their few new keyframes instead of merging again (the "grown" live merges).
-# usage: bench/agents_bench.sh [BUILD_DIR] [OUT_DIR] [SECONDS]
+# APART_SECONDS (optional) adds a fourth agent that drives the highway for that long at the town
+# agents' camera and never meets them: the server keeps its map apart and searches it for an
+# overlap at every grown merge; printed: the first of those searches and the last three (keyframes
+# of the run apart, keyframes that queried, time).
+# usage: bench/agents_bench.sh [BUILD_DIR] [OUT_DIR] [SECONDS] [APART_SECONDS]
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 build="${1:-$here/build}"
 out="${2:-$(mktemp -d)}"
 seconds="${3:-}"
+apart="${4:-}"
 app="$build/apps/flatslam"
 mkdir -p "$out"
 town() {
@@ -26,13 +31,20 @@ town() {
 }
 domain=$((120 + $$ % 50))
 
-"$app" server --out "$out/server" --agents 3 --dds-domain "$domain" >"$out/server.log" 2>&1 &
+agents=3
+[ -z "$apart" ] || agents=4
+"$app" server --out "$out/server" --agents $agents --dds-domain "$domain" >"$out/server.log" 2>&1 &
 server=$!
 pids=()
 for k in 0 1 2; do
   "$app" agent "$(town $k)" --id $k --quiet --dds-domain "$domain" --out "$out/agent$k" >"$out/agent$k.log" 2>&1 &
   pids+=($!)
 done
+if [ -n "$apart" ]; then
+  "$app" agent "synth:highway:width=480,height=360,fx=360,baseline=0.5,fps=10,duration=$apart" --id 3 --quiet \
+    --dds-domain "$domain" --out "$out/agent3" >"$out/agent3.log" 2>&1 &
+  pids+=($!)
+fi
 for p in "${pids[@]}"; do wait "$p"; done
 wait "$server"
 pids=()
@@ -54,6 +66,11 @@ grep -E "^(live merge|met|ended|finished|received|agent|loops|final merge|output
 # aligned alone (SE(3)); then all three agents' keyframes in the server's map under one alignment,
 # each one's error under it against its own saved keyframes' (the 1.5x bar of a merged map).
 ate() { "$app" eval "$1" "$2" 2>&1 | awk '/ATE \[m\]/ { print $3; exit }'; }
+if [ -n "$apart" ]; then
+  echo "searches of the run apart (first, last three)"
+  grep -E "^ +[0-9]+ run\(s\) apart" "$out/server.log" | sed -n '1p' | sed 's/^ */  /'
+  grep -E "^ +[0-9]+ run\(s\) apart" "$out/server.log" | tail -3 | sed 's/^ */  /'
+fi
 echo "accuracy (keyframe ATE, m)"
 pairs=()
 for k in 0 1 2; do
