@@ -100,6 +100,9 @@ class GrowingMerge {
   // searched (not when it finds an overlap: the full merge that follows starts a new GrowingMerge).
   ApartSearch SearchRunsApart(const std::vector<Run>& runs, const std::vector<Map>& others,
                               const Vocabulary& vocabulary);
+  // Keyframes of a window per consistent pair asked for: a stretch where one keyframe in four finds
+  // its place still gathers min_consistent_pairs pairs in one search. Larger windows cost queries
+  // at every search; an overlap missed by a window is found once more of its keyframes are new.
   static constexpr size_t kSearchWindow = 4;
   [[nodiscard]] size_t keyframes() const;
 
