@@ -102,7 +102,8 @@ class GrowingMerge {
                               const Vocabulary& vocabulary);
   // Keyframes of a window per consistent pair asked for: a stretch where one keyframe in four finds
   // its place still gathers min_consistent_pairs pairs in one search. Larger windows cost queries
-  // at every search; an overlap missed by a window is found once more of its keyframes are new.
+  // at every search. An overlap whose keyframes find their place more sparsely than that is left
+  // to the next full merge (the final one at the latest), which searches every keyframe.
   static constexpr size_t kSearchWindow = 4;
   [[nodiscard]] size_t keyframes() const;
 
