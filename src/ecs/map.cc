@@ -267,10 +267,16 @@ void Map::UpdatePointStats(PointHandle p, const MapScales& scales) {
   const size_t n = descriptors.size();
   int best_median = 1 << 30;
   std::vector<int> row(n);
+  const size_t k = (n - 1) / 2;
   for (size_t i = 0; i < n; ++i) {
     for (size_t j = 0; j < n; ++j) row[j] = DescriptorDistance(*descriptors[i], *descriptors[j]);
-    std::nth_element(row.begin(), row.begin() + (n - 1) / 2, row.end());
-    const int median = row[(n - 1) / 2];
+    // The median beats the best so far only if more than k distances lie below it: counting them
+    // is cheaper than selecting the median, and skips most candidates of a long-seen point.
+    size_t below = 0;
+    for (int d : row) below += d < best_median;
+    if (below <= k) continue;
+    std::nth_element(row.begin(), row.begin() + static_cast<std::ptrdiff_t>(k), row.end());
+    const int median = row[k];
     if (median < best_median) {
       best_median = median;
       point.descriptor = *descriptors[i];

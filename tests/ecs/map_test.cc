@@ -186,6 +186,44 @@ TEST(Map, PointStatsFromObservations) {
   EXPECT_NEAR(p.min_distance, 5.0 / std::pow(1.2, 7), 1e-4);
 }
 
+// A point's descriptor is the one of its observations with the least median Hamming distance to
+// all of them (the first such, on ties), for points seen by few and by many keyframes: descriptors
+// drawn near a common one (a few bits flipped each), as one feature seen again looks.
+TEST(Map, APointsDescriptorIsItsObservationWithTheLeastMedianDistance) {
+  std::mt19937_64 rng(11);
+  for (size_t n : {1u, 2u, 3u, 8u, 31u, 120u}) {
+    Map map;
+    std::vector<KeyFrameHandle> kfs;
+    const Descriptor common{rng(), rng(), rng(), rng()};
+    for (size_t i = 0; i < n; ++i) {
+      KeyFrame kf = MakeKeyFrame(1, static_cast<double>(i));
+      Descriptor d = common;
+      for (int flip = static_cast<int>(rng() % 60); flip > 0; --flip) d[rng() % 4] ^= 1ull << (rng() % 64);
+      kf.descriptor.mutable_data()[0] = d;
+      kfs.push_back(map.AddKeyFrame(std::move(kf)));
+    }
+    const PointHandle p = map.AddPoint(Eigen::Vector3d(0, 0, 5), kfs[0]);
+    for (KeyFrameHandle kf : kfs) map.AddObservation(p, kf, 0);
+    map.UpdatePointStats(p, MapScales{});
+    // Every median in full, in observation order.
+    size_t best = 0;
+    int best_median = 1 << 30;
+    const auto& seen = map.point(p).observations;
+    for (size_t i = 0; i < seen.size(); ++i) {
+      std::vector<int> row;
+      for (const Observation& o : seen)
+        row.push_back(
+            DescriptorDistance(map.keyframe(seen[i].keyframe).descriptor[0], map.keyframe(o.keyframe).descriptor[0]));
+      std::sort(row.begin(), row.end());
+      if (row[(row.size() - 1) / 2] < best_median) {
+        best_median = row[(row.size() - 1) / 2];
+        best = i;
+      }
+    }
+    EXPECT_EQ(map.point(p).descriptor, map.keyframe(seen[best].keyframe).descriptor[0]) << n << " observations";
+  }
+}
+
 TEST(Map, RandomChurnKeepsReferencesConsistentAndSlotsBounded) {
   std::mt19937_64 rng(7);
   Map map;
