@@ -139,9 +139,8 @@ int Verify(const std::string& file, const Args& args) {
     // Stereo: the rig as each map measures it (mapping/rig_check.h); the offset its run took off
     // is not stored, so what it names is to be added to that one.
     if (loaded.metadata.calibration.sensor == Sensor::kStereo) {
-      const CameraGeometry geometry = CameraGeometry::FromCalibration(
-          loaded.metadata.calibration, 0,
-          ScalePyramid::Make(loaded.metadata.scales.levels, loaded.metadata.scales.scale_factor));
+      const CameraGeometry geometry =
+          MergeCamera::FromCalibration(loaded.metadata.calibration, loaded.metadata.scales, 0).geometry;
       for (const LoadedMap& m : loaded.maps)
         if (const DisparityOffsetFit fit = FitDisparityOffset(m.map, geometry); fit.ok)
           std::printf("stereo rig    map %u: %s\n", m.id, DescribeDisparityOffset(fit, std::nan("")).c_str());

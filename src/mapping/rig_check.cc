@@ -59,8 +59,8 @@ DisparityOffsetFit FitDisparityOffset(const Map& map, const CameraGeometry& geom
       if (Xc.z() <= 0) continue;
       const double predicted = geometry.bf / Xc.z();
       const double measured = kf.uv[o.keypoint].x() - right_u;
-      const int level = std::min<int>(kf.octave[o.keypoint], static_cast<int>(geometry.pyramid.scale.size()) - 1);
-      const double scale = level >= 0 ? geometry.pyramid.scale[level] : 1.0;
+      const double scale =
+          geometry.pyramid.scale[std::min<size_t>(kf.octave[o.keypoint], geometry.pyramid.scale.size() - 1)];
       // Noise of the measurement, and of the prediction: a ray's pixel error over the rays' angle is
       // the relative depth error of the point they place.
       const double sigma_measured = options.pixel_sigma * scale;
