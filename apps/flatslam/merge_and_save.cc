@@ -73,8 +73,10 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
   for (size_t g = 0; g < merged.loops.size(); ++g) {
     const MergedMapLoops& loops = merged.loops[g];
     if (loops.keyframes == 0) continue;
-    std::printf("loops         map %zu: %zu keyframes searched, %zu loops closed, %.0f ms\n", g, loops.keyframes,
-                loops.closures.size(), loops.ms);
+    std::printf(
+        "loops         map %zu: %zu keyframes searched, %zu loops closed, %.0f ms (%zu global bundle "
+        "adjustments after them, %.0f ms)\n",
+        g, loops.keyframes, loops.closures.size(), loops.ms, loops.global_adjustments, loops.global_adjustment_ms);
     for (const LoopClosure& c : loops.closures)
       std::printf(
           "              agent %u keyframe at %.2f s to agent %u's at %.2f s: %d points matched, moved %.3f m\n",

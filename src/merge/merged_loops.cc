@@ -4,6 +4,7 @@
 #include <chrono>
 #include <tuple>
 
+#include "mapping/map_bundle_adjustment.h"
 #include "merge/map_merge.h"
 
 namespace flatslam {
@@ -11,6 +12,7 @@ namespace flatslam {
 void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyframes, const SystemContext& context,
                                  MergedMapLoops* out) {
   const auto start = std::chrono::steady_clock::now();
+  const size_t closures_before = out->closures.size();
   for (KeyFrameHandle h : keyframes) {
     if (!map.keyframes().contains(h)) continue;
     if (const uint32_t agent = map.keyframe(h).agent; agent != agent_) {
@@ -24,6 +26,21 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
       CorrectLoop(map, state_, context, h, *loop);
     out->closures.insert(out->closures.end(), state_.closures.begin() + static_cast<std::ptrdiff_t>(closed),
                          state_.closures.end());
+  }
+  if (out->closures.size() > closures_before) {
+    const auto gba_start = std::chrono::steady_clock::now();
+    // The gauge: the map's oldest keyframe (of the lowest agent), the first in replay order.
+    const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
+    MapBundleAdjustment ba;
+    if (!order.empty() && BuildGlobalBundleAdjustment(map, context, order.front(), &ba)) {
+      const BundleAdjustmentResult result = SolveGlobalBundleAdjustment(ba, context, [] { return false; });
+      if (result.success) {
+        ApplyGlobalBundleAdjustment(map, context, ba, result);
+        ++out->global_adjustments;
+      }
+    }
+    out->global_adjustment_ms +=
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - gba_start).count();
   }
   out->ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }

@@ -5,7 +5,10 @@
 // replayed before (bag-of-words candidates that are not covisible, temporal consistency,
 // geometric verification), and corrects each verified loop as a session does (CorrectLoop: the
 // keyframe and its neighbours moved by the loop's transform, points fused, the essential graph
-// optimized with the matched keyframe held). A MergedMapLoopCloser keeps what the replay built
+// optimized with the matched keyframe held), then, as a session does after its loops, adjusts the
+// whole map (a global bundle adjustment, the map's oldest keyframe held: the essential graph
+// spreads a loop's correction over the poses, the adjustment puts the points and the shape along
+// the loop back in agreement with every observation). A MergedMapLoopCloser keeps what the replay built
 // (keyframe database, each agent's consistent groups), so that keyframes added to the map later
 // continue it (merge/live_merge.h).
 // Concurrency: writes the map (exclusive access), on the caller's thread; a closer is used by one
@@ -28,7 +31,9 @@ namespace flatslam {
 struct MergedMapLoops {
   std::vector<LoopClosure> closures;  // in the order they were closed
   size_t keyframes = 0;               // replayed
-  double ms = 0;
+  double ms = 0;                      // all of it, global bundle adjustments included
+  size_t global_adjustments = 0;      // one after each replay that closed a loop
+  double global_adjustment_ms = 0;
 };
 
 class MergedMapLoopCloser {
@@ -36,7 +41,8 @@ class MergedMapLoopCloser {
   MergedMapLoopCloser(const Vocabulary& vocabulary, uint64_t seed) : database_(vocabulary.word_count()), state_(seed) {}
   // Replays `keyframes` of `map` (each with its bag of words), in the order given, after those of
   // earlier calls; each agent's keyframes continue its own consistent groups (temporal
-  // consistency needs a run's consecutive keyframes). Adds to *out.
+  // consistency needs a run's consecutive keyframes); when a loop closed, one global bundle
+  // adjustment follows the replay. Adds to *out.
   void Replay(Map& map, std::span<const KeyFrameHandle> keyframes, const SystemContext& context, MergedMapLoops* out);
 
  private:

@@ -219,6 +219,9 @@ TEST(MapMerge, LoopClosingInTheMergedMapTakesOutDriftTheMergeLeft) {
   const std::vector<double> after = JointAte({&closed.maps[0]}, {&a0, &a1});
   std::printf("keyframe ATE, one alignment: agent 0 %.3f -> %.3f m (own %.3f), agent 1 %.3f -> %.3f m (own %.3f)\n",
               before[0], after[0], a0.own_ate_m, before[1], after[1], a1.own_ate_m);
+  // A session's loop is followed by a global bundle adjustment; so is the merged map's.
+  std::printf("global bundle adjustments %zu, %.0f ms\n", loops.global_adjustments, loops.global_adjustment_ms);
+  EXPECT_EQ(loops.global_adjustments, 1u);
   EXPECT_LT(after[1], 0.75 * before[1]);
   EXPECT_LE(after[0], 1.5 * a0.own_ate_m);
 }
