@@ -79,7 +79,8 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "while mapping is busy (ORB-SLAM2's 0.25)")                                                                       \
   X(double, keyframe_fading_ratio, 0.5, keyframe_fading_ratio >= 0 && keyframe_fading_ratio <= 1,                     \
     "monocular: tracking fades under this share of the reference keyframe's points, or under "                        \
-    "keyframe_fading_inliers inliers; busy mapping is then asked to finish early")                                    \
+    "keyframe_fading_inliers inliers; busy mapping is then asked to finish early. With depth: a frame "               \
+    "tracking under this share of the most inliers a frame tracked since the last keyframe is thin")                  \
   X(int, keyframe_fading_inliers, 100, keyframe_fading_inliers >= 0, "see keyframe_fading_ratio")                     \
   X(float, motion_search_radius, 7, motion_search_radius > 0,                                                         \
     "pixels (x level scale) searched around a point's predicted position")                                            \

@@ -67,6 +67,8 @@ struct TrackerState {
   KeyFrameHandle first_keyframe;
   size_t last_keyframe_frame = 0;  // input index of the last keyframe made
   size_t segment_keyframes = 0;    // keyframes made since the current map segment started
+  // The most local-map inliers a frame tracked since the last keyframe (what that keyframe gave).
+  int keyframe_peak_inliers = 0;
   std::vector<KeyFrameHandle> local_keyframes;
   std::vector<PointHandle> local_points;
   int last_inliers = 0;  // of the last frame's local-map tracking
