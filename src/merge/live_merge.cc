@@ -291,7 +291,8 @@ GrowReport GrowingMerge::Grow(const std::vector<KeyFrameMessage>& messages, cons
   for (size_t g = 0; g < merged_.maps.size() && g < merged_.loop_closers.size(); ++g) {
     if (added[g].empty()) continue;
     MergedMapLoops loops;
-    merged_.loop_closers[g].Replay(merged_.maps[g], ReplayOrder(merged_.maps[g], added[g]), context_, &loops);
+    merged_.loop_closers[g].Replay(merged_.maps[g], ReplayOrder(merged_.maps[g], added[g]), context_,
+                                   options_.adjust_after_loops, &loops);
     report.loops.insert(report.loops.end(), loops.closures.begin(), loops.closures.end());
   }
   report.loops_ms = MsSince(start);

@@ -658,7 +658,8 @@ MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, 
     for (size_t g = 0; g < out.maps.size(); ++g) {
       out.loop_closers.emplace_back(vocabulary, options.seed);
       if (out.members[g].size() > 1)
-        out.loops[g] = CloseLoopsInMergedMap(out.maps[g], vocabulary, context, options.seed, &out.loop_closers[g]);
+        out.loops[g] = CloseLoopsInMergedMap(out.maps[g], vocabulary, context, options.seed, &out.loop_closers[g],
+                                             options.adjust_after_loops);
     }
   }
   return out;

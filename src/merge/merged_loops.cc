@@ -10,7 +10,7 @@
 namespace flatslam {
 
 void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyframes, const SystemContext& context,
-                                 MergedMapLoops* out) {
+                                 bool adjust, MergedMapLoops* out) {
   const auto start = std::chrono::steady_clock::now();
   const size_t closures_before = out->closures.size();
   for (KeyFrameHandle h : keyframes) {
@@ -27,7 +27,7 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
     out->closures.insert(out->closures.end(), state_.closures.begin() + static_cast<std::ptrdiff_t>(closed),
                          state_.closures.end());
   }
-  if (out->closures.size() > closures_before) {
+  if (adjust && out->closures.size() > closures_before) {
     const auto gba_start = std::chrono::steady_clock::now();
     // The gauge: the map's oldest keyframe (of the lowest agent), the first in replay order.
     const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
@@ -55,11 +55,11 @@ std::vector<KeyFrameHandle> ReplayOrder(const Map& map, std::span<const KeyFrame
 }
 
 MergedMapLoops CloseLoopsInMergedMap(Map& map, const Vocabulary& vocabulary, const SystemContext& context,
-                                     uint64_t seed, MergedMapLoopCloser* closer) {
+                                     uint64_t seed, MergedMapLoopCloser* closer, bool adjust) {
   ComputeKeyFrameBow(map, vocabulary, true);
   MergedMapLoopCloser replay(vocabulary, seed);
   MergedMapLoops out;
-  replay.Replay(map, ReplayOrder(map, map.keyframes().handles()), context, &out);
+  replay.Replay(map, ReplayOrder(map, map.keyframes().handles()), context, adjust, &out);
   if (closer) *closer = std::move(replay);
   return out;
 }
