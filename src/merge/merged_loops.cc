@@ -29,7 +29,7 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
   }
   if (adjust && out->closures.size() > closures_before) {
     const auto gba_start = std::chrono::steady_clock::now();
-    // The gauge: the map's oldest keyframe (of the lowest agent), the first in replay order.
+    // The gauge: the lowest agent's first keyframe, the first in replay order.
     const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
     MapBundleAdjustment ba;
     if (!order.empty() && BuildGlobalBundleAdjustment(map, context, order.front(), &ba)) {

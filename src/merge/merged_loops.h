@@ -6,11 +6,11 @@
 // verification), and corrects each verified loop as a session does (CorrectLoop: the keyframe and
 // its neighbours moved by the loop's transform, points fused, the essential graph optimized with
 // the matched keyframe held), then, as a session does after its loops (unless the caller leaves it
-// out), adjusts the whole map (a global bundle adjustment, the map's oldest keyframe held: the
-// essential graph spreads a loop's correction over the poses, the adjustment puts the points and
-// the shape along the loop back in agreement with every observation). A MergedMapLoopCloser keeps
-// what the replay built (keyframe database, each agent's consistent groups), so that keyframes
-// added to the map later continue it (merge/live_merge.h).
+// out), adjusts the whole map (a global bundle adjustment, the lowest agent's first keyframe held:
+// the essential graph spreads a loop's correction over the poses, the adjustment puts the points
+// and the shape along the loop back in agreement with every observation). A MergedMapLoopCloser
+// keeps what the replay built (keyframe database, each agent's consistent groups), so that
+// keyframes added to the map later continue it (merge/live_merge.h).
 // Concurrency: writes the map (exclusive access), on the caller's thread; a closer is used by one
 // caller at a time.
 #pragma once

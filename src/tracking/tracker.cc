@@ -316,8 +316,7 @@ struct Tracking {
     // since the last keyframe is thin too. The two rules above miss a keyframe whose view is new:
     // its points have one or two observers (the reference count only takes points seen by three),
     // and where nothing lies nearer than the close depth the close rule never fires, so tracking
-    // faded until it was lost (RGB-D room at 320x240: 141 inliers after a keyframe, 13 reference
-    // points, lost 22 frames later with 29 and no keyframe made).
+    // could fade until it was lost with no keyframe made (docs/STATUS.md, "SLAM core").
     const bool faded = !monocular() && inliers < options.keyframe_fading_ratio * s.keyframe_peak_inliers;
     s.keyframe_peak_inliers = std::max(s.keyframe_peak_inliers, inliers);
     const bool thin =
