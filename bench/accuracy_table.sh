@@ -37,6 +37,10 @@ runs=(
   "synth:handheld|synth:handheld${synth_duration}|stereo|0 lost, ATE < 1% of path"
   "synth:handheld|synth:handheld${synth_duration}|rgbd|0 lost, ATE < 1% of path"
   "synth:handheld|synth:handheld${synth_duration}|mono|init within 1 s, < 1% lost"
+  # The same scenes at cameras and frame rates they were not first run at.
+  "synth:room 320x240|synth:room:width=320,height=240,fx=260${synth_duration}|rgbd|0 lost, ATE < 1% of path"
+  "synth:handheld 10 Hz|synth:handheld:fps=10${synth_duration}|stereo|0 lost, ATE < 1% of path"
+  "synth:handheld 10 Hz|synth:handheld:fps=10${synth_duration}|rgbd|0 lost, ATE < 1% of path"
 )
 
 printf "%-26s %-6s %6s %5s %5s %9s %7s %9s %7s %9s %8s  %s\n" sequence sensor frames lost kfs ATE_m ATE_% ATE_sim3 scale RPE_m fps reference
