@@ -318,7 +318,6 @@ struct Tracking {
     // and where nothing lies nearer than the close depth the close rule never fires, so tracking
     // could fade until it was lost with no keyframe made (docs/STATUS.md, "SLAM core").
     const bool faded = !monocular() && inliers < options.keyframe_fading_ratio * s.keyframe_peak_inliers;
-    s.keyframe_peak_inliers = std::max(s.keyframe_peak_inliers, inliers);
     const bool thin =
         (inliers < ratio * reference_points || need_close || faded) && inliers > options.keyframe_min_inliers;
     // Busy mapping with tracking fading (a monocular frame keeping few of the reference keyframe's
@@ -548,7 +547,9 @@ TrackResult TrackFrame(const Map& map, const KeyFrameDatabase& database, const S
       if (report.relocalized) s.velocity.reset();
       const int inliers = MatchedCount(frame);
       report.inliers = inliers;
-      if (!options.localization_only && t.NeedKeyFrame(frame, inliers, pending_keyframes)) {
+      const bool need_keyframe = !options.localization_only && t.NeedKeyFrame(frame, inliers, pending_keyframes);
+      s.keyframe_peak_inliers = std::max(s.keyframe_peak_inliers, inliers);  // a keyframe made resets it
+      if (need_keyframe) {
         result.insert = TrackResult::Insert::kKeyFrame;
         result.map_keyframe = true;
       }
