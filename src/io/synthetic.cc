@@ -50,6 +50,53 @@ float GaussFromBits(uint64_t bits) {
   return (static_cast<float>(sum) - 510.0f) * (1.0f / 147.8f);
 }
 
+// A structured-light sensor's reading of the exact depth image (see SyntheticOptions::
+// structured_light); `fx` is the colour camera's, to which the depth image is registered, and
+// noise_k the depth noise (sigma = k z^2), applied as disparity noise before quantization.
+void StructuredLightDepth(double fx, float noise_k, uint64_t* rng, cv::Mat* depth) {
+  constexpr float kSensorFocalPx = 580, kSensorBaselineM = 0.075f, kDisparityStep = 1.0f / 8, kMaxRangeM = 4.5f;
+  constexpr int kFattenRadius = 2, kRegistrationShiftPx = 1;
+  constexpr float kFattenStep = 0.05f, kDropout = 0.01f;
+  const float inf = std::numeric_limits<float>::infinity();
+  cv::Mat z = depth->clone();
+  z.setTo(inf, z <= 0);
+  // Foreground fattening: where a surface over 5% nearer lies within the window, it is read.
+  cv::Mat nearest;
+  cv::erode(z, nearest, cv::getStructuringElement(cv::MORPH_RECT, {2 * kFattenRadius + 1, 2 * kFattenRadius + 1}));
+  for (int v = 0; v < z.rows; ++v) {
+    float* row = z.ptr<float>(v);
+    const float* near_row = nearest.ptr<float>(v);
+    for (int u = 0; u < z.cols; ++u)
+      if (near_row[u] < row[u] * (1 - kFattenStep)) row[u] = near_row[u];
+  }
+  // Projector shadow (projector to the camera's left, in the image's pixels): a pixel is unlit
+  // when a surface to its left is nearer by more than their pixel distance in the projector's
+  // parallax, i.e. max over u' < u of (1/z' + u' / (fx b)) exceeds 1/z + u / (fx b).
+  const float fb = static_cast<float>(fx) * kSensorBaselineM;
+  cv::Mat out(z.rows, z.cols, CV_32FC1, cv::Scalar(0));
+  for (int v = 0; v < z.rows; ++v) {
+    const float* row = z.ptr<float>(v);
+    float* o = out.ptr<float>(v);
+    float reach = -inf;
+    for (int u = 0; u < z.cols; ++u) {
+      const float inv = std::isfinite(row[u]) ? 1 / row[u] : 0;
+      const float here = inv + static_cast<float>(u) / fb;
+      const bool shadowed = reach > here + 1e-3f;
+      reach = std::max(reach, here);
+      // Registered 1 px off: pixel u reads the depth measured for u + shift.
+      const int target = u - kRegistrationShiftPx;
+      if (target < 0 || shadowed || !std::isfinite(row[u]) || row[u] > kMaxRangeM) continue;
+      float disparity = kSensorFocalPx * kSensorBaselineM * inv;
+      disparity += kSensorFocalPx * kSensorBaselineM * noise_k * GaussFromBits(SplitMix(rng));
+      disparity = std::round(disparity / kDisparityStep) * kDisparityStep;
+      if (disparity <= 0) continue;
+      if (static_cast<float>(SplitMix(rng) >> 40) * (1.0f / 16777216.0f) < kDropout) continue;
+      o[target] = kSensorFocalPx * kSensorBaselineM / disparity;
+    }
+  }
+  *depth = out;
+}
+
 // Multi-scale random shapes over smooth noise: corners and blobs at every pyramid scale.
 cv::Mat GenerateShapes(int width, int height, uint64_t seed) {
   std::mt19937_64 rng(seed);
@@ -445,10 +492,13 @@ void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOp
       FLATSLAM_CHECK(std::abs(v) <= 5, "synthetic spec '", spec, "': rig_error=", value,
                      " is outside [-5, 5] (pixels of disparity)");
       options->rig_error_px = v;
+    } else if (key == "structured_light") {
+      FLATSLAM_CHECK(v == 0 || v == 1, "synthetic spec '", spec, "': structured_light=", value, " is not 0 or 1");
+      options->structured_light = v == 1;
     } else {
       Fail("synthetic spec '", spec, "': unknown key '", key,
            "' (known: width, height, fx, fps, duration, baseline, noise, depth_noise, agent, seed, sensor, "
-           "dynamic, rig_error)");
+           "dynamic, rig_error, structured_light)");
     }
   }
 }
@@ -932,6 +982,11 @@ Frame SyntheticScene::Render(size_t i) const {
     cv::Mat depth;
     RenderExposure(times, 0.0, gain, noisy ? seed_left : 0, &frame.left, &depth);
     uint64_t rng = seed_depth;
+    if (options_.structured_light) {
+      StructuredLightDepth(calibration_.camera.fx, static_cast<float>(options_.depth_noise_k), &rng, &depth);
+      frame.depth = depth;
+      return frame;
+    }
     const float k = static_cast<float>(options_.depth_noise_k), max_depth = static_cast<float>(options_.max_depth_m);
     for (int v = 0; v < depth.rows; ++v) {
       float* d = depth.ptr<float>(v);

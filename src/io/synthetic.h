@@ -141,12 +141,20 @@ struct SyntheticOptions {
   // x pixels from it, as a turned camera shifts them). KITTI 06's, measured from its map: about
   // -0.10 px (disparities short, depths long). In [-5, 5]; 0 = the exact rig.
   double rig_error_px = 0;
+  // RGB-D: a structured-light sensor's depth image (Kinect v1 / Xtion class, as in TUM RGB-D)
+  // instead of exact depth with independent noise: depth from a disparity quantized to 1/8 px of
+  // a 580 px, 7.5 cm projector-camera pair (steps of 2.9 mm at 1 m, 4.6 cm at 4 m), the
+  // projector's shadow beside every nearer edge read as no depth, foreground edges fattened by
+  // the correlation window (a pixel within 2 px of a nearer surface reads that surface), depth
+  // registered to the colour image 1 px off, 1% of pixels missing at random, and nothing beyond
+  // 4.5 m. 0 = off.
+  bool structured_light = false;
 
   [[nodiscard]] bool Check() const;
 };
 
 // Parses "NAME[:key=value,...]" (keys: width, height, fx, fps, duration, baseline, noise,
-// depth_noise, agent, seed, sensor, dynamic, rig_error) into a scene name and options. Throws
+// depth_noise, agent, seed, sensor, dynamic, rig_error, structured_light) into a scene name and options. Throws
 // flatslam::Error.
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options);
 

@@ -142,6 +142,60 @@ TEST(SyntheticScene, DepthNoiseFollowsItsModel) {
   EXPECT_NEAR(std::sqrt(sum_sq / n), 1.0, 0.1);
 }
 
+TEST(SyntheticScene, StructuredLightDepthIsQuantizedShadowedAndRanged) {
+  SyntheticOptions o = SmallOptions(Sensor::kRgbd);
+  o.pixel_noise_sigma = 0;
+  o.depth_noise_k = 0;
+  o.structured_light = true;
+  SyntheticScene scene(MakeScene("handheld"), o);
+  // Every reading is a depth of a disparity on the 1/8 px grid of a 580 px, 7.5 cm sensor.
+  const double fb = 580 * 0.075;
+  int readings = 0, missing_in_range = 0, off_grid = 0, far_hits = 0, close = 0, shadowed = 0, far_shadow_side = 0;
+  for (size_t i = 0; i < 300; i += 30) {
+    const Frame f = scene.Render(i);
+    cv::Mat gray, exact;
+    scene.RenderView(scene.PoseAt(scene.timestamp_ns(i) * 1e-9), 0, &gray, &exact);
+    for (int v = 0; v < exact.rows; ++v) {
+      for (int u = 0; u + 1 < exact.cols; ++u) {
+        const float z = exact.at<float>(v, u + 1), d = f.depth.at<float>(v, u);  // registered 1 px off
+        if (d > 0) {
+          ++readings;
+          const double steps = fb / d * 8;
+          if (std::abs(steps - std::round(steps)) > 1e-3) ++off_grid;
+          if (d > 4.5f + 0.05f) ++far_hits;
+          if (z > 0 && std::abs(d - z) < 0.01 * z + z * z / fb / 8) ++close;
+        } else if (z > 0 && z < 4.4f) {
+          ++missing_in_range;
+        }
+        // The projector (7.5 cm to the camera's left) leaves a pixel unlit when a surface left of it
+        // is nearer by more than their pixel distance in its parallax: past a step of over 3 / (fx b)
+        // in inverse depth, and past the 2 pixels the nearer edge is fattened by (more where the edge
+        // is slanted), a shadow at least 3 px wide starts within the next 4 pixels.
+        const double fb_image = scene.calibration().camera.fx * 0.075;
+        if (u >= 1 && u + 6 < exact.cols) {
+          const float near = exact.at<float>(v, u - 1), far = exact.at<float>(v, u);
+          bool flat = true;
+          for (int k = 1; k <= 6; ++k) flat = flat && std::abs(exact.at<float>(v, u + k) - far) < 0.02f * far;
+          if (near > 0 && far > 0 && far < 4.4f && 1 / near - 1 / far > 3 / fb_image && flat) {
+            ++far_shadow_side;
+            bool unlit = false;
+            for (int k = 2; k <= 5; ++k) unlit = unlit || f.depth.at<float>(v, u + k - 1) == 0;  // reads exact u + k
+            if (unlit) ++shadowed;
+          }
+        }
+      }
+    }
+  }
+  ASSERT_GT(readings, 200000);
+  EXPECT_EQ(off_grid, 0);
+  EXPECT_EQ(far_hits, 0);
+  // Most readings are within quantization of the exact depth; edges and dropouts are the rest.
+  EXPECT_GT(close, 0.9 * readings);
+  EXPECT_GT(missing_in_range, 0.005 * readings);
+  ASSERT_GT(far_shadow_side, 20);
+  EXPECT_GT(shadowed, 0.8 * far_shadow_side);
+}
+
 TEST(SyntheticScene, TrajectoryLoopsAtConstantSpeed) {
   SyntheticScene scene(MakeScene("room"), SmallOptions(Sensor::kMonocular));
   const Trajectory gt = scene.GroundTruth();
