@@ -7,11 +7,13 @@
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
+#include <optional>
 #include <string_view>
 
 #include "args.h"
 #include "commands.h"
 #include "core/error.h"
+#include "storage/snapshot.h"
 
 namespace flatslam::app {
 
@@ -30,7 +32,12 @@ const char* const kAgentUsage =
     "its own (flatslam_agent_N_map). The agent also moves its map into that frame (a monocular one with\n"
     "the merged map's scale), so that its saved map and trajectory are in it (--own-frame: its map stays\n"
     "in its own frame).\n"
-    "The summary adds the bytes sent per keyframe and per second and the last correction.\n";
+    "The summary adds the bytes sent per keyframe and per second and the last correction.\n\n"
+    "       flatslam agent --resume CHECKPOINT [--quiet]\n"
+    "continues an agent that was stopped or killed from its --checkpoint (as flatslam run --resume\n"
+    "does: its map, options and outputs, from the frame after the checkpoint). It publishes as a new\n"
+    "run of the agent, whose keyframes include those of the stopped run up to the checkpoint; the\n"
+    "server keeps both runs and merges them where they overlap.\n";
 
 const char* const kServerUsage =
     "usage: flatslam server --out DIR [--vocabulary FILE] [--dds-domain D] [--dds-peers IP,...|multicast]\n"
@@ -69,6 +76,28 @@ std::string TakeId(std::vector<std::string>* argv) {
   throw UsageError{"agent needs --id N"};
 }
 
+// The checkpoint named by --resume F (or --resume=F), if any.
+std::optional<std::string> ResumeFile(const std::vector<std::string>& argv) {
+  for (size_t i = 0; i < argv.size(); ++i) {
+    if (argv[i].rfind("--resume=", 0) == 0) return argv[i].substr(9);
+    if (argv[i] == "--resume" && i + 1 < argv.size()) return argv[i + 1];
+  }
+  return std::nullopt;
+}
+
+// Whether the run checkpointed in `file` published as a live agent (false when the file cannot be
+// read: the resume reports that itself).
+bool CheckpointPublishes(const std::string& file) {
+  try {
+    const std::optional<SnapshotSession> session = MapSnapshotView::Open(file).session_summary();
+    if (!session) return false;
+    for (const std::string& a : session->arguments)
+      if (a == "--publish") return true;
+  } catch (const std::exception&) {
+  }
+  return false;
+}
+
 }  // namespace
 
 int RunAgent(const std::vector<std::string>& original) {
@@ -77,6 +106,12 @@ int RunAgent(const std::vector<std::string>& original) {
       std::fputs(kAgentUsage, stdout);
       return 0;
     }
+  // A stopped agent resumed from its checkpoint: the checkpoint holds its --agent and --publish.
+  if (const std::optional<std::string> file = ResumeFile(original)) {
+    FLATSLAM_CHECK(!std::filesystem::exists(*file) || CheckpointPublishes(*file), "agent --resume ", *file,
+                   ": not the checkpoint of an agent (continue it with flatslam run --resume)");
+    return RunRun(original);
+  }
   std::vector<std::string> argv = original;
   const std::string id = TakeId(&argv);
   for (const std::string& a : argv)
@@ -107,6 +142,11 @@ bool NeedsLive(int argc, char** argv) {
     publish = publish || a == "--publish";
   }
   if (help) return false;  // the usage text is here too
+  if (command == "run" && !publish) {
+    // A resumed run publishes when the run it continues did.
+    std::vector<std::string> args(argv + 2, argv + argc);
+    if (const std::optional<std::string> file = ResumeFile(args)) publish = CheckpointPublishes(*file);
+  }
   return command == "agent" || command == "server" || (command == "run" && publish);
 }
 

@@ -609,5 +609,38 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
   fs::remove_all(dir);
 }
 
+TEST(AgentsCli, AKilledAgentResumesFromItsCheckpoint) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_resume");
+  const std::string d = std::to_string(230 + static_cast<uint32_t>(getpid() % 3));  // no server listens here
+  const fs::path out = dir / "agent", checkpoint = dir / "agent.fsck";
+  const pid_t killed = Spawn({"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d, "--out",
+                              out.string(), "--checkpoint", checkpoint.string(), "--checkpoint-every", "1"},
+                             dir / "killed.log");
+  WaitForTrackedFrames(out, 250);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (!fs::exists(checkpoint) && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  ::kill(killed, SIGKILL);
+  EXPECT_EQ(Wait(killed), 128 + SIGKILL);
+  ASSERT_TRUE(fs::exists(checkpoint)) << ReadBytes(dir / "killed.log");
+
+  // `flatslam run --resume` hands a live agent's checkpoint to the DDS executable, which goes on
+  // publishing as the agent: every frame of the run is tracked in the end, the first part's too.
+  const auto resumed = RunApp("run --resume " + checkpoint.string() + " --quiet");
+  ASSERT_EQ(resumed.exit_code, 0) << resumed.output;
+  EXPECT_TRUE(Contains(resumed.output, "frames        550 tracked")) << resumed.output;
+  EXPECT_TRUE(Contains(resumed.output, "to rt/flatslam/agent_1/pose")) << resumed.output;
+  EXPECT_EQ(LineCount(out / "trajectory.kitti"), 550u);
+
+  // `flatslam agent --resume` takes only an agent's checkpoint.
+  const fs::path plain = dir / "plain.fsck";
+  const auto run = RunApp("run synth:room:duration=2 --quiet --checkpoint " + plain.string());
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const auto refused = RunApp("agent --resume " + plain.string());
+  EXPECT_NE(refused.exit_code, 0);
+  EXPECT_TRUE(Contains(refused.output, "not the checkpoint of an agent")) << refused.output;
+  fs::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace flatslam
