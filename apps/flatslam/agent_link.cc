@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cstdio>
-#include <random>
 
 #include <Eigen/Geometry>
 
@@ -33,12 +32,12 @@ DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers) 
   return options;
 }
 
-AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map)
+AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map, uint64_t run,
+                     uint64_t resumes)
     : agent_(agent),
       move_map_(move_map),
-      // A new id per process: a restarted agent's keyframes and points never collide with the
-      // ids of its earlier run on the server.
-      session_(std::random_device{}() * uint64_t{0x100000000} ^ std::random_device{}()),
+      session_(run),
+      resumes_(resumes),
       camera_(camera),
       node_(dds, "flatslam agent " + std::to_string(agent)),
       poses_(node_.PoseWriter(AgentPoseTopic(agent))),
@@ -150,6 +149,29 @@ void AgentLink::MoveToNewestCorrection(SlamSession& slam) {
 void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
   MoveToNewestCorrection(slam);
   slam.ReadMap([&](const Map& map) {
+    if (resumes_ != 0) {
+      // A resumed run: every server it meets drops the run it continues (whose keyframes after the
+      // checkpoint died with it) and gets the resumed map's keyframes from here, sent below.
+      if (const int matches = keyframes_->matches_ever(); matches > announced_matches_) {
+        announced_matches_ = matches;
+        RunEnded replaced;
+        replaced.agent = agent_;
+        replaced.session = resumes_;
+        replaced.stopped = true;
+        replaced.resumed_by = session_;
+        Payload payload;
+        payload.agent = agent_;
+        payload.kind = PayloadKind::kRunEnded;
+        payload.sequence = sequence_++;
+        payload.bytes = EncodeRunEnded(replaced);
+        if (!keyframes_->Write(payload)) ++failed_;
+      }
+      if (!seeded_) {
+        seeded_ = true;
+        for (KeyFrameHandle h : map.keyframes().handles())
+          if (h != keyframe) sent_.emplace_back(h, map.keyframe(h).id);
+      }
+    }
     SendCulled(map);
     // A server that matched since the last keyframe (one that started late, or came back) has
     // none of the map yet: the writer keeps no history for it.
@@ -258,7 +280,8 @@ int RunServerLive(const std::vector<std::string>& args);  // cmd_server.cc
 void EnableLive() {
   g_make_agent_publisher = [](uint32_t agent, const LiveOptions& options,
                               const AgentCamera& camera) -> std::unique_ptr<AgentPublisher> {
-    return std::make_unique<AgentLink>(agent, ParseDdsOptions(options.domain, options.peers), camera, options.move_map);
+    return std::make_unique<AgentLink>(agent, ParseDdsOptions(options.domain, options.peers), camera, options.move_map,
+                                       options.run, options.resumes);
   };
   g_run_server = &RunServerLive;
 }

@@ -45,7 +45,10 @@ DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers);
 class AgentLink : public AgentPublisher {
  public:
   // move_map: a stereo or RGB-D map moves into the merged map's frame with each newer correction.
-  AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map);
+  // run: this run's id; resumes: the run it continues from its checkpoint (0: none), which it
+  // tells each server it meets to drop, sending the keyframes of the map it resumed instead.
+  AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map, uint64_t run,
+            uint64_t resumes);
   void OnFrame(const FrameReport& report) override;
   // Moves the map into the merged map's frame first when a newer correction came (stereo and
   // RGB-D), then sends the keyframe.
@@ -60,6 +63,9 @@ class AgentLink : public AgentPublisher {
   uint32_t agent_;
   bool move_map_;
   uint64_t session_;
+  uint64_t resumes_;
+  int announced_matches_ = 0;  // servers told that resumes_ is replaced (matches of the writer)
+  bool seeded_ = false;        // the resumed map's keyframes are in sent_
   AgentCamera camera_;
   DdsNode node_;
   std::unique_ptr<DdsNode::Writer<PoseStamped>> poses_;

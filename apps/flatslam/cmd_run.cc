@@ -14,6 +14,7 @@
 #include <filesystem>
 #include <fstream>
 #include <optional>
+#include <random>
 
 #include "args.h"
 #include "commands.h"
@@ -135,10 +136,10 @@ std::vector<std::pair<size_t, size_t>> ParseRanges(const std::string& flag, cons
 
 // Flags of `flatslam run` that take a value, and switches.
 const std::set<std::string> kRunFlags = {
-    "sensor",      "out",        "seed",     "max-frames", "features",   "mapping-lag",
-    "vocabulary",  "skip",       "lose-at",  "save-map",   "agent",      "load-map",
-    "first-frame", "config",     "set",      "settings",   "checkpoint", "checkpoint-every",
-    "resume",      "dds-domain", "dds-peers"};
+    "sensor",      "out",        "seed",      "max-frames", "features",   "mapping-lag",
+    "vocabulary",  "skip",       "lose-at",   "save-map",   "agent",      "load-map",
+    "first-frame", "config",     "set",       "settings",   "checkpoint", "checkpoint-every",
+    "resume",      "dds-domain", "dds-peers", "run-id"};
 const std::set<std::string> kRunSwitches = {"deterministic", "quiet",         "no-loop-closing",
                                             "no-global-ba",  "localize-only", "list-options",
                                             "strict",        "publish",       "own-frame"};
@@ -354,6 +355,26 @@ int RunRun(const std::vector<std::string>& original_argv) {
       save_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     };
   }
+  // A live agent's run id on the servers, new in every process (a restarted agent's keyframes and
+  // points never collide with its earlier run's ids there). Its checkpoints keep it as --run-id:
+  // a run resumed from one tells the servers that it replaces that run.
+  uint64_t run_id = 0, resumes_run = 0;
+  if (args.has("publish")) {
+    if (auto previous = args.get("run-id")) {
+      if (!resume_file) throw UsageError{"--run-id is kept by --checkpoint for --resume; it is not set by hand"};
+      const auto [end, ec] = std::from_chars(previous->data(), previous->data() + previous->size(), resumes_run, 16);
+      if (ec != std::errc() || end != previous->data() + previous->size() || resumes_run == 0)
+        throw UsageError{"--run-id: expected a run id in hex, got '" + *previous + "'"};
+    }
+    std::random_device device;
+    while (run_id == 0 || run_id == resumes_run) run_id = uint64_t{device()} << 32 ^ device();
+    std::erase_if(argv, [](const std::string& a) { return a.rfind("--run-id=", 0) == 0; });
+    char id[32];
+    std::snprintf(id, sizeof(id), "--run-id=%016llx", static_cast<unsigned long long>(run_id));
+    argv.push_back(id);
+  } else if (args.has("run-id")) {
+    throw UsageError{"--run-id needs --publish"};
+  }
   // Checkpoints: the session's map, trajectory, command line and next frame, saved atomically.
   std::optional<std::filesystem::path> checkpoint;
   size_t last_checkpoint_frame = 0;
@@ -400,10 +421,10 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::unique_ptr<AgentPublisher> link;
   if (args.has("publish")) {
     FLATSLAM_CHECK(g_make_agent_publisher != nullptr, "--publish: this executable has no DDS support (flatslam-live)");
-    link = g_make_agent_publisher(
-        options.agent,
-        LiveOptions{args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1"), !args.has("own-frame")},
-        AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
+    link = g_make_agent_publisher(options.agent,
+                                  LiveOptions{args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1"),
+                                              !args.has("own-frame"), run_id, resumes_run},
+                                  AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
     run.on_keyframe_mapped = [&](SlamSession& slam, KeyFrameHandle keyframe) { link->OnKeyFrame(slam, keyframe); };
     run.on_finished = [&, save = run.on_finished](const SlamSession& slam) {
       if (save) save(slam);

@@ -188,6 +188,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   std::set<std::pair<uint32_t, uint64_t>> updated_runs;  // whose those were
   bool may_grow = false;                                 // a merge runs, or left maps to grow: keep since_cut
   bool overlap_seen = false;                             // a grown merge found runs apart overlapping: merge in full
+  bool run_dropped = false;  // a resumed run replaced one: the kept maps hold it, merge in full
   bool merging = false;
   uint64_t revision = 0;
   size_t merged_messages = 0;  // messages held by the maps the last merge started from
@@ -293,7 +294,8 @@ int RunServerLive(const std::vector<std::string>& argv) {
     // Before any run has joined another there is nothing to grow: a full merge searches and joins
     // in one go.
     const bool grow = growing && growing->Uncovered(runs).size() < runs.size() &&
-                      growing->Uncovered(updated).size() == updated.size() && !overlap_seen;
+                      growing->Uncovered(updated).size() == updated.size() && !overlap_seen && !run_dropped;
+    run_dropped = false;
     job->updates = updates_since_cut;
     updates_since_cut = 0;
     updated_runs.clear();
@@ -389,6 +391,20 @@ int RunServerLive(const std::vector<std::string>& argv) {
           heard.insert(message.agent);
           newest_run.try_emplace(message.agent, message.session);
           ended.insert({message.agent, message.session});
+          if (message.resumed_by != 0) {
+            // Killed, and resumed from its checkpoint by the run named: that run's map holds this
+            // one's keyframes up to the checkpoint and sends them itself; the rest died with it.
+            newest_run[message.agent] = message.resumed_by;
+            const size_t held = maps.Drop(message.agent, message.session);
+            run_dropped = true;
+            std::printf(
+                "resumed       %s continues as run %016llx from its checkpoint: its map here (%zu keyframes) "
+                "dropped\n",
+                RunName({message.agent, message.session}).c_str(), static_cast<unsigned long long>(message.resumed_by),
+                held);
+            std::fflush(stdout);
+            continue;
+          }
           size_t held = 0;
           for (const AgentMaps::Session& s : maps.sessions())
             if (s.agent == message.agent && s.session == message.session) held = s.map.keyframes().size();

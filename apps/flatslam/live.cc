@@ -36,8 +36,9 @@ const char* const kAgentUsage =
     "       flatslam agent --resume CHECKPOINT [--quiet]\n"
     "continues an agent that was stopped or killed from its --checkpoint (as flatslam run --resume\n"
     "does: its map, options and outputs, from the frame after the checkpoint). It publishes as a new\n"
-    "run of the agent, whose keyframes include those of the stopped run up to the checkpoint; the\n"
-    "server keeps both runs and merges them where they overlap.\n";
+    "run of the agent and tells each server it meets that this run replaces the stopped one: the\n"
+    "server drops the stopped run's map and takes the resumed map's keyframes (those up to the\n"
+    "checkpoint) from the new run; what the stopped run mapped after its checkpoint is gone with it.\n";
 
 const char* const kServerUsage =
     "usage: flatslam server --out DIR [--vocabulary FILE] [--dds-domain D] [--dds-peers IP,...|multicast]\n"

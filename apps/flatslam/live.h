@@ -35,6 +35,8 @@ struct LiveOptions {
   std::string domain = "0";
   std::string peers = "127.0.0.1";
   bool move_map = true;  // move a stereo/RGB-D map into the merged frame (false: --own-frame)
+  uint64_t run = 0;      // the run's id on the servers
+  uint64_t resumes = 0;  // nonzero: the run this one resumes from its checkpoint
 };
 
 // Set by EnableLive in flatslam-live; null in flatslam.

@@ -99,6 +99,20 @@ size_t AgentMaps::Cull(const KeyFramesCulled& message) {
   return removed;
 }
 
+size_t AgentMaps::Drop(uint32_t agent, uint64_t session) {
+  const auto it = by_session_.find({agent, session});
+  if (it == by_session_.end()) return 0;
+  const size_t i = it->second;
+  const size_t held = sessions_[i].map.keyframes().size();
+  sessions_.erase(sessions_.begin() + static_cast<std::ptrdiff_t>(i));
+  index_.erase(index_.begin() + static_cast<std::ptrdiff_t>(i));
+  stale_points_.erase(stale_points_.begin() + static_cast<std::ptrdiff_t>(i));
+  by_session_.erase(it);
+  for (auto& [key, index] : by_session_)
+    if (index > i) --index;
+  return held;
+}
+
 std::vector<size_t> AgentMaps::MergeOrder() const {
   std::vector<size_t> order(sessions_.size());
   for (size_t i = 0; i < order.size(); ++i) order[i] = i;

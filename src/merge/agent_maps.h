@@ -41,6 +41,9 @@ class AgentMaps {
   // Removes the keyframes the agent culled (unknown ids are skipped: never sent, or gone already),
   // and points no keyframe sees any more. Returns how many were removed.
   size_t Cull(const KeyFramesCulled& message);
+  // Forgets one run's map altogether (a run an agent resumed from its checkpoint: the resumed run
+  // sends the same keyframes again). Returns the keyframes it held (0 for a run not heard of).
+  size_t Drop(uint32_t agent, uint64_t session);
   [[nodiscard]] const std::vector<Session>& sessions() const { return sessions_; }
   // The camera of the first message (the agents of one server share a camera model).
   [[nodiscard]] const std::optional<AgentCamera>& camera() const { return camera_; }

@@ -74,9 +74,9 @@ std::vector<uint8_t> EncodeKeyFrameMessage(const Map& map, KeyFrameHandle keyfra
 }
 
 KeyFrameMessage DecodeKeyFrameMessage(std::span<const uint8_t> bytes, const std::string& what) {
-  const agent::KeyFrameMessage& root =
-      records::VerifiedMessage<agent::KeyFrameMessage>(bytes, agent::KeyFrameMessageIdentifier(), kKeyFrameFormatVersion,
-                                                       what, "keyframe message", /*min_version=*/kKeyFrameFormatVersion);
+  const agent::KeyFrameMessage& root = records::VerifiedMessage<agent::KeyFrameMessage>(
+      bytes, agent::KeyFrameMessageIdentifier(), kKeyFrameFormatVersion, what, "keyframe message",
+      /*min_version=*/kKeyFrameFormatVersion);
   FLATSLAM_CHECK(root.keyframe() != nullptr, what, ": no keyframe");
   const schema::KeyFrameRecord& r = *root.keyframe();
   FLATSLAM_CHECK(records::KeyFrameColumnsAgree(r), what, ": keypoint columns differ in size");
@@ -136,8 +136,9 @@ KeyFramesCulled DecodeKeyFramesCulled(std::span<const uint8_t> bytes, const std:
 
 std::vector<uint8_t> EncodeRunEnded(const RunEnded& message) {
   flatbuffers::FlatBufferBuilder builder(64);
-  agent::FinishRunEndedBuffer(builder, agent::CreateRunEnded(builder, kFormatVersion, message.agent, message.session,
-                                                             message.keyframes, message.frames, message.stopped));
+  agent::FinishRunEndedBuffer(
+      builder, agent::CreateRunEnded(builder, kFormatVersion, message.agent, message.session, message.keyframes,
+                                     message.frames, message.stopped, message.resumed_by));
   return {builder.GetBufferPointer(), builder.GetBufferPointer() + builder.GetSize()};
 }
 
@@ -150,6 +151,7 @@ RunEnded DecodeRunEnded(std::span<const uint8_t> bytes, const std::string& what)
   out.keyframes = root.keyframes();
   out.frames = root.frames();
   out.stopped = root.stopped();
+  out.resumed_by = root.resumed_by();
   return out;
 }
 

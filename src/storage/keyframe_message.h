@@ -29,9 +29,9 @@ struct KeyFrameMessage {
   uint32_t agent = 0;
   uint64_t session = 0;  // the agent process's run (a restarted agent sends under a new one)
   AgentCamera camera;
-  KeyFrame keyframe;                     // identity, pose and keypoint columns; points null, no graph
-  std::vector<uint32_t> keypoint_point;  // per keypoint: index into points, or kNoPoint
-  std::vector<uint64_t> point_ids;       // per point: the agent's id (its packed handle)
+  KeyFrame keyframe;                       // identity, pose and keypoint columns; points null, no graph
+  std::vector<uint32_t> keypoint_point;    // per keypoint: index into points, or kNoPoint
+  std::vector<uint64_t> point_ids;         // per point: the agent's id (its packed handle)
   std::vector<Eigen::Vector3d> positions;  // per point, in the keyframe's world frame (sent in its camera frame)
   static constexpr uint32_t kNoPoint = 0xffffffffu;
 };
@@ -65,6 +65,9 @@ struct RunEnded {
   uint64_t keyframes = 0;  // in the agent's final map
   uint64_t frames = 0;     // tracked
   bool stopped = false;    // by a signal, before the end of its dataset
+  // Nonzero: the agent was killed and resumed from its checkpoint as this run, whose map holds this
+  // run's keyframes up to the checkpoint (sent by the resumed run, not by the one that ended).
+  uint64_t resumed_by = 0;
 };
 
 [[nodiscard]] std::vector<uint8_t> EncodeRunEnded(const RunEnded& message);

@@ -609,9 +609,10 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
   fs::remove_all(dir);
 }
 
-TEST(AgentsCli, AKilledAgentResumesFromItsCheckpoint) {
+TEST(AgentsCli, AKilledAgentResumesFromItsCheckpointAndReplacesItsRunOnTheServer) {
   const fs::path dir = testing::FreshTempDir("agents_cli_resume");
-  const std::string d = std::to_string(230 + static_cast<uint32_t>(getpid() % 3));  // no server listens here
+  const std::string d = std::to_string(230 + static_cast<uint32_t>(getpid() % 3));
+  const pid_t server = SpawnServer(dir, 1, d, {"--idle", "60"});
   const fs::path out = dir / "agent", checkpoint = dir / "agent.fsck";
   const pid_t killed = Spawn({"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d, "--out",
                               out.string(), "--checkpoint", checkpoint.string(), "--checkpoint-every", "1"},
@@ -631,11 +632,25 @@ TEST(AgentsCli, AKilledAgentResumesFromItsCheckpoint) {
   EXPECT_TRUE(Contains(resumed.output, "frames        550 tracked")) << resumed.output;
   EXPECT_TRUE(Contains(resumed.output, "to rt/flatslam/agent_1/pose")) << resumed.output;
   EXPECT_EQ(LineCount(out / "trajectory.kitti"), 550u);
+  const size_t run_at = resumed.output.find("; run ");
+  ASSERT_NE(run_at, std::string::npos) << resumed.output;
+  const std::string run = resumed.output.substr(run_at + 6, 16);
+
+  // The server dropped the killed run's map on the resumed run's word and holds the resumed run's:
+  // one run of agent 1, with every keyframe of the agent's final map.
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string log = ReadBytes(dir / "server.log");
+  EXPECT_TRUE(Contains(log, "continues as run " + run + " from its checkpoint")) << log;
+  const size_t saved = ReadTum(out / "keyframes.tum").size();
+  ASSERT_GT(saved, 0u);
+  EXPECT_TRUE(Contains(log, "agent 1       run " + run + ": " + std::to_string(saved) + " keyframes")) << log;
+  EXPECT_EQ(log.find("agent 1       run "), log.rfind("agent 1       run ")) << log;  // one run of agent 1
+  EXPECT_TRUE(Contains(log, "output map 0   inputs 0, agents [1], " + std::to_string(saved) + " keyframes")) << log;
 
   // `flatslam agent --resume` takes only an agent's checkpoint.
   const fs::path plain = dir / "plain.fsck";
-  const auto run = RunApp("run synth:room:duration=2 --quiet --checkpoint " + plain.string());
-  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const auto plain_run = RunApp("run synth:room:duration=2 --quiet --checkpoint " + plain.string());
+  ASSERT_EQ(plain_run.exit_code, 0) << plain_run.output;
   const auto refused = RunApp("agent --resume " + plain.string());
   EXPECT_NE(refused.exit_code, 0);
   EXPECT_TRUE(Contains(refused.output, "not the checkpoint of an agent")) << refused.output;

@@ -126,6 +126,34 @@ TEST(AgentMaps, CulledKeyFramesLeaveTheMap) {
   EXPECT_EQ(maps.Cull(culled), 0u);
 }
 
+// A run resumed from its checkpoint replaces the run it continues: the server drops that run's map
+// and keeps every other run's, whose messages still land in their own maps.
+TEST(AgentMaps, ADroppedRunLeavesTheOthersWhereTheyWere) {
+  const Map map = OneAgentMap();
+  AgentMaps maps;
+  const KeyFrameHandle first = map.keyframes().handles().front();
+  for (uint64_t session : {11, 12, 13})
+    EXPECT_TRUE(maps.Add(
+        DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, first, 0, session, testing::TestAgentCamera()), "m")));
+  ASSERT_EQ(maps.sessions().size(), 3u);
+  EXPECT_EQ(maps.Drop(0, 12), 1u);
+  EXPECT_EQ(maps.Drop(0, 12), 0u);  // gone already
+  EXPECT_EQ(maps.Drop(1, 11), 0u);  // another agent's run of that id was never heard of
+  ASSERT_EQ(maps.sessions().size(), 2u);
+  EXPECT_EQ(maps.sessions()[0].session, 11u);
+  EXPECT_EQ(maps.sessions()[1].session, 13u);
+  // Run 13's next keyframe joins run 13's map (its index moved down by one).
+  const KeyFrameHandle second = map.keyframes().handles()[1];
+  EXPECT_TRUE(
+      maps.Add(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, second, 0, 13, testing::TestAgentCamera()), "m")));
+  EXPECT_EQ(maps.sessions()[0].map.keyframes().size(), 1u);
+  EXPECT_EQ(maps.sessions()[1].map.keyframes().size(), 2u);
+  // The dropped run, heard again, starts over with a map of its own.
+  EXPECT_TRUE(
+      maps.Add(DecodeKeyFrameMessage(EncodeKeyFrameMessage(map, first, 0, 12, testing::TestAgentCamera()), "m")));
+  EXPECT_EQ(maps.sessions().size(), 3u);
+}
+
 // Corrections: each input's frame in the output map that holds it, fitted on its keyframes found
 // there by agent and timestamp. An input that stays alone gets none.
 TEST(AgentMaps, RunFramesRecoverWhereEachInputWentInTheMergedMap) {

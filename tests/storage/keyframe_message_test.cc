@@ -102,7 +102,8 @@ TEST(KeyFrameMessage, IsWrittenInTheFrameAsked) {
   for (size_t i = 0; i < m.positions.size(); ++i) {
     EXPECT_EQ(m.point_ids[i], plain.point_ids[i]);
     EXPECT_TRUE(m.positions[i].isApprox(T_out_map * plain.positions[i], 1e-9));
-    EXPECT_TRUE((m.keyframe.T_cam_world * m.positions[i]).isApprox(plain.keyframe.T_cam_world * plain.positions[i], 1e-9));
+    EXPECT_TRUE(
+        (m.keyframe.T_cam_world * m.positions[i]).isApprox(plain.keyframe.T_cam_world * plain.positions[i], 1e-9));
   }
 }
 
@@ -169,6 +170,7 @@ TEST(RunEnded, RoundTripsAndRefusesWhatIsNotOne) {
   ended.keyframes = 91;
   ended.frames = 1200;
   ended.stopped = true;
+  ended.resumed_by = 0x1234567890ULL;
   const std::vector<uint8_t> bytes = EncodeRunEnded(ended);
   const RunEnded back = DecodeRunEnded(bytes, "keyframe message 7 from agent 2");
   EXPECT_EQ(back.agent, 2u);
@@ -176,8 +178,11 @@ TEST(RunEnded, RoundTripsAndRefusesWhatIsNotOne) {
   EXPECT_EQ(back.keyframes, 91u);
   EXPECT_EQ(back.frames, 1200u);
   EXPECT_TRUE(back.stopped);
+  EXPECT_EQ(back.resumed_by, ended.resumed_by);
   ended.stopped = false;
+  ended.resumed_by = 0;
   EXPECT_FALSE(DecodeRunEnded(EncodeRunEnded(ended), "again").stopped);
+  EXPECT_EQ(DecodeRunEnded(EncodeRunEnded(ended), "again").resumed_by, 0u);
   auto error_of = [](std::span<const uint8_t> b) {
     try {
       (void)DecodeRunEnded(b, "keyframe message 7 from agent 2");
