@@ -159,12 +159,7 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
         replaced.session = resumes_;
         replaced.stopped = true;
         replaced.resumed_by = session_;
-        Payload payload;
-        payload.agent = agent_;
-        payload.kind = PayloadKind::kRunEnded;
-        payload.sequence = sequence_++;
-        payload.bytes = EncodeRunEnded(replaced);
-        if (!keyframes_->Write(payload)) ++failed_;
+        WriteRunEnded(replaced);
       }
       if (!seeded_) {
         seeded_ = true;
@@ -218,11 +213,15 @@ void AgentLink::PublishFinalMap(const SlamSession& slam) {
     ended.keyframes = map.keyframes().size();
   });
   // Last on the same reliable writer, so a server that reads it has everything sent before.
+  WriteRunEnded(ended);
+}
+
+void AgentLink::WriteRunEnded(const RunEnded& message) {
   Payload payload;
   payload.agent = agent_;
   payload.kind = PayloadKind::kRunEnded;
   payload.sequence = sequence_++;
-  payload.bytes = EncodeRunEnded(ended);
+  payload.bytes = EncodeRunEnded(message);
   if (!keyframes_->Write(payload)) ++failed_;
 }
 

@@ -86,6 +86,8 @@ class AgentLink : public AgentPublisher {
   // update's): one mapping culled since is reported to the server.
   std::vector<std::pair<KeyFrameHandle, uint64_t>> sent_;
   void SendCulled(const Map& map);
+  // A run-ended message on the keyframe writer (this run's, or the one a resumed run replaces).
+  void WriteRunEnded(const RunEnded& message);
   // Matches of the keyframe writer already answered with the whole map (mapping lane).
   int answered_matches_ = 0;
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},
