@@ -11,6 +11,8 @@
 // place them. A stereo or RGB-D agent also moves its map into that frame (between keyframes, on
 // the mapping lane; unless --own-frame), so that its map, saved trajectory and later keyframes
 // are in it; it still sends keyframes in its run's own frame, the one the server keeps its map in.
+// A run resumed from an agent's checkpoint (--resume) first tells each server it meets that it
+// replaces the run it continues (a run-ended message with resumed_by), then sends its whole map.
 // Concurrency: OnFrame from the track stage, OnKeyFrame from the mapping lane, corrections on
 // the DDS listener thread (the latest one is kept under a mutex); the counters are atomic; Finish
 // and Summary after the run.

@@ -4,7 +4,8 @@
 // agent's final update after its loop closures, a writer that resends) updates the keyframe's
 // pose and its points' positions instead of adding anything. An agent that restarts
 // sends under a new session id and gets a new map: its old map is kept, and the merge joins the
-// two where they overlap.
+// two where they overlap; one resumed from its checkpoint says which run it continues, whose map
+// the server then drops (Drop), the resumed run sending those keyframes itself.
 // Concurrency: one thread at a time (the server's main loop).
 #pragma once
 
