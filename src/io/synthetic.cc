@@ -50,6 +50,22 @@ float GaussFromBits(uint64_t bits) {
   return (static_cast<float>(sum) - 510.0f) * (1.0f / 147.8f);
 }
 
+// The exact depth image read with independent noise per pixel (sigma = k z^2) and nothing beyond
+// max_depth.
+void NoisyDepth(float k, float max_depth, uint64_t* rng, cv::Mat* depth) {
+  for (int v = 0; v < depth->rows; ++v) {
+    float* d = depth->ptr<float>(v);
+    for (int u = 0; u < depth->cols; ++u) {
+      const float z = d[u];
+      if (z <= 0 || z > max_depth) {
+        d[u] = 0;
+        continue;
+      }
+      d[u] = std::max(0.0f, z + k * z * z * GaussFromBits(SplitMix(rng)));
+    }
+  }
+}
+
 // A structured-light sensor's reading of the exact depth image (see SyntheticOptions::
 // structured_light); `fx` is the colour camera's, to which the depth image is registered, and
 // noise_k the depth noise (sigma = k z^2), applied as disparity noise before quantization.
@@ -982,23 +998,10 @@ Frame SyntheticScene::Render(size_t i) const {
     cv::Mat depth;
     RenderExposure(times, 0.0, gain, noisy ? seed_left : 0, &frame.left, &depth);
     uint64_t rng = seed_depth;
-    if (options_.structured_light) {
+    if (options_.structured_light)
       StructuredLightDepth(calibration_.camera.fx, static_cast<float>(options_.depth_noise_k), &rng, &depth);
-      frame.depth = depth;
-      return frame;
-    }
-    const float k = static_cast<float>(options_.depth_noise_k), max_depth = static_cast<float>(options_.max_depth_m);
-    for (int v = 0; v < depth.rows; ++v) {
-      float* d = depth.ptr<float>(v);
-      for (int u = 0; u < depth.cols; ++u) {
-        const float z = d[u];
-        if (z <= 0 || z > max_depth) {
-          d[u] = 0;
-          continue;
-        }
-        d[u] = std::max(0.0f, z + k * z * z * GaussFromBits(SplitMix(&rng)));
-      }
-    }
+    else
+      NoisyDepth(static_cast<float>(options_.depth_noise_k), static_cast<float>(options_.max_depth_m), &rng, &depth);
     frame.depth = depth;
   } else {
     RenderExposure(times, 0.0, gain, noisy ? seed_left : 0, &frame.left, nullptr);

@@ -147,15 +147,15 @@ struct SyntheticOptions {
   // projector's shadow beside every nearer edge read as no depth, foreground edges fattened by
   // the correlation window (a pixel within 2 px of a nearer surface reads that surface), depth
   // registered to the colour image 1 px off, 1% of pixels missing at random, and nothing beyond
-  // 4.5 m. 0 = off.
+  // 4.5 m (max_depth_m does not apply). false: exact depth with depth_noise_k.
   bool structured_light = false;
 
   [[nodiscard]] bool Check() const;
 };
 
 // Parses "NAME[:key=value,...]" (keys: width, height, fx, fps, duration, baseline, noise,
-// depth_noise, agent, seed, sensor, dynamic, rig_error, structured_light) into a scene name and options. Throws
-// flatslam::Error.
+// depth_noise, agent, seed, sensor, dynamic, rig_error, structured_light) into a scene name and
+// options. Throws flatslam::Error.
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options);
 
 class SyntheticScene {
