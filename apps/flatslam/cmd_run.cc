@@ -181,6 +181,51 @@ std::string InjectedFaultName() {
   return fault ? fault : "";
 }
 
+// What a run that lost frames prints under its frame counts: how much was lost, what the new
+// map segments mean for the ATE, how tracking ended before each loss (fading inliers or an
+// abrupt break, measured), and what to look at. Empty when nothing was lost.
+std::string DescribeLosses(const RunRecorder::Counts& counts, const Calibration& calibration,
+                           const SlamOptions& resolved) {
+  if (counts.lost == 0 && counts.reinitialized == 0) return "";
+  const bool monocular = calibration.sensor == Sensor::kMonocular;
+  const size_t given = counts.frames;
+  char text[1024];
+  std::string out;
+  std::snprintf(text, sizeof(text), "warning       %zu of %zu frames lost (%.1f%%) in %zu stretch%s", counts.lost,
+                given, 100.0 * static_cast<double>(counts.lost) / static_cast<double>(std::max<size_t>(given, 1)),
+                counts.inliers_before_loss.size(), counts.inliers_before_loss.size() == 1 ? "" : "es");
+  out += text;
+  if (counts.reinitialized > 0) {
+    std::snprintf(text, sizeof(text), "; %zu new map segment%s started%s", counts.reinitialized,
+                  counts.reinitialized == 1 ? "" : "s",
+                  monocular ? " (a monocular segment keeps a scale of its own until a loop closure joins it to the "
+                              "map: one alignment of the whole trajectory, as the ATE below, does not measure it)"
+                            : " (each placed where the last pose was predicted)");
+    out += text;
+  }
+  out += "\n";
+  if (!counts.inliers_before_loss.empty()) {
+    std::vector<int> inliers = counts.inliers_before_loss;
+    std::nth_element(inliers.begin(), inliers.begin() + inliers.size() / 2, inliers.end());
+    const int median = inliers[inliers.size() / 2];
+    // Under twice the floor, tracking thinned out over frames; above it, one frame broke it.
+    const bool faded = median < 2 * resolved.min_local_map_inliers;
+    std::snprintf(text, sizeof(text),
+                  "              the last frame tracked before a loss kept %d inliers (median; under %d is lost): "
+                  "%s\n",
+                  median, resolved.min_local_map_inliers,
+                  faded ? "tracking faded over the frames before"
+                        : "tracking broke at one frame (a fast turn, a view the map has not seen, a bad image)");
+    out += text;
+  }
+  std::snprintf(text, sizeof(text),
+                "              check the calibration first; where the view changes much from one frame to the next "
+                "(fast motion at %.3g Hz), more keypoints per image may help: --set orb.features=%d (now %d)\n",
+                calibration.frame_rate_hz, std::min(2 * resolved.orb.features, 8000), resolved.orb.features);
+  out += text;
+  return out;
+}
+
 }  // namespace
 
 int RunRun(const std::vector<std::string>& original_argv) {
@@ -465,6 +510,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   }
   std::printf("frames        %zu tracked, %zu lost, %zu before initialization, %zu skipped (unreadable)\n",
               trajectory.size(), counts.lost, counts.not_initialized, result.frames_skipped);
+  std::fputs(DescribeLosses(counts, dataset->calibration(), ResolvedOptions(options, dataset->calibration())).c_str(),
+             stdout);
   if (g_signal != 0)
     std::printf("interrupted   by %s after frame %zu of %zu: frames after it were not read\n",
                 g_signal == SIGINT ? "SIGINT" : "SIGTERM", result.next_frame == 0 ? 0 : result.next_frame - 1, frames);

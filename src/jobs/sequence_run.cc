@@ -87,7 +87,7 @@ double Ms(std::chrono::steady_clock::duration d) {
 
 RunRecorder::RunRecorder(const std::optional<std::filesystem::path>& out_dir, size_t first_frame,
                          const std::vector<AnchoredFramePose>* resumed_frames)
-    : out_dir_(out_dir) {
+    : out_dir_(out_dir), started_(resumed_frames && !resumed_frames->empty()) {
   if (!out_dir_) return;
   const std::filesystem::path csv_path = *out_dir_ / "stats.csv";
   if (resumed_frames) {
@@ -108,8 +108,16 @@ void RunRecorder::OnFrame(const FrameReport& r) {
   ++counts_.frames;
   if (!r.skipped) {
     counts_.keyframes += r.keyframe;
-    counts_.lost += r.state == TrackingState::kLost;
-    counts_.not_initialized += r.state == TrackingState::kNotInitialized;
+    const bool waiting = r.state == TrackingState::kNotInitialized;
+    const bool lost = r.state == TrackingState::kLost || (waiting && started_);
+    counts_.lost += lost;
+    counts_.not_initialized += waiting && !started_;
+    if (lost && !losing_ && last_inliers_ >= 0) counts_.inliers_before_loss.push_back(last_inliers_);
+    losing_ = lost;
+    if (r.T_world_cam) {
+      started_ = true;
+      last_inliers_ = r.inliers;
+    }
     counts_.relocalized += r.relocalized;
     counts_.reinitialized += r.reinitialized;
     counts_.track_ms.Add(r.track_ms);

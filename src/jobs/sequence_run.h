@@ -51,8 +51,13 @@ class TimeStats {
 class RunRecorder {
  public:
   struct Counts {
+    // lost: frames without a pose once the run had its first: lost and relocalizing, and a
+    // monocular run's frames between a loss and its new segment's two-view start.
+    // not_initialized: frames before the first pose only.
     size_t frames = 0, keyframes = 0, lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
     TimeStats track_ms, extract_ms;
+    // Per stretch of lost frames after a frame this run tracked, that frame's inliers.
+    std::vector<int> inliers_before_loss;
   };
   // out_dir empty: counts only. resumed_frames: the trajectory of the session a resumed run
   // continues (its stats.csv lines before first_frame are kept, its poses start trajectory.tum).
@@ -71,6 +76,9 @@ class RunRecorder {
   std::optional<std::filesystem::path> out_dir_;
   std::optional<LineLog> csv_, poses_;
   Counts counts_;
+  bool started_ = false;   // a frame had a pose (a resumed run starts with the poses it continues)
+  bool losing_ = false;    // the last frame given to tracking was lost
+  int last_inliers_ = -1;  // of the last frame tracked (-1: none tracked by this run)
 };
 
 // The row of the results table for a finished run (no ground-truth metrics yet).

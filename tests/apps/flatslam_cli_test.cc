@@ -119,6 +119,42 @@ TEST(FlatslamCli, ARunMeasuresItsStereoRigAndTheOffsetTakesItOff) {
   EXPECT_LT(ate_corrected, 0.5 * ate_as_is) << as_is.output << corrected.output;
 }
 
+// A run that loses frames says so under its frame counts: how many, the new map segments, how
+// tracking ended before each loss and what to try. A monocular run's frames between a loss and
+// its new segment's start count as lost, on the screen and in the results table; a run that loses
+// nothing prints no warning.
+TEST(FlatslamCli, ARunThatLosesFramesSaysSoAndWhatToTry) {
+  const std::string kitti = (testing::DatasetsDir() / "kitti" / "sequences").string();
+  const auto dir = testing::FreshTempDir("cli_losses");
+  // 600 keypoints per image starve monocular KITTI (the camera's budget is 2000): measured 90
+  // tracked, 65 lost, 5 new segments.
+  const Result starved = RunApp("run " + kitti + "/07 --sensor mono --quiet --deterministic --set orb.features=600" +
+                                " --out " + (dir / "starved").string());
+  ASSERT_EQ(starved.exit_code, 0) << starved.output;
+  const double tracked = NumberAfter(starved.output, "frames        ");
+  const double lost = NumberAfter(starved.output, " tracked, ");
+  const double waiting = NumberAfter(starved.output, " lost, ");
+  EXPECT_EQ(tracked + lost + waiting, 160) << starved.output;
+  EXPECT_GT(lost, 16) << starved.output;     // over a tenth of the frames
+  EXPECT_LT(waiting, 10) << starved.output;  // the first start only
+  EXPECT_TRUE(
+      Contains(starved.output, "warning       " + std::to_string(static_cast<int>(lost)) + " of 160 frames lost"))
+      << starved.output;
+  EXPECT_TRUE(Contains(starved.output, "new map segments started (a monocular segment keeps a scale of its own"))
+      << starved.output;
+  EXPECT_TRUE(Contains(starved.output, "the last frame tracked before a loss kept ")) << starved.output;
+  EXPECT_TRUE(Contains(starved.output, "--set orb.features=1200 (now 600)")) << starved.output;
+  const std::vector<SequenceResult> rows = ReadResultsCsv(dir / "starved" / "results.csv");
+  ASSERT_EQ(rows.size(), 1u);
+  EXPECT_EQ(static_cast<double>(rows[0].lost), lost);
+  EXPECT_EQ(static_cast<double>(rows[0].tracked), tracked);
+
+  const Result fine = RunApp("run " + kitti + "/06 --sensor stereo --quiet");
+  ASSERT_EQ(fine.exit_code, 0) << fine.output;
+  EXPECT_TRUE(Contains(fine.output, "51 tracked, 0 lost")) << fine.output;
+  EXPECT_FALSE(Contains(fine.output, "warning")) << fine.output;
+}
+
 TEST(FlatslamCli, EvalScoresSeveralEstimatesUnderOneAlignment) {
   const auto traj = testing::DatasetsDir() / "trajectories";
   const std::string est = (traj / "fr2_desk_ORB.txt").string(), gt = (traj / "fr2_desk_groundtruth.txt").string();

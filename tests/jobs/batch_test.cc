@@ -117,6 +117,50 @@ TEST(Batch, AStopFlagEndsTheBatchWithEveryRow) {
   EXPECT_TRUE(std::filesystem::exists(dir / "room0" / "trajectory.tum"));
 }
 
+// A monocular run that loses tracking waits for a new two-view start in the not-initialized
+// state: those frames are lost frames, not frames before initialization.
+TEST(RunRecorder, FramesWithoutAPoseAfterTheFirstPoseAreLost) {
+  using S = TrackingState;
+  const struct {
+    S state;
+    bool pose;
+  } frames[] = {{S::kNotInitialized, false},
+                {S::kNotInitialized, false},
+                {S::kOk, true},
+                {S::kLost, false},
+                {S::kNotInitialized, false},
+                {S::kNotInitialized, false},
+                {S::kOk, true},
+                {S::kLost, false},
+                {S::kOk, true}};
+  RunRecorder recorder(std::nullopt);
+  size_t index = 0;
+  for (const auto& f : frames) {
+    FrameReport r;
+    r.index = index++;
+    r.state = f.state;
+    if (f.pose) r.T_world_cam = Eigen::Isometry3d::Identity();
+    r.inliers = f.pose ? static_cast<int>(100 + index) : 3;
+    recorder.OnFrame(r);
+  }
+  EXPECT_EQ(recorder.counts().frames, 9u);
+  EXPECT_EQ(recorder.counts().not_initialized, 2u);
+  EXPECT_EQ(recorder.counts().lost, 4u);
+  // Two stretches lost, after the frames 2 and 6 (index + 1 inliers above).
+  EXPECT_EQ(recorder.counts().inliers_before_loss, (std::vector<int>{103, 107}));
+
+  // A resumed run has had its first pose: a frame waiting to start is lost.
+  const std::vector<AnchoredFramePose> resumed(1);
+  RunRecorder resumed_recorder(std::nullopt, 10, &resumed);
+  FrameReport waiting;
+  waiting.index = 10;
+  waiting.state = S::kNotInitialized;
+  resumed_recorder.OnFrame(waiting);
+  EXPECT_EQ(resumed_recorder.counts().lost, 1u);
+  EXPECT_EQ(resumed_recorder.counts().not_initialized, 0u);
+  EXPECT_TRUE(resumed_recorder.counts().inliers_before_loss.empty());
+}
+
 TEST(Batch, MemoryBudgetAdmitsWhatFits) {
   // Nothing running: always (a sequence larger than the budget still runs, alone).
   EXPECT_TRUE(AdmitSequence(0, 5000, 100, 3000, 1000));
