@@ -226,6 +226,38 @@ std::string DescribeLosses(const RunRecorder::Counts& counts, const Calibration&
   return out;
 }
 
+// The trajectory's pieces between new map segments, each aligned alone (Sim(3)): what each
+// segment's map got right, where one alignment of all of them (a monocular run's segments differ
+// in scale) measures none. Nothing without new segments.
+void PrintSegmentAccuracy(const Trajectory& gt, const Trajectory& trajectory, const std::vector<int64_t>& starts_t_ns,
+                          bool monocular) {
+  if (starts_t_ns.empty() || trajectory.empty()) return;
+  std::vector<Trajectory> pieces(1);
+  size_t next = 0;
+  for (const TimedPose& pose : trajectory) {
+    while (next < starts_t_ns.size() && pose.t_ns >= starts_t_ns[next]) {
+      ++next;
+      if (!pieces.back().empty()) pieces.emplace_back();
+    }
+    pieces.back().push_back(pose);
+  }
+  std::printf("segments      %zu pieces of the trajectory between new map segments, each aligned alone:\n",
+              pieces.size());
+  for (const Trajectory& piece : pieces) {
+    SequenceResult score;
+    if (piece.size() >= 3) ScoreAgainstGroundTruth(gt, piece, &score);
+    std::printf("  piece       %zu poses, %.1f-%.1f s", piece.size(),
+                1e-9 * (piece.front().t_ns - trajectory.front().t_ns),
+                1e-9 * (piece.back().t_ns - trajectory.front().t_ns));
+    if (score.ate_sim3_m) {
+      std::printf(": ATE Sim(3) %.4f m (%.2f%% of %.1f m), scale %.4f", *score.ate_sim3_m,
+                  100.0 * *score.ate_sim3_m / std::max(*score.path_m, 1e-9), *score.path_m, *score.scale);
+      if (!monocular) std::printf(", SE(3) %.4f m", *score.ate_se3_m);
+    }
+    std::printf("\n");
+  }
+}
+
 }  // namespace
 
 int RunRun(const std::vector<std::string>& original_argv) {
@@ -593,6 +625,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
         *row.ate_se3_m, trajectory.size(), 100.0 * *row.ate_se3_m / std::max(*row.path_m, 1e-9), *row.path_m,
         *row.ate_sim3_m, *row.scale);
     std::printf("RPE           %.4f m / %.3f deg per frame (RMSE)\n", *row.rpe_m, *row.rpe_deg);
+    PrintSegmentAccuracy(*gt, trajectory, counts.new_segment_t_ns, dataset->calibration().sensor == Sensor::kMonocular);
   }
   std::string report_error;
   if (out_dir) {

@@ -120,6 +120,7 @@ void RunRecorder::OnFrame(const FrameReport& r) {
     }
     counts_.relocalized += r.relocalized;
     counts_.reinitialized += r.reinitialized;
+    if (r.reinitialized) counts_.new_segment_t_ns.push_back(r.t_ns);
     counts_.track_ms.Add(r.track_ms);
     counts_.extract_ms.Add(r.extract_ms);
   }

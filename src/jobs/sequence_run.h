@@ -58,6 +58,8 @@ class RunRecorder {
     TimeStats track_ms, extract_ms;
     // Per stretch of lost frames after a frame this run tracked, that frame's inliers.
     std::vector<int> inliers_before_loss;
+    // Times of the frames at which a new map segment started (FrameReport::reinitialized).
+    std::vector<int64_t> new_segment_t_ns;
   };
   // out_dir empty: counts only. resumed_frames: the trajectory of the session a resumed run
   // continues (its stats.csv lines before first_frame are kept, its poses start trajectory.tum).

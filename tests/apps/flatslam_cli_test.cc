@@ -144,6 +144,18 @@ TEST(FlatslamCli, ARunThatLosesFramesSaysSoAndWhatToTry) {
       << starved.output;
   EXPECT_TRUE(Contains(starved.output, "the last frame tracked before a loss kept ")) << starved.output;
   EXPECT_TRUE(Contains(starved.output, "--set orb.features=1200 (now 600)")) << starved.output;
+  // Each piece of the trajectory between new segments is scored alone: one line per piece.
+  const double segments = NumberAfter(starved.output, "relocalizations, ");
+  EXPECT_GE(segments, 1) << starved.output;
+  // A segment lost before it tracked a frame adds no piece.
+  const double listed = NumberAfter(starved.output, "segments      ");
+  EXPECT_GE(listed, 2) << starved.output;
+  EXPECT_LE(listed, segments + 1) << starved.output;
+  size_t pieces = 0;
+  for (size_t at = starved.output.find("\n  piece       "); at != std::string::npos;
+       at = starved.output.find("\n  piece       ", at + 1))
+    ++pieces;
+  EXPECT_EQ(static_cast<double>(pieces), listed) << starved.output;
   const std::vector<SequenceResult> rows = ReadResultsCsv(dir / "starved" / "results.csv");
   ASSERT_EQ(rows.size(), 1u);
   EXPECT_EQ(static_cast<double>(rows[0].lost), lost);
@@ -153,6 +165,7 @@ TEST(FlatslamCli, ARunThatLosesFramesSaysSoAndWhatToTry) {
   ASSERT_EQ(fine.exit_code, 0) << fine.output;
   EXPECT_TRUE(Contains(fine.output, "51 tracked, 0 lost")) << fine.output;
   EXPECT_FALSE(Contains(fine.output, "warning")) << fine.output;
+  EXPECT_FALSE(Contains(fine.output, "segments      ")) << fine.output;
 }
 
 TEST(FlatslamCli, EvalScoresSeveralEstimatesUnderOneAlignment) {
