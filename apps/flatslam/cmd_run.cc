@@ -191,9 +191,13 @@ std::string DescribeLosses(const RunRecorder::Counts& counts, const Calibration&
   const size_t given = counts.frames;
   char text[1024];
   std::string out;
-  std::snprintf(text, sizeof(text), "warning       %zu of %zu frames lost (%.1f%%) in %zu stretch%s", counts.lost,
-                given, 100.0 * static_cast<double>(counts.lost) / static_cast<double>(std::max<size_t>(given, 1)),
-                counts.inliers_before_loss.size(), counts.inliers_before_loss.size() == 1 ? "" : "es");
+  if (counts.lost > 0) {
+    std::snprintf(text, sizeof(text), "warning       %zu of %zu frames lost (%.1f%%) in %zu stretch%s", counts.lost,
+                  given, 100.0 * static_cast<double>(counts.lost) / static_cast<double>(std::max<size_t>(given, 1)),
+                  counts.lost_stretches, counts.lost_stretches == 1 ? "" : "es");
+  } else {
+    std::snprintf(text, sizeof(text), "warning       no frame lost, but tracking failed");
+  }
   out += text;
   if (counts.reinitialized > 0) {
     std::snprintf(text, sizeof(text), "; %zu new map segment%s started%s", counts.reinitialized,

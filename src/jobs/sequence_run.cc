@@ -112,7 +112,10 @@ void RunRecorder::OnFrame(const FrameReport& r) {
     const bool lost = r.state == TrackingState::kLost || (waiting && started_);
     counts_.lost += lost;
     counts_.not_initialized += waiting && !started_;
-    if (lost && !losing_ && last_inliers_ >= 0) counts_.inliers_before_loss.push_back(last_inliers_);
+    if (lost && !losing_) {
+      ++counts_.lost_stretches;
+      if (last_inliers_ >= 0) counts_.inliers_before_loss.push_back(last_inliers_);
+    }
     losing_ = lost;
     if (r.T_world_cam) {
       started_ = true;
@@ -159,6 +162,7 @@ SequenceResult ResultOfRun(const SlamRunResult& run, const RunRecorder::Counts& 
   r.frames = run.frames;
   r.tracked = run.trajectory.size();
   r.lost = counts.lost;
+  r.segments = counts.reinitialized;
   r.skipped = run.frames_skipped;
   r.keyframes = run.keyframe_count;
   r.map_points = run.point_count;

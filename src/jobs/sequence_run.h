@@ -55,6 +55,7 @@ class RunRecorder {
     // monocular run's frames between a loss and its new segment's two-view start.
     // not_initialized: frames before the first pose only.
     size_t frames = 0, keyframes = 0, lost = 0, not_initialized = 0, relocalized = 0, reinitialized = 0;
+    size_t lost_stretches = 0;  // runs of consecutive lost frames
     TimeStats track_ms, extract_ms;
     // Per stretch of lost frames after a frame this run tracked, that frame's inliers.
     std::vector<int> inliers_before_loss;

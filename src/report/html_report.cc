@@ -474,12 +474,14 @@ void FramePlots(const ReportSequence& sequence, const std::string& id, std::vect
   if (!all_rows) return;
   std::vector<FrameRow> rows;  // frames given to tracking: skipped (unreadable) frames carry no timings
   size_t skipped = 0, lost = 0;
+  bool started = false;  // a frame had a pose: later frames without one are lost, in any state
   for (const FrameRow& row : *all_rows) {
     if (row.state == "skipped") {
       ++skipped;
       continue;
     }
-    lost += row.state == "lost";
+    lost += row.state == "lost" || (started && row.state == "not_initialized");
+    started = started || row.state == "ok";
     rows.push_back(row);
   }
   facts->push_back("stats.csv: " + std::to_string(all_rows->size()) + " frames, " + std::to_string(lost) + " lost, " +

@@ -37,6 +37,7 @@ const std::vector<Column>& Columns() {
       {"frames", &SequenceResult::frames, 0, Combine::kSum},
       {"tracked", &SequenceResult::tracked, 0, Combine::kSum},
       {"lost", &SequenceResult::lost, 0, Combine::kSum},
+      {"segments", &SequenceResult::segments, 0, Combine::kSum},
       {"skipped", &SequenceResult::skipped, 0, Combine::kSum},
       {"keyframes", &SequenceResult::keyframes, 0, Combine::kSum},
       {"map_points", &SequenceResult::map_points, 0, Combine::kSum},
@@ -318,7 +319,7 @@ void WriteResultsJson(const std::filesystem::path& path, const std::vector<Seque
 std::string ResultsMarkdown(const std::vector<SequenceResult>& rows) {
   // The columns a reader scans first; the files hold all of them.
   static const std::vector<std::string> kShown = {
-      "sequence",        "sensor", "status",           "frames",      "lost",  "skipped",
+      "sequence",        "sensor", "status",           "frames",      "lost",  "segments", "skipped",
       "keyframes",       "loops",  "ate_se3_m",        "ate_sim3_m",  "scale", "rpe_m",
       "kitti_t_rel_pct", "fps",    "cpu_ms_per_frame", "peak_rss_mib"};
   std::vector<size_t> shown;

@@ -24,6 +24,7 @@ struct SequenceResult {
   size_t frames = 0;   // frames given to SLAM
   size_t tracked = 0;  // frames with a pose in the trajectory
   size_t lost = 0, skipped = 0, keyframes = 0, map_points = 0, loops = 0;
+  size_t segments = 0;  // new map segments started where tracking failed (a monocular one has its own scale)
   std::optional<double> ate_se3_m, ate_sim3_m, scale;  // ATE RMSE after SE(3) / Sim(3) alignment
   std::optional<double> rpe_m, rpe_deg;                // RPE RMSE per frame, SE(3)-aligned
   std::optional<double> path_m;                        // ground-truth path length over the trajectory

@@ -160,6 +160,7 @@ TEST(FlatslamCli, ARunThatLosesFramesSaysSoAndWhatToTry) {
   ASSERT_EQ(rows.size(), 1u);
   EXPECT_EQ(static_cast<double>(rows[0].lost), lost);
   EXPECT_EQ(static_cast<double>(rows[0].tracked), tracked);
+  EXPECT_EQ(static_cast<double>(rows[0].segments), segments);
 
   const Result fine = RunApp("run " + kitti + "/06 --sensor stereo --quiet");
   ASSERT_EQ(fine.exit_code, 0) << fine.output;

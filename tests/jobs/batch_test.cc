@@ -147,6 +147,7 @@ TEST(RunRecorder, FramesWithoutAPoseAfterTheFirstPoseAreLost) {
   EXPECT_EQ(recorder.counts().not_initialized, 2u);
   EXPECT_EQ(recorder.counts().lost, 4u);
   // Two stretches lost, after the frames 2 and 6 (index + 1 inliers above).
+  EXPECT_EQ(recorder.counts().lost_stretches, 2u);
   EXPECT_EQ(recorder.counts().inliers_before_loss, (std::vector<int>{103, 107}));
 
   // A resumed run has had its first pose: a frame waiting to start is lost.
@@ -158,6 +159,7 @@ TEST(RunRecorder, FramesWithoutAPoseAfterTheFirstPoseAreLost) {
   resumed_recorder.OnFrame(waiting);
   EXPECT_EQ(resumed_recorder.counts().lost, 1u);
   EXPECT_EQ(resumed_recorder.counts().not_initialized, 0u);
+  EXPECT_EQ(resumed_recorder.counts().lost_stretches, 1u);
   EXPECT_TRUE(resumed_recorder.counts().inliers_before_loss.empty());
 }
 

@@ -100,7 +100,8 @@ void WriteStats(const fs::path& path, const Trajectory& frames) {
     keyframes += keyframe;
     const double extract_ms = skipped ? 0 : 6 + (i > frames.size() / 2 ? 6 : 0) + 0.5 * std::sin(0.3 * i);
     const double track_ms = skipped ? 0 : 9 + 0.7 * std::cos(0.2 * i);
-    const char* state = skipped ? "skipped" : (i % 131 == 7 ? "lost" : "ok");
+    // Not initialized at the start, and after a loss while a new map segment starts (lost).
+    const char* state = skipped ? "skipped" : i == 0 || i % 131 == 9 ? "not_initialized" : i % 131 == 7 ? "lost" : "ok";
     out << i << ',' << frames[i].t_ns << ',' << state << ',' << keyframe << ",0,0,1500,0,400,300," << extract_ms << ','
         << track_ms << ",120,80," << (keyframes - keyframes / 5) << ',' << 40 * i << '\n';
   }
@@ -175,6 +176,15 @@ TEST(HtmlReport, IsSelfContained) {
   EXPECT_GT(page.size(), chart_js.size());
   // 6000 poses would take over 600 KB of JSON: the plots get at most 2000 points per path.
   EXPECT_LT(page.size(), chart_js.size() + 400'000);
+}
+
+// Frames without a pose after the first count as lost, whatever state they were in.
+TEST(HtmlReport, CountsFramesWaitingForANewSegmentAsLost) {
+  const std::string page = ReadText(Report());
+  size_t lost = 0;
+  for (size_t i = 1; i < 300; ++i) lost += i % 97 != 50 && (i % 131 == 7 || i % 131 == 9);
+  EXPECT_NE(page.find("stats.csv: 300 frames, " + std::to_string(lost) + " lost, 3 skipped."), std::string::npos)
+      << lost;
 }
 
 TEST(HtmlReport, NamesEverySequenceAndEscapesText) {

@@ -47,6 +47,7 @@ std::vector<SequenceResult> Rows() {
   b.error = "frame 3: cannot read, it says \"truncated\"";
   b.frames = 9;
   b.lost = 4;
+  b.segments = 2;
   b.fps = 10;
   b.peak_rss_mib = 100;
   SequenceResult c = a;
@@ -77,6 +78,7 @@ TEST(ResultsTable, SummaryAddsCountsAndTakesMediansOfKnownMetrics) {
   EXPECT_EQ(s.status, "2 of 3 ok");
   EXPECT_EQ(s.frames, 310u);
   EXPECT_EQ(s.lost, 4u);
+  EXPECT_EQ(s.segments, 2u);
   EXPECT_EQ(s.keyframes, 80u);
   EXPECT_DOUBLE_EQ(s.wall_s, 11.0);
   ASSERT_TRUE(s.ate_se3_m.has_value());
