@@ -225,7 +225,8 @@ std::string DescribeLosses(const RunRecorder::Counts& counts, const Calibration&
   std::snprintf(text, sizeof(text),
                 "              check the calibration first; where the view changes much from one frame to the next "
                 "(fast motion at %.3g Hz), more keypoints per image may help: --set orb.features=%d (now %d)\n",
-                calibration.frame_rate_hz, std::min(2 * resolved.orb.features, 8000), resolved.orb.features);
+                calibration.frame_rate_hz, std::min(2 * resolved.orb.features, kMaxDerivedFeatures),
+                resolved.orb.features);
   out += text;
   return out;
 }
@@ -536,9 +537,9 @@ int RunRun(const std::vector<std::string>& original_argv) {
   const double mean_track = track_ms.Mean();
   const double mean_extract = extract_ms.Mean();
   std::printf("dataset       %s\n", dataset->name().c_str());
+  const SlamOptions resolved = ResolvedOptions(options, dataset->calibration());
   {
     const Calibration& c = dataset->calibration();
-    const SlamOptions resolved = ResolvedOptions(options, c);
     std::printf("camera        %dx%d, fx %.1f, %.3g Hz%s; %d ORB features per image%s\n", c.camera.width,
                 c.camera.height, c.camera.fx, c.frame_rate_hz,
                 c.sensor == Sensor::kStereo ? (", baseline " + std::to_string(c.baseline_m) + " m").c_str() : "",
@@ -546,8 +547,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   }
   std::printf("frames        %zu tracked, %zu lost, %zu before initialization, %zu skipped (unreadable)\n",
               trajectory.size(), counts.lost, counts.not_initialized, result.frames_skipped);
-  std::fputs(DescribeLosses(counts, dataset->calibration(), ResolvedOptions(options, dataset->calibration())).c_str(),
-             stdout);
+  std::fputs(DescribeLosses(counts, dataset->calibration(), resolved).c_str(), stdout);
   if (g_signal != 0)
     std::printf("interrupted   by %s after frame %zu of %zu: frames after it were not read\n",
                 g_signal == SIGINT ? "SIGINT" : "SIGTERM", result.next_frame == 0 ? 0 : result.next_frame - 1, frames);

@@ -44,7 +44,7 @@ int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz) {
   double best = decade;
   for (double m : kSeries)
     if (std::abs(std::log(m * decade / raw)) < std::abs(std::log(best / raw))) best = m * decade;
-  return static_cast<int>(std::clamp(std::lround(best), 500L, 8000L));
+  return static_cast<int>(std::clamp<long>(std::lround(best), kMinDerivedFeatures, kMaxDerivedFeatures));
 }
 
 int MonocularKeyFrameSpacing(double frame_rate_hz) {

@@ -195,6 +195,8 @@ struct DerivedOption {
 [[nodiscard]] SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calibration,
                                           std::vector<DerivedOption>* derived = nullptr);
 
+// The range a derived feature budget is kept in.
+inline constexpr int kMinDerivedFeatures = 500, kMaxDerivedFeatures = 8000;
 // Features per image for a camera: 1.9 x sqrt(width x height), times sqrt(20 Hz / frame rate)
 // below 20 Hz, rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series and kept in [500, 8000].
 [[nodiscard]] int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz);

@@ -168,19 +168,21 @@ struct Tracking {
     // is mostly far points, whose pose then has almost no translation (KITTI 06 at 2.4 m a frame:
     // 0.29 m), and the next prediction inherits it. By words against the reference keyframe
     // (ORB-SLAM2's search): independent of how far the camera moved, with fewer matches.
-    auto from_last_pose = [&] {
-      frame.T_cam_world = s.last_frame->T_cam_world;
+    // Matches the last frame's and the reference keyframe's points within `radius` of where
+    // `pose` projects them; the optimized pose's inliers (0 with too few matches).
+    auto search_around = [&](const Eigen::Isometry3d& pose, float radius) {
+      frame.T_cam_world = pose;
       std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
+      int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
+      matches += MatchByProjection(frame, *reference, map, context.geometry, radius, options.matcher);
+      return matches >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
     };
-    const float radius = 4 * options.motion_search_radius;
-    from_last_pose();
-    int matches = MatchByProjection(frame, *s.last_frame, map, context.geometry, radius, options.matcher);
-    matches += MatchByProjection(frame, *reference, map, context.geometry, radius, options.matcher);
-    int inliers = matches >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
+    int inliers = search_around(s.last_frame->T_cam_world, 4 * options.motion_search_radius);
     if (options.vocabulary && !reference->bow_features.empty()) {
       const Eigen::Isometry3d around_last = frame.T_cam_world;
       const std::vector<PointHandle> around_last_points = frame.points;
-      from_last_pose();
+      frame.T_cam_world = s.last_frame->T_cam_world;
+      std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
       ComputeFrameWords(*options.vocabulary, frame);
       const int by_words = MatchByBow(frame, *reference, map, options.matcher, options.reference_bow_ratio);
       const int words_inliers = by_words >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
@@ -195,19 +197,10 @@ struct Tracking {
       if (words_inliers >= options.min_motion_inliers && inliers >= options.min_motion_inliers &&
           gap > options.motion_search_radius) {
         const Eigen::Isometry3d by_words_pose = frame.T_cam_world;
-        auto around = [&](const Eigen::Isometry3d& pose) {
-          frame.T_cam_world = pose;
-          std::fill(frame.points.begin(), frame.points.end(), PointHandle::null());
-          int found = MatchByProjection(frame, *s.last_frame, map, context.geometry, options.motion_search_radius,
-                                        options.matcher);
-          found += MatchByProjection(frame, *reference, map, context.geometry, options.motion_search_radius,
-                                     options.matcher);
-          return found >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
-        };
-        const int words_around = around(by_words_pose);
+        const int words_around = search_around(by_words_pose, options.motion_search_radius);
         const Eigen::Isometry3d words_pose = frame.T_cam_world;
         const std::vector<PointHandle> words_points = frame.points;
-        const int last_around = around(around_last);
+        const int last_around = search_around(around_last, options.motion_search_radius);
         if (words_around > last_around) {
           frame.T_cam_world = words_pose;
           frame.points = words_points;
