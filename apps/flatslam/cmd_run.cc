@@ -208,12 +208,13 @@ std::string DescribeLosses(const RunRecorder::Counts& counts, const Calibration&
     out += text;
   }
   out += "\n";
+  bool faded = false;
   if (!counts.inliers_before_loss.empty()) {
     std::vector<int> inliers = counts.inliers_before_loss;
     std::nth_element(inliers.begin(), inliers.begin() + inliers.size() / 2, inliers.end());
     const int median = inliers[inliers.size() / 2];
     // Under twice the floor, tracking thinned out over frames; above it, one frame broke it.
-    const bool faded = median < 2 * resolved.min_local_map_inliers;
+    faded = median < 2 * resolved.min_local_map_inliers;
     std::snprintf(text, sizeof(text),
                   "              the last frame tracked before a loss kept %d inliers (median; under %d is lost): "
                   "%s\n",
@@ -228,6 +229,15 @@ std::string DescribeLosses(const RunRecorder::Counts& counts, const Calibration&
                 calibration.frame_rate_hz, std::min(2 * resolved.orb.features, kMaxDerivedFeatures),
                 resolved.orb.features);
   out += text;
+  // A monocular map fades where new points do not come fast enough: the view turns to texture
+  // whose rays have not yet diverged by the parallax floor (fast glances, turns, narrow lenses).
+  if (monocular && faded && resolved.min_parallax_deg > kDepthParallaxDeg) {
+    std::snprintf(text, sizeof(text),
+                  "              a monocular map that fades makes too few new points; a lower parallax floor makes "
+                  "more, placed less precisely in depth: --set min_parallax_deg=%.3f (now %.3g)\n",
+                  kDepthParallaxDeg, resolved.min_parallax_deg);
+    out += text;
+  }
   return out;
 }
 

@@ -99,7 +99,7 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
     }
   }
   if (o.min_parallax_deg == 0) {
-    o.min_parallax_deg = mono ? 2.0 : 1.146;
+    o.min_parallax_deg = mono ? kMonocularParallaxDeg : kDepthParallaxDeg;
     note("min_parallax_deg", mono ? "monocular: 2 degrees, depth within about 4% at a pixel of noise"
                                   : "with depth: 1.146 degrees; close points take the measured depth");
   }

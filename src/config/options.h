@@ -197,6 +197,10 @@ struct DerivedOption {
 
 // The range a derived feature budget is kept in.
 inline constexpr int kMinDerivedFeatures = 500, kMaxDerivedFeatures = 8000;
+// Ray parallax below which two keyframes do not triangulate a new point (min_parallax_deg = 0):
+// monocular 2 degrees (depth within about 4% at a pixel of noise); with depth ORB-SLAM2's
+// 1.146 degrees (cos 0.9998), as close points take the measured depth.
+inline constexpr double kMonocularParallaxDeg = 2.0, kDepthParallaxDeg = 1.146;
 // Features per image for a camera: 1.9 x sqrt(width x height), times sqrt(20 Hz / frame rate)
 // below 20 Hz, rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series and kept in [500, 8000].
 [[nodiscard]] int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz);
