@@ -4,6 +4,8 @@
 #include <cmath>
 #include <unordered_set>
 
+#include <tbb/parallel_for.h>
+
 #include "geometry/geometry.h"
 #include "matching/matcher.h"
 
@@ -189,17 +191,20 @@ std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const System
                                     std::pair<double, double> depth_range) {
   const CameraGeometry& geometry = context.geometry;
   const std::vector<KeyFrame>& snapshot = state.snapshot;
-  std::vector<NewPoint> out;
   const double baseline = geometry.bf / geometry.camera.fx;
   TriangulationOptions tri;
   tri.max_reprojection_error_px = 2.0;
   tri.min_parallax_deg = 0.0;
   const double max_ray_cos = std::cos(context.options.min_parallax_deg * M_PI / 180.0);
   const KeyFrame& a = snapshot[0];
-  for (size_t k = 0; k < state.neighbours.size(); ++k) {
+  // Each neighbour is matched on its own (a task per neighbour, the keyframes are copies); the
+  // candidates are joined in the neighbours' order, as one loop over them would list them.
+  std::vector<std::vector<NewPoint>> found(state.neighbours.size());
+  tbb::parallel_for(size_t{0}, state.neighbours.size(), [&](size_t k) {
+    std::vector<NewPoint>& out = found[k];
     const KeyFrame& b = snapshot[k + 1];
     // Monocular pairs need parallax, which the triangulation test below checks per point.
-    if ((a.camera_center() - b.camera_center()).norm() < baseline) continue;
+    if ((a.camera_center() - b.camera_center()).norm() < baseline) return;
     const Eigen::Matrix3d F = FundamentalBetween(a, b, geometry.camera);
     for (const auto& [i1, i2] : MatchForTriangulation(a, b, F, depth_range, geometry, context.options.matcher)) {
       const TriangulatedPoint t = TriangulatePoint(geometry.camera, a.T_cam_world, b.T_cam_world,
@@ -238,7 +243,9 @@ std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const System
       if (!agrees(a, i1) || !agrees(b, i2)) continue;
       out.push_back({state.neighbours[k], i1, i2, X});
     }
-  }
+  });
+  std::vector<NewPoint> out;
+  for (const std::vector<NewPoint>& f : found) out.insert(out.end(), f.begin(), f.end());
   return out;
 }
 

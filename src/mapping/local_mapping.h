@@ -111,7 +111,7 @@ InsertedTwoView InsertTwoViewMap(Map& map, LocalMappingState& state, const Syste
 bool PrepareKeyFrame(Map& map, LocalMappingState& state, const SystemContext& context, KeyFrameHandle keyframe,
                      std::pair<double, double>* depth_range);
 // Matches and triangulates the new keyframe against its neighbours, on the copies PrepareKeyFrame
-// made (no map access).
+// made (no map access), a task per neighbour; the result does not depend on the threads.
 [[nodiscard]] std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const SystemContext& context,
                                                   std::pair<double, double> depth_range);
 // Adds the new points that still fit (nothing bound or erased since), then fuses duplicates
