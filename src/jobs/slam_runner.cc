@@ -200,8 +200,12 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     slam.Extract(frame, &item.frame);
     item.extract_ms = MsSince(start);
   });
-  // One worker cannot both wait in the track stage and run mapping: map inline then.
-  const bool inline_mapping = run.deterministic || tbb::this_task_arena::max_concurrency() < 2;
+  // Mapping runs inline, in the track stage, where tracking would wait for every keyframe's
+  // mapping anyway: with one worker (it cannot both wait and map) and without lag (a track stage
+  // blocked on the wait holds a worker idle, which extraction and mapping's own parallel loops
+  // could use).
+  const bool inline_mapping =
+      run.deterministic || run.max_mapping_lag == 0 || tbb::this_task_arena::max_concurrency() < 2;
   std::string first_unreadable;
   pipeline.add_serial_stage("track", [&](Item& item) {
     ++result.frames;

@@ -24,10 +24,13 @@ struct SlamRunOptions {
   // With initial_map: the trajectory of the session it continues (a resumed checkpoint); the
   // result's trajectory starts with these frames.
   std::vector<AnchoredFramePose> initial_frames;
-  bool deterministic = false;  // map each keyframe inline in the track stage: same input, same output
-  size_t max_in_flight = 0;    // frames read/extracted ahead of tracking; 0 = max(16, 4 x cores)
+  // Global bundle adjustment after a loop closure inline too (it otherwise runs beside tracking),
+  // and every keyframe mapped in the track stage whatever the lag: same input, same output.
+  bool deterministic = false;
+  size_t max_in_flight = 0;  // frames read/extracted ahead of tracking; 0 = max(16, 4 x cores)
   // Tracking waits while more keyframes than this await local mapping, so a batch run, which
   // reads faster than real time, never tracks against a map that mapping has fallen behind on.
+  // At 0 each keyframe is mapped in the track stage, as tracking would wait for it anyway.
   int max_mapping_lag = 0;
   // Frames [first, last) are never given to SLAM (dropped frames: the camera seems to jump).
   std::vector<std::pair<size_t, size_t>> skip;
