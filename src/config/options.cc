@@ -100,8 +100,13 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
   }
   if (o.min_parallax_deg == 0) {
     o.min_parallax_deg = mono ? kMonocularParallaxDeg : kDepthParallaxDeg;
-    note("min_parallax_deg", mono ? "monocular: 2 degrees, depth within about 4% at a pixel of noise"
-                                  : "with depth: 1.146 degrees; close points take the measured depth");
+    if (mono)
+      std::snprintf(text, sizeof(text), "monocular: %g degrees, depth within about 4%% at a pixel of noise",
+                    kMonocularParallaxDeg);
+    else
+      std::snprintf(text, sizeof(text), "with depth: %g degrees; close points take the measured depth",
+                    kDepthParallaxDeg);
+    note("min_parallax_deg", text);
   }
   return o;
 }
