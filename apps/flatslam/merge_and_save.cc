@@ -68,7 +68,7 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
         "%zu keyframes welded%s (%zu outlier observations), %.0f ms (fuse %.0f, essential graph %.0f, "
         "weld %.0f)\n",
         r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes,
-        r.refined ? " (refine: all)" : "", r.weld_outliers, r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
+        r.refined ? " then all (refine)" : "", r.weld_outliers, r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
   }
   for (size_t g = 0; g < merged.loops.size(); ++g) {
     const MergedMapLoops& loops = merged.loops[g];

@@ -505,46 +505,72 @@ MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeC
     UpdateCovisibilities(std::vector<KeyFrameHandle>(touched.begin(), touched.end()), &into);
   }
 
-  // 5. Essential graph: spanning tree, loop edges and strong covisibility within each map measured
-  // as they are, and the seam pairs measured by their own transforms; into's oldest keyframe fixed.
-  EssentialGraph graph = EssentialGraph::OfMap(into);
-  for (uint32_t i = 0; i < graph.nodes.size(); ++i) graph.fixed[i] = graph.nodes[i] == anchor;
-  for (const MergePair* pair : seam) {
-    const uint32_t i = graph.index.at(pair->into_keyframe), j = graph.index.at(remap(from, pair->from_keyframe));
-    const Similarity3 S_q =
-        PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) * pair->S_into_from.inverse());
-    graph.edges.Add(i, j, graph.S[i] * S_q.inverse());
-  }
-  // Across the seam, only the pairs above.
-  graph.AddMapEdges(into, graph.S, options.essential_graph_min_covisibility,
-                    [&](uint32_t i, uint32_t j) { return appended(graph.nodes[i]) == appended(graph.nodes[j]); });
-  PoseGraphOptions graph_options;
-  graph_options.fix_scale = !camera.monocular;
-  graph_options.iterations = options.pose_graph_iterations;
-  graph_options.num_threads = options.bundle_adjustment.num_threads;
-  if (options.pose_graph_iterations > 0) OptimizePoseGraph(graph.S, graph.fixed, graph.edges.edges(), graph_options);
-  graph.Apply(&into, [&](PointHandle, const MapPoint& point) {
-    if (into.keyframes().contains(point.reference) || point.observations.empty()) return point.reference;
-    return point.observations.front().keyframe;
-  });
-  report.graph_ms = MsSince(start) - report.fuse_ms;
-
-  // 6. Welding bundle adjustment: the weld window free (every keyframe with refine, into's oldest
-  // held), every other keyframe that sees its points fixed.
+  // 5. Welding bundle adjustment: the weld window free (into's oldest held), every other keyframe
+  // that sees its points fixed. The poses before it are what step 6 measures the maps' edges from.
+  const EssentialGraph before_weld = EssentialGraph::OfMap(into);
+  std::unordered_set<KeyFrameHandle> window;
   {
-    std::vector<KeyFrameHandle> free;
-    if (options.refine) {
-      free.assign(into.keyframes().handles().begin(), into.keyframes().handles().end());
-    } else {
-      std::vector<SeamPair> pairs;
-      for (const MergePair* pair : seam) pairs.push_back({pair->into_keyframe, remap(from, pair->from_keyframe)});
-      free = SelectWeldWindow(into, pairs, options.weld_neighbours, options.max_weld_keyframes);
-    }
-    report.refined = options.refine;
+    std::vector<SeamPair> pairs;
+    for (const MergePair* pair : seam) pairs.push_back({pair->into_keyframe, remap(from, pair->from_keyframe)});
+    const std::vector<KeyFrameHandle> free =
+        SelectWeldWindow(into, pairs, options.weld_neighbours, options.max_weld_keyframes);
+    window.insert(free.begin(), free.end());
     report.welded_keyframes = free.size();
     report.weld_outliers = WeldBundleAdjustment(into, camera, options.bundle_adjustment, free, anchor);
   }
-  report.weld_ms = MsSince(start) - report.fuse_ms - report.graph_ms;
+  report.weld_ms = MsSince(start) - report.fuse_ms;
+
+  // 6. Essential graph over every keyframe merged in, as ORB-SLAM3 ends its merge: into's keyframes
+  // hold (its welded window at its welded poses), so the map merged into keeps its shape (its own
+  // loops were closed; freeing it lets the seams' tension bend it) and the correction spreads over
+  // the map merged in. Spanning tree, loop edges and strong covisibility within that map measured
+  // from the poses before the weld, and every seam pair measured by its own transform (so seams in
+  // several places bend the map merged in to each of them).
+  {
+    EssentialGraph graph = EssentialGraph::OfMap(into);
+    std::vector<Similarity3> measured(graph.nodes.size());
+    for (uint32_t i = 0; i < graph.nodes.size(); ++i) {
+      measured[i] = before_weld.S[before_weld.index.at(graph.nodes[i])];
+      graph.fixed[i] = !appended(graph.nodes[i]);
+    }
+    for (const MergePair* pair : seam) {
+      const uint32_t i = graph.index.at(pair->into_keyframe), j = graph.index.at(remap(from, pair->from_keyframe));
+      const Similarity3 S_q = PoseOf(Similarity3::FromIsometry(from.keyframe(pair->from_keyframe).T_cam_world) *
+                                     pair->S_into_from.inverse());
+      graph.edges.Add(i, j, measured[i] * S_q.inverse());
+    }
+    // Across the seam, only the pairs above.
+    graph.AddMapEdges(into, measured, options.essential_graph_min_covisibility,
+                      [&](uint32_t i, uint32_t j) { return appended(graph.nodes[i]) == appended(graph.nodes[j]); });
+    PoseGraphOptions graph_options;
+    graph_options.fix_scale = !camera.monocular;
+    graph_options.iterations = options.pose_graph_iterations;
+    graph_options.num_threads = options.bundle_adjustment.num_threads;
+    if (options.pose_graph_iterations > 0) OptimizePoseGraph(graph.S, graph.fixed, graph.edges.edges(), graph_options);
+    // A point the weld placed (seen from the window) follows a window keyframe that sees it, one of
+    // into's (held: the point stays) before one merged in; any other point follows its keyframe.
+    graph.Apply(&into, [&](PointHandle, const MapPoint& point) {
+      KeyFrameHandle welded;
+      for (const Observation& o : point.observations) {
+        if (!window.count(o.keyframe)) continue;
+        if (!appended(o.keyframe)) return o.keyframe;
+        if (welded.is_null()) welded = o.keyframe;
+      }
+      if (!welded.is_null()) return welded;
+      if (into.keyframes().contains(point.reference) || point.observations.empty()) return point.reference;
+      return point.observations.front().keyframe;
+    });
+  }
+  report.graph_ms = MsSince(start) - report.fuse_ms - report.weld_ms;
+
+  // 7. Refine: a global bundle adjustment (every keyframe free, into's oldest held).
+  report.refined = options.refine;
+  if (options.refine) {
+    const std::vector<KeyFrameHandle> all(into.keyframes().handles().begin(), into.keyframes().handles().end());
+    const auto refine_start = std::chrono::steady_clock::now();
+    report.weld_outliers += WeldBundleAdjustment(into, camera, options.bundle_adjustment, all, anchor);
+    report.weld_ms += MsSince(refine_start);
+  }
   const std::vector<PointHandle> all_points(into.points().handles().begin(), into.points().handles().end());
   for (PointHandle p : all_points) into.UpdatePointStats(p, camera.scales);
   report.merged = true;

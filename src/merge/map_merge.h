@@ -61,12 +61,13 @@ struct MapMergeOptions {
   size_t weld_neighbours = 10;  // covisible keyframes freed with each seam keyframe in the weld
   // The weld window: seam pairs strongest first, each freeing its two keyframes and their
   // weld_neighbours best covisible ones, until this many keyframes are free. About 25 keyframes on
-  // each side of the seam, the window ORB-SLAM3 welds a merge with; the essential graph carries the
-  // correction to every other keyframe. The weld's cost follows the window, not the maps.
+  // each side of the seam, the window ORB-SLAM3 welds a merge with; the essential graph then carries
+  // the correction to every other keyframe of the map merged in (the map merged into holds). The
+  // weld's cost follows the window, not the maps.
   size_t max_weld_keyframes = 50;
-  // Refine: the weld frees every keyframe instead (into's oldest held), a global bundle
-  // adjustment that also takes out drift between seams in several places. Costs time and memory
-  // in proportion to the whole map.
+  // Refine: after the weld and the essential graph, a global bundle adjustment (every keyframe
+  // free, into's oldest held) that also moves the map merged into. Costs time and memory in
+  // proportion to the whole map.
   bool refine = false;
   int pose_graph_iterations = 20;
   int essential_graph_min_covisibility = 100;  // within each map (SlamOptions' of the same name)
@@ -148,11 +149,12 @@ struct MergeReport {
   size_t keyframes_added = 0, points_added = 0;
   size_t points_fused = 0;      // duplicate points merged across the seam
   size_t loop_edges = 0;        // added between matched keyframes
-  size_t welded_keyframes = 0;  // free in the seam bundle adjustment
+  size_t welded_keyframes = 0;  // free in the seam bundle adjustment (the weld window)
   size_t weld_outliers = 0;     // observations dropped by it
-  bool refined = false;         // the weld freed every keyframe (MapMergeOptions::refine)
+  bool refined = false;         // a global bundle adjustment followed (MapMergeOptions::refine)
   double place_ms = 0, merge_ms = 0;
-  // Parts of merge_ms: append and fuse, covisibility and essential graph, weld bundle adjustment.
+  // Parts of merge_ms: append and fuse, covisibility and essential graph, weld bundle adjustment
+  // (and the refining global one).
   double fuse_ms = 0, graph_ms = 0, weld_ms = 0;
 };
 

@@ -38,7 +38,9 @@ struct MergedMapLoops {
 
 class MergedMapLoopCloser {
  public:
-  MergedMapLoopCloser(const Vocabulary& vocabulary, uint64_t seed) : database_(vocabulary.word_count()), state_(seed) {}
+  MergedMapLoopCloser(const Vocabulary& vocabulary, uint64_t seed) : database_(vocabulary.word_count()), state_(seed) {
+    state_.hold_other_agents = true;
+  }
   // Replays `keyframes` of `map` (each with its bag of words), in the order given, after those of
   // earlier calls; each agent's keyframes continue its own consistent groups (temporal
   // consistency needs a run's consecutive keyframes); when a loop closed and `adjust`, one global

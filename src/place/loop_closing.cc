@@ -84,8 +84,11 @@ void CorrectLoop(Map& map, LoopClosingState& state, const SystemContext& context
   map.UpdateCovisibility(current);
 
   // 1. The current keyframe and its neighbours move rigidly with the loop correction.
+  const uint32_t agent = map.keyframe(current).agent;
+  auto held = [&](KeyFrameHandle k) { return state.hold_other_agents && map.keyframe(k).agent != agent; };
   std::vector<KeyFrameHandle> connected = {current};
-  for (const auto& [n, w] : map.keyframe(current).covisible) connected.push_back(n);
+  for (const auto& [n, w] : map.keyframe(current).covisible)
+    if (!held(n)) connected.push_back(n);
   std::unordered_map<KeyFrameHandle, Similarity3> corrected, uncorrected;
   const Eigen::Isometry3d T_world_current = map.keyframe(current).T_cam_world.inverse();
   for (KeyFrameHandle k : connected) {
@@ -128,7 +131,7 @@ void CorrectLoop(Map& map, LoopClosingState& state, const SystemContext& context
   std::vector<Similarity3> measured = graph.S;
   for (uint32_t i = 0; i < graph.nodes.size(); ++i) {
     if (const auto it = uncorrected.find(graph.nodes[i]); it != uncorrected.end()) measured[i] = it->second;
-    graph.fixed[i] = graph.nodes[i] == m.candidate;
+    graph.fixed[i] = graph.nodes[i] == m.candidate || held(graph.nodes[i]);
   }
   for (const auto& [k, n] : loop_links) {
     const uint32_t i = graph.index.at(k), j = graph.index.at(n);

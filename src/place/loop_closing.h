@@ -51,6 +51,11 @@ struct LoopClosingState {
   size_t keyframes_since_loop = 0;
   std::vector<LoopClosure> closures;
   std::mt19937_64 rng;  // RANSAC of the verification
+  // A merged map's loops (merge/merged_loops.h): the correction moves only the current keyframe's
+  // agent; every other agent's keyframes hold, as a merge holds the map merged into. The loop
+  // measures the agent's own drift; the seams already tie it to the others, and freeing them
+  // bends maps whose own loops were closed.
+  bool hold_other_agents = false;
 
   explicit LoopClosingState(uint64_t seed = 2) : rng(seed) {}
 };
