@@ -1,7 +1,8 @@
 // Map merging: place recognition between maps built by different agents or sessions, a
 // verified Sim(3)/SE(3) alignment, and a merge that appends one map into another through a
-// handle remap, fuses duplicate points across the seam, and welds the seam (essential graph,
-// then a bundle adjustment around it). Maps that share no verified place are left apart.
+// handle remap, fuses duplicate points across the seam, welds the seam (a bundle adjustment
+// around it), then bends the map appended to every seam (essential graph; the map merged into
+// holds). Maps that share no verified place are left apart.
 // Concurrency: each call owns the maps it is given; place recognition runs queries on TBB
 // workers (reads only), everything that writes a map is serial.
 #pragma once

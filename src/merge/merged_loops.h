@@ -5,7 +5,8 @@
 // before (bag-of-words candidates that are not covisible, temporal consistency, geometric
 // verification), and corrects each verified loop as a session does (CorrectLoop: the keyframe and
 // its neighbours moved by the loop's transform, points fused, the essential graph optimized with
-// the matched keyframe held), then, as a session does after its loops (unless the caller leaves it
+// the matched keyframe held), moving only the loop's agent (every other agent's keyframes hold,
+// as a merge holds the map merged into), then, as a session does after its loops (unless the caller leaves it
 // out), adjusts the whole map (a global bundle adjustment, the lowest agent's first keyframe held:
 // the essential graph spreads a loop's correction over the poses, the adjustment puts the points
 // and the shape along the loop back in agreement with every observation). A MergedMapLoopCloser

@@ -228,6 +228,23 @@ TEST(MapMerge, LoopClosingInTheMergedMapTakesOutDriftTheMergeLeft) {
   EXPECT_EQ(loops.global_adjustments, 1u);
   EXPECT_LT(after[1], 0.75 * before[1]);
   EXPECT_LE(after[0], before[0]);
+
+  // The loop's correction moves agent 2's keyframes only: without the adjustment after it, every
+  // keyframe of agent 0 is where the plain merge put it.
+  options.adjust_after_loops = false;
+  const MultiMapMerge corrected = MergeAllMaps({a0.map, a2.map}, DefaultVocabulary(), CameraOf(a0), options);
+  ASSERT_EQ(corrected.maps.size(), 1u);
+  ASSERT_FALSE(corrected.loops.at(0).closures.empty());
+  const Trajectory plain0 = KeyFrameTrajectory(plain.maps[0], 0), corrected0 = KeyFrameTrajectory(corrected.maps[0], 0);
+  const Trajectory plain2 = KeyFrameTrajectory(plain.maps[0], 1), corrected2 = KeyFrameTrajectory(corrected.maps[0], 1);
+  ASSERT_EQ(plain0.size(), corrected0.size());
+  ASSERT_EQ(plain2.size(), corrected2.size());
+  for (size_t k = 0; k < plain0.size(); ++k)
+    EXPECT_TRUE(plain0[k].T_world_cam.isApprox(corrected0[k].T_world_cam, 1e-12)) << "agent 0 keyframe " << k;
+  double moved = 0;
+  for (size_t k = 0; k < plain2.size(); ++k)
+    moved = std::max(moved, (plain2[k].T_world_cam.translation() - corrected2[k].T_world_cam.translation()).norm());
+  EXPECT_GT(moved, 1.0);  // the loop moved 2.5 m
 }
 
 // A live map server's merged map grown by later keyframes (merge/live_merge.h). Town agents 0
