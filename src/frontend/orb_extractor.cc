@@ -1,4 +1,3 @@
-#include "frontend/cpu_features.h"
 #include "frontend/orb_extractor.h"
 
 #include <algorithm>
@@ -15,6 +14,7 @@
 #include <immintrin.h>
 #endif
 
+#include "core/cpu_features.h"
 #include "core/error.h"
 #include "core/requirements.h"
 

@@ -1,4 +1,3 @@
-#include "frontend/cpu_features.h"
 #include "frontend/stereo_matcher.h"
 
 #include <algorithm>
@@ -12,6 +11,7 @@
 #include <immintrin.h>
 #endif
 
+#include "core/cpu_features.h"
 #include "core/error.h"
 #include "core/requirements.h"
 

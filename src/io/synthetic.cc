@@ -11,9 +11,12 @@
 #include <sstream>
 #include <utility>
 
+#include <immintrin.h>
+
 #include <opencv2/imgproc.hpp>
 #include <tbb/parallel_for.h>
 
+#include "core/cpu_features.h"
 #include "core/error.h"
 
 namespace flatslam {
@@ -259,14 +262,20 @@ Eigen::Vector3d CatmullRom(const std::vector<Eigen::Vector3d>& pts, size_t i, do
 
 }  // namespace
 
+namespace {
+// Raw view of one mip level, so the per-pixel sampler touches no cv::Mat internals. Every level
+// is followed by at least 4 readable bytes (a padding row): the vector sampler reads a texel and
+// its right neighbour as one 32-bit load.
+struct TextureLevel {
+  const uint8_t* data = nullptr;
+  int width = 0, height = 0;
+  size_t stride = 0;
+  float scale = 1;  // level texels per level-0 texel
+};
+}  // namespace
+
 struct SyntheticScene::Texture {
-  // Raw view of one mip level, so the per-pixel sampler touches no cv::Mat internals.
-  struct Level {
-    const uint8_t* data = nullptr;
-    int width = 0, height = 0;
-    size_t stride = 0;
-    float scale = 1;  // level texels per level-0 texel
-  };
+  using Level = TextureLevel;
   std::vector<cv::Mat> images;  // CV_8UC1 mip pyramid, level 0 finest (owns the pixels)
   std::vector<Level> levels;
   float texels_per_m = 1;
@@ -340,6 +349,100 @@ template <class Level>
   const float top = r0[x0] + fx * (r0[x1] - r0[x0]);
   const float bottom = r1[x0] + fx * (r1[x1] - r1[x0]);
   return top + fy * (bottom - top);
+}
+
+// What shading a pixel of one quad needs, fixed per quad and view.
+struct QuadShading {
+  const TextureLevel* levels;
+  float footprint_scale2, last_level, brightness, size_u, size_v, texels_per_m;
+  float nx, ny, nz;  // the quad's normal in the camera frame
+};
+
+// left + fx (right - left) of SampleBilinear, from texel pairs loaded as one 32-bit word per lane
+// (left the low byte, right the next unless the lane is at the last column).
+__attribute__((target("avx2"))) inline __m256 InterpolateRowAvx2(__m256i both, __m256i has_right, __m256 fx) {
+  const __m256i byte = _mm256_set1_epi32(0xff);
+  const __m256i left = _mm256_and_si256(both, byte);
+  const __m256i right = _mm256_blendv_epi8(left, _mm256_and_si256(_mm256_srli_epi32(both, 8), byte), has_right);
+  return _mm256_add_ps(_mm256_cvtepi32_ps(left), _mm256_mul_ps(fx, _mm256_cvtepi32_ps(_mm256_sub_epi32(right, left))));
+}
+
+// The bilinear sample of SampleBilinear at eight (x, y), all on one level: the same operations
+// in the same order, so the same bits.
+__attribute__((target("avx2"))) inline __m256 SampleBilinearAvx2(const TextureLevel& img, __m256 x, __m256 y) {
+  const __m256 zero = _mm256_setzero_ps();
+  x = _mm256_min_ps(_mm256_max_ps(x, zero), _mm256_set1_ps(static_cast<float>(img.width - 1)));
+  y = _mm256_min_ps(_mm256_max_ps(y, zero), _mm256_set1_ps(static_cast<float>(img.height - 1)));
+  const __m256i x0 = _mm256_cvttps_epi32(x), y0 = _mm256_cvttps_epi32(y);
+  const __m256i y1 = _mm256_min_epi32(_mm256_add_epi32(y0, _mm256_set1_epi32(1)), _mm256_set1_epi32(img.height - 1));
+  const __m256 fx = _mm256_sub_ps(x, _mm256_cvtepi32_ps(x0)), fy = _mm256_sub_ps(y, _mm256_cvtepi32_ps(y0));
+  // One 32-bit load per row holds the texel (low byte) and its right neighbour; at the last
+  // column the neighbour is the texel itself, as in the scalar sampler.
+  const __m256i stride = _mm256_set1_epi32(static_cast<int>(img.stride));
+  const __m256i row0 = _mm256_i32gather_epi32(reinterpret_cast<const int*>(img.data),
+                                              _mm256_add_epi32(_mm256_mullo_epi32(y0, stride), x0), 1);
+  const __m256i row1 = _mm256_i32gather_epi32(reinterpret_cast<const int*>(img.data),
+                                              _mm256_add_epi32(_mm256_mullo_epi32(y1, stride), x0), 1);
+  const __m256i has_right = _mm256_cmpgt_epi32(_mm256_set1_epi32(img.width - 1), x0);
+  const __m256 top = InterpolateRowAvx2(row0, has_right, fx), bottom = InterpolateRowAvx2(row1, has_right, fx);
+  return _mm256_add_ps(top, _mm256_mul_ps(fy, _mm256_sub_ps(bottom, top)));
+}
+
+// The sample at level-0 texel coordinates (x0, y0) on one level, as the scalar pass takes it.
+__attribute__((target("avx2"))) inline __m256 SampleLevelAvx2(const TextureLevel& level, __m256 x0, __m256 y0) {
+  const __m256 scale = _mm256_set1_ps(level.scale), half = _mm256_set1_ps(0.5f);
+  return SampleBilinearAvx2(level, _mm256_sub_ps(_mm256_mul_ps(x0, scale), half),
+                            _mm256_sub_ps(_mm256_mul_ps(y0, scale), half));
+}
+
+// Shades eight pixels u..u+7 of one row, all of one quad, exactly as the scalar pass does
+// (RenderLinear); false, with nothing written, when they fall on different mip levels.
+__attribute__((target("avx2"))) bool ShadeEightAvx2(const QuadShading& q, int u, float ry, float cx, float inv_fx,
+                                                    const float* inv_depth, const float* s_over_w,
+                                                    const float* t_over_w, float* out, float* dout) {
+  const __m256 one = _mm256_set1_ps(1.0f), zero = _mm256_setzero_ps();
+  const __m256 uf =
+      _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(u), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)));
+  const __m256 rx = _mm256_mul_ps(_mm256_sub_ps(uf, _mm256_set1_ps(cx)), _mm256_set1_ps(inv_fx));
+  const __m256 ray2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(rx, rx), _mm256_set1_ps(ry * ry)), one);
+  const __m256 dot = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_set1_ps(q.nx), rx), _mm256_set1_ps(q.ny * ry)),
+                                   _mm256_set1_ps(q.nz));
+  const __m256 w = _mm256_loadu_ps(inv_depth);
+  const __m256 footprint2 =
+      _mm256_div_ps(_mm256_mul_ps(_mm256_set1_ps(q.footprint_scale2), ray2),
+                    _mm256_mul_ps(_mm256_mul_ps(w, w),
+                                  _mm256_max_ps(_mm256_mul_ps(dot, dot), _mm256_mul_ps(_mm256_set1_ps(0.04f), ray2))));
+  // FastLog2, lane by lane.
+  const __m256i bits = _mm256_castps_si256(footprint2);
+  const __m256 exponent = _mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_srli_epi32(bits, 23), _mm256_set1_epi32(127)));
+  const __m256 mantissa = _mm256_castsi256_ps(
+      _mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi32(0x007fffff)), _mm256_set1_epi32(0x3f800000)));
+  const __m256 log2 = _mm256_add_ps(exponent, _mm256_sub_ps(mantissa, one));
+  __m256 level = _mm256_and_ps(_mm256_cmp_ps(footprint2, one, _CMP_GT_OQ), _mm256_mul_ps(_mm256_set1_ps(0.5f), log2));
+  level = _mm256_min_ps(level, _mm256_set1_ps(q.last_level));
+  const __m256i l0 = _mm256_cvttps_epi32(level);
+  const int l = _mm256_cvtsi256_si32(l0);
+  if (_mm256_movemask_epi8(_mm256_cmpeq_epi32(l0, _mm256_set1_epi32(l))) != -1) return false;
+  const __m256 blend = _mm256_min_ps(
+      _mm256_max_ps(_mm256_mul_ps(_mm256_sub_ps(_mm256_sub_ps(level, _mm256_cvtepi32_ps(l0)), _mm256_set1_ps(0.3f)),
+                                  _mm256_set1_ps(2.5f)),
+                    zero),
+      one);
+  const __m256 inv = _mm256_div_ps(one, w);
+  const __m256 s =
+      _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_loadu_ps(s_over_w), inv), zero), _mm256_set1_ps(q.size_u));
+  const __m256 t =
+      _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_loadu_ps(t_over_w), inv), zero), _mm256_set1_ps(q.size_v));
+  const __m256 x0 = _mm256_mul_ps(s, _mm256_set1_ps(q.texels_per_m)),
+               y0 = _mm256_mul_ps(t, _mm256_set1_ps(q.texels_per_m));
+  const __m256 a = SampleLevelAvx2(q.levels[l], x0, y0);
+  // Where blend is 0 the scalar pass takes b = a; a + 0 * (b - a) is a for any finite b.
+  const __m256 b =
+      _mm256_movemask_ps(_mm256_cmp_ps(blend, zero, _CMP_GT_OQ)) ? SampleLevelAvx2(q.levels[l + 1], x0, y0) : a;
+  _mm256_storeu_ps(
+      out, _mm256_mul_ps(_mm256_add_ps(a, _mm256_mul_ps(blend, _mm256_sub_ps(b, a))), _mm256_set1_ps(q.brightness)));
+  if (dout) _mm256_storeu_ps(dout, inv);
+  return true;
 }
 
 // Yaw and pitch offsets of the glance under way at t (raised-cosine turn, hold, turn back).
@@ -592,6 +695,11 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
       cv::Mat down;
       cv::pyrDown(tex->images.back(), down);
       tex->images.push_back(down);
+    }
+    for (cv::Mat& m : tex->images) {  // a padding row after each level (see TextureLevel)
+      cv::Mat padded(m.rows + 1, m.cols, CV_8UC1, cv::Scalar(0));
+      m.copyTo(padded.rowRange(0, m.rows));
+      m = padded.rowRange(0, m.rows);
     }
     for (size_t l = 0; l < tex->images.size(); ++l) {
       const cv::Mat& m = tex->images[l];
@@ -900,23 +1008,27 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
   }
 
   if (depth_m) depth_m->create(H, W, CV_32FC1);
+  static const bool cpu_avx2 = HasAvx2();
+  const bool avx2 = options_.use_avx2 && cpu_avx2;
   for (int v = 0; v < H; ++v) {
     float* out = value + static_cast<size_t>(v) * W;
     float* dout = depth_m ? depth_m->ptr<float>(v) : nullptr;
-    for (int u = 0; u < W; ++u) {
-      const size_t p = static_cast<size_t>(v) * W + u;
+    const size_t row = static_cast<size_t>(v) * W;
+    const float ry = (v - cy) * inv_fy;
+    auto shade = [&](int u) {
+      const size_t p = row + u;
       const int32_t qi = scratch.quad[p];
       if (qi < 0) {
         out[u] = 150.0f + 60.0f * static_cast<float>(v) / H;  // featureless sky / void
         if (dout) dout[u] = 0.0f;
-        continue;
+        return;
       }
       const float w = scratch.inv_depth[p];
       const Eigen::Vector3f& normal = normals[qi];
       const Texture& tex = *textures_[qi];
       // Squared texel footprint of one pixel, widened on slanted surfaces (cosine floor
       // 0.2), picks the mip level: footprint^2 = (tpm/fx)^2 |ray|^2 / (w^2 max(cos^2 |ray|^2)).
-      const float rx = (u - cx) * inv_fx, ry = (v - cy) * inv_fy;
+      const float rx = (u - cx) * inv_fx;
       const float ray2 = rx * rx + ry * ry + 1.0f;
       const float dot = normal.x() * rx + normal.y() * ry + normal.z();
       const float footprint2 = tex.footprint_scale2 * ray2 / (w * w * std::max(dot * dot, 0.04f * ray2));
@@ -938,6 +1050,26 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
       }
       out[u] = (a + blend * (b - a)) * tex.brightness;
       if (dout) dout[u] = 1.0f / w;
+    };
+    // Runs of pixels on one quad go eight at a time through the vector path where the CPU has
+    // AVX2 (the same bits as the scalar one); the rest pixel by pixel.
+    for (int u = 0; u < W;) {
+      const int32_t qi = scratch.quad[row + u];
+      int end = u + 1;
+      while (end < W && scratch.quad[row + end] == qi) ++end;
+      if (qi >= 0 && avx2 && end - u >= 8) {
+        const Texture& tex = *textures_[qi];
+        const QuadShading quad{tex.levels.data(), tex.footprint_scale2, tex.last_level,   tex.brightness,
+                               tex.size_u,        tex.size_v,           tex.texels_per_m, normals[qi].x(),
+                               normals[qi].y(),   normals[qi].z()};
+        for (; end - u >= 8; u += 8) {
+          const size_t p = row + u;
+          if (!ShadeEightAvx2(quad, u, ry, cx, inv_fx, &scratch.inv_depth[p], &scratch.s[p], &scratch.t[p], out + u,
+                              dout ? dout + u : nullptr))
+            for (int k = 0; k < 8; ++k) shade(u + k);
+        }
+      }
+      for (; u < end; ++u) shade(u);
     }
   }
 }

@@ -358,7 +358,7 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
 
 // Once two agents' maps have joined, later live merges grow the merged map by the keyframes the
 // agents make instead of merging again (merge/live_merge.h): two town agents driving their loops
-// for 150 s (they meet after about 20 s, close their loops at about 53 s and drive on).
+// for 80 s (they meet after about 20 s, close their loops at about 53 s and drive on).
 TEST(AgentsCli, AServerGrowsTheMergedMapOnceAgentsJoined) {
   const fs::path dir = testing::FreshTempDir("agents_cli_grow");
   const std::string d = std::to_string(100 + getpid() % 20);
@@ -366,7 +366,7 @@ TEST(AgentsCli, AServerGrowsTheMergedMapOnceAgentsJoined) {
   std::vector<pid_t> agents;
   for (int k = 0; k < 2; ++k)
     agents.push_back(Spawn(
-        {"agent", "synth:town:agent=" + std::to_string(k) + ",width=480,height=360,fps=10,duration=150", "--id",
+        {"agent", "synth:town:agent=" + std::to_string(k) + ",width=480,height=360,fps=10,duration=80", "--id",
          std::to_string(k), "--quiet", "--dds-domain", d, "--out", (dir / ("agent" + std::to_string(k))).string()},
         dir / ("agent" + std::to_string(k) + ".log")));
   for (int k = 0; k < 2; ++k) ASSERT_EQ(Wait(agents[k]), 0) << ReadBytes(dir / ("agent" + std::to_string(k) + ".log"));
