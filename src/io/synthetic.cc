@@ -395,19 +395,23 @@ __attribute__((target("avx2"))) inline __m256 SampleLevelAvx2(const TextureLevel
                             _mm256_sub_ps(_mm256_mul_ps(y0, scale), half));
 }
 
-// Shades eight pixels u..u+7 of one row, all of one quad, exactly as the scalar pass does
-// (RenderLinear); false, with nothing written, when they fall on different mip levels.
-__attribute__((target("avx2"))) bool ShadeEightAvx2(const QuadShading& q, int u, float ry, float cx, float inv_fx,
-                                                    const float* inv_depth, const float* s_over_w,
-                                                    const float* t_over_w, float* out, float* dout) {
+// Shades the `count` (1 to 8) pixels u.. of one row, all of one quad, exactly as the scalar pass
+// does (RenderLinear). Lanes past `count` read and write nothing; lanes on different mip levels
+// are sampled level by level.
+__attribute__((target("avx2"))) void ShadeAvx2(const QuadShading& q, int u, int count, float ry, float cx, float inv_fx,
+                                               const float* inv_depth, const float* s_over_w, const float* t_over_w,
+                                               float* out, float* dout) {
   const __m256 one = _mm256_set1_ps(1.0f), zero = _mm256_setzero_ps();
-  const __m256 uf =
-      _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(u), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)));
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256i active = _mm256_cmpgt_epi32(_mm256_set1_epi32(count), lane);
+  const __m256 uf = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(u), lane));
   const __m256 rx = _mm256_mul_ps(_mm256_sub_ps(uf, _mm256_set1_ps(cx)), _mm256_set1_ps(inv_fx));
   const __m256 ray2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(rx, rx), _mm256_set1_ps(ry * ry)), one);
   const __m256 dot = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_set1_ps(q.nx), rx), _mm256_set1_ps(q.ny * ry)),
                                    _mm256_set1_ps(q.nz));
-  const __m256 w = _mm256_loadu_ps(inv_depth);
+  // Idle lanes get w = 1 and s = t = 0: finite values, so that their (unused) samples stay inside
+  // the texture.
+  const __m256 w = _mm256_blendv_ps(one, _mm256_maskload_ps(inv_depth, active), _mm256_castsi256_ps(active));
   const __m256 footprint2 =
       _mm256_div_ps(_mm256_mul_ps(_mm256_set1_ps(q.footprint_scale2), ray2),
                     _mm256_mul_ps(_mm256_mul_ps(w, w),
@@ -421,28 +425,38 @@ __attribute__((target("avx2"))) bool ShadeEightAvx2(const QuadShading& q, int u,
   __m256 level = _mm256_and_ps(_mm256_cmp_ps(footprint2, one, _CMP_GT_OQ), _mm256_mul_ps(_mm256_set1_ps(0.5f), log2));
   level = _mm256_min_ps(level, _mm256_set1_ps(q.last_level));
   const __m256i l0 = _mm256_cvttps_epi32(level);
-  const int l = _mm256_cvtsi256_si32(l0);
-  if (_mm256_movemask_epi8(_mm256_cmpeq_epi32(l0, _mm256_set1_epi32(l))) != -1) return false;
   const __m256 blend = _mm256_min_ps(
       _mm256_max_ps(_mm256_mul_ps(_mm256_sub_ps(_mm256_sub_ps(level, _mm256_cvtepi32_ps(l0)), _mm256_set1_ps(0.3f)),
                                   _mm256_set1_ps(2.5f)),
                     zero),
       one);
   const __m256 inv = _mm256_div_ps(one, w);
-  const __m256 s =
-      _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_loadu_ps(s_over_w), inv), zero), _mm256_set1_ps(q.size_u));
-  const __m256 t =
-      _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_loadu_ps(t_over_w), inv), zero), _mm256_set1_ps(q.size_v));
+  const __m256 s = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_maskload_ps(s_over_w, active), inv), zero),
+                                 _mm256_set1_ps(q.size_u));
+  const __m256 t = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_maskload_ps(t_over_w, active), inv), zero),
+                                 _mm256_set1_ps(q.size_v));
   const __m256 x0 = _mm256_mul_ps(s, _mm256_set1_ps(q.texels_per_m)),
                y0 = _mm256_mul_ps(t, _mm256_set1_ps(q.texels_per_m));
-  const __m256 a = SampleLevelAvx2(q.levels[l], x0, y0);
-  // Where blend is 0 the scalar pass takes b = a; a + 0 * (b - a) is a for any finite b.
-  const __m256 b =
-      _mm256_movemask_ps(_mm256_cmp_ps(blend, zero, _CMP_GT_OQ)) ? SampleLevelAvx2(q.levels[l + 1], x0, y0) : a;
-  _mm256_storeu_ps(
-      out, _mm256_mul_ps(_mm256_add_ps(a, _mm256_mul_ps(blend, _mm256_sub_ps(b, a))), _mm256_set1_ps(q.brightness)));
-  if (dout) _mm256_storeu_ps(dout, inv);
-  return true;
+  const __m256 blending = _mm256_cmp_ps(blend, zero, _CMP_GT_OQ);
+  alignas(32) int levels[8];
+  _mm256_store_si256(reinterpret_cast<__m256i*>(levels), l0);
+  __m256 shaded = zero;
+  for (int pending = _mm256_movemask_ps(_mm256_castsi256_ps(active)); pending != 0;) {
+    const int l = levels[__builtin_ctz(static_cast<unsigned>(pending))];
+    const __m256 on_level =
+        _mm256_and_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(l0, _mm256_set1_epi32(l))), _mm256_castsi256_ps(active));
+    const __m256 a = SampleLevelAvx2(q.levels[l], x0, y0);
+    // Where blend is 0 the scalar pass takes b = a; a + 0 * (b - a) is a for any finite b.
+    const __m256 b =
+        _mm256_movemask_ps(_mm256_and_ps(blending, on_level)) ? SampleLevelAvx2(q.levels[l + 1], x0, y0) : a;
+    shaded = _mm256_blendv_ps(
+        shaded,
+        _mm256_mul_ps(_mm256_add_ps(a, _mm256_mul_ps(blend, _mm256_sub_ps(b, a))), _mm256_set1_ps(q.brightness)),
+        on_level);
+    pending &= ~_mm256_movemask_ps(on_level);
+  }
+  _mm256_maskstore_ps(out, active, shaded);
+  if (dout) _mm256_maskstore_ps(dout, active, inv);
 }
 
 // Yaw and pitch offsets of the glance under way at t (raised-cosine turn, hold, turn back).
@@ -1052,21 +1066,22 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
       if (dout) dout[u] = 1.0f / w;
     };
     // Runs of pixels on one quad go eight at a time through the vector path where the CPU has
-    // AVX2 (the same bits as the scalar one); the rest pixel by pixel.
+    // AVX2 (the same bits as the scalar one).
     for (int u = 0; u < W;) {
       const int32_t qi = scratch.quad[row + u];
       int end = u + 1;
       while (end < W && scratch.quad[row + end] == qi) ++end;
-      if (qi >= 0 && avx2 && end - u >= 8) {
+      if (qi >= 0 && avx2) {
         const Texture& tex = *textures_[qi];
         const QuadShading quad{tex.levels.data(), tex.footprint_scale2, tex.last_level,   tex.brightness,
                                tex.size_u,        tex.size_v,           tex.texels_per_m, normals[qi].x(),
                                normals[qi].y(),   normals[qi].z()};
-        for (; end - u >= 8; u += 8) {
+        while (u < end) {
+          const int count = std::min(8, end - u);
           const size_t p = row + u;
-          if (!ShadeEightAvx2(quad, u, ry, cx, inv_fx, &scratch.inv_depth[p], &scratch.s[p], &scratch.t[p], out + u,
-                              dout ? dout + u : nullptr))
-            for (int k = 0; k < 8; ++k) shade(u + k);
+          ShadeAvx2(quad, u, count, ry, cx, inv_fx, &scratch.inv_depth[p], &scratch.s[p], &scratch.t[p], out + u,
+                    dout ? dout + u : nullptr);
+          u += count;
         }
       }
       for (; u < end; ++u) shade(u);
