@@ -11,7 +11,9 @@
 #include <sstream>
 #include <utility>
 
+#if defined(__x86_64__) || defined(__i386__)
 #include <immintrin.h>
+#endif
 
 #include <opencv2/imgproc.hpp>
 #include <tbb/parallel_for.h>
@@ -351,6 +353,7 @@ template <class Level>
   return top + fy * (bottom - top);
 }
 
+#if defined(__x86_64__) || defined(__i386__)
 // What shading a pixel of one quad needs, fixed per quad and view.
 struct QuadShading {
   const TextureLevel* levels;
@@ -458,6 +461,8 @@ __attribute__((target("avx2"))) void ShadeAvx2(const QuadShading& q, int u, int 
   _mm256_maskstore_ps(out, active, shaded);
   if (dout) _mm256_maskstore_ps(dout, active, inv);
 }
+
+#endif  // x86
 
 // Yaw and pitch offsets of the glance under way at t (raised-cosine turn, hold, turn back).
 std::pair<double, double> GlanceOffset(const std::vector<CameraGlance>& glances, double t) {
@@ -1023,7 +1028,7 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
 
   if (depth_m) depth_m->create(H, W, CV_32FC1);
   static const bool cpu_avx2 = HasAvx2();
-  const bool avx2 = options_.use_avx2 && cpu_avx2;
+  [[maybe_unused]] const bool avx2 = options_.use_avx2 && cpu_avx2;
   for (int v = 0; v < H; ++v) {
     float* out = value + static_cast<size_t>(v) * W;
     float* dout = depth_m ? depth_m->ptr<float>(v) : nullptr;
@@ -1071,6 +1076,7 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
       const int32_t qi = scratch.quad[row + u];
       int end = u + 1;
       while (end < W && scratch.quad[row + end] == qi) ++end;
+#if defined(__x86_64__) || defined(__i386__)
       if (qi >= 0 && avx2) {
         const Texture& tex = *textures_[qi];
         const QuadShading quad{tex.levels.data(), tex.footprint_scale2, tex.last_level,   tex.brightness,
@@ -1084,6 +1090,7 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
           u += count;
         }
       }
+#endif
       for (; u < end; ++u) shade(u);
     }
   }
