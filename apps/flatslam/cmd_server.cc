@@ -355,6 +355,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
     });
   };
   std::set<uint32_t> heard;
+  std::set<std::pair<uint32_t, uint64_t>> runs_heard;  // (agent, session) of every keyframe message so far
   // An agent has finished when its newest run (a restarted agent starts a new one) has ended.
   std::map<uint32_t, uint64_t> newest_run;
   std::set<std::pair<uint32_t, uint64_t>> ended;
@@ -428,6 +429,10 @@ int RunServerLive(const std::vector<std::string>& argv) {
                          what, ": its camera differs from the first agent's (one server merges one camera model)");
         }
         heard.insert(message.agent);
+        if (runs_heard.insert({message.agent, message.session}).second) {
+          std::printf("heard         %s: its first keyframe\n", RunName({message.agent, message.session}).c_str());
+          std::fflush(stdout);
+        }
         std::optional<KeyFrameMessage> kept;  // for the next merge, once the maps took it
         if (may_grow) kept = message;
         const std::pair<uint32_t, uint64_t> run{message.agent, message.session};

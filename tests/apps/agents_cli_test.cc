@@ -448,6 +448,11 @@ TEST(AgentsCli, AServerWaitingForAKilledAgentStopsAfterItsSilence) {
                              "--deterministic", "--dds-domain", d, "--out", agent_out.string()},
                             dir / "agent.log");
   WaitForTrackedFrames(agent_out, 100);
+  // Killed once the server has heard it: an agent it never heard is not one of the N it waits for.
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (!Contains(ReadBytes(dir / "server.log"), "\nheard         agent 0 run ") &&
+         std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
   ::kill(agent, SIGKILL);
   EXPECT_EQ(Wait(agent), 128 + SIGKILL);
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
