@@ -429,13 +429,13 @@ int RunServerLive(const std::vector<std::string>& argv) {
                          what, ": its camera differs from the first agent's (one server merges one camera model)");
         }
         heard.insert(message.agent);
-        if (runs_heard.insert({message.agent, message.session}).second) {
-          std::printf("heard         %s: its first keyframe\n", RunName({message.agent, message.session}).c_str());
+        const std::pair<uint32_t, uint64_t> run{message.agent, message.session};
+        if (runs_heard.insert(run).second) {
+          std::printf("heard         %s: its first keyframe\n", RunName(run).c_str());
           std::fflush(stdout);
         }
         std::optional<KeyFrameMessage> kept;  // for the next merge, once the maps took it
         if (may_grow) kept = message;
-        const std::pair<uint32_t, uint64_t> run{message.agent, message.session};
         if (!maps.Add(std::move(message))) {
           ++updates;
           ++updates_since_cut;

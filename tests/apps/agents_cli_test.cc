@@ -45,10 +45,16 @@ size_t LineCount(const fs::path& path) {
 
 // Waits (at most 120 s) until a run writing to `out` has tracked `frames` frames (its stats.csv
 // grows by a line a frame, after a header).
-void WaitForTrackedFrames(const fs::path& out, size_t frames) {
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  while (LineCount(out / "stats.csv") < frames + 1 && std::chrono::steady_clock::now() < deadline)
+// Polls `done` every 50 ms until it holds or `seconds` have passed.
+template <typename Done>
+void WaitUntil(Done done, int seconds) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(seconds);
+  while (!done() && std::chrono::steady_clock::now() < deadline)
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
+}
+
+void WaitForTrackedFrames(const fs::path& out, size_t frames) {
+  WaitUntil([&] { return LineCount(out / "stats.csv") >= frames + 1; }, 120);
 }
 
 // Every correction a subscriber heard, by agent run and merge.
@@ -449,10 +455,7 @@ TEST(AgentsCli, AServerWaitingForAKilledAgentStopsAfterItsSilence) {
                             dir / "agent.log");
   WaitForTrackedFrames(agent_out, 100);
   // Killed once the server has heard it: an agent it never heard is not one of the N it waits for.
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  while (!Contains(ReadBytes(dir / "server.log"), "\nheard         agent 0 run ") &&
-         std::chrono::steady_clock::now() < deadline)
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  WaitUntil([&] { return Contains(ReadBytes(dir / "server.log"), "\nheard         agent 0 run "); }, 120);
   ::kill(agent, SIGKILL);
   EXPECT_EQ(Wait(agent), 128 + SIGKILL);
   ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
@@ -623,9 +626,7 @@ TEST(AgentsCli, AKilledAgentResumesFromItsCheckpointAndReplacesItsRunOnTheServer
                               out.string(), "--checkpoint", checkpoint.string(), "--checkpoint-every", "1"},
                              dir / "killed.log");
   WaitForTrackedFrames(out, 250);
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
-  while (!fs::exists(checkpoint) && std::chrono::steady_clock::now() < deadline)
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  WaitUntil([&] { return fs::exists(checkpoint); }, 60);
   ::kill(killed, SIGKILL);
   EXPECT_EQ(Wait(killed), 128 + SIGKILL);
   ASSERT_TRUE(fs::exists(checkpoint)) << ReadBytes(dir / "killed.log");
