@@ -394,8 +394,8 @@ __attribute__((target("avx2"))) inline __m256 SampleBilinearAvx2(const TextureLe
 // The sample at level-0 texel coordinates (x0, y0) on one level, as the scalar pass takes it.
 __attribute__((target("avx2"))) inline __m256 SampleLevelAvx2(const TextureLevel& level, __m256 x0, __m256 y0) {
   const __m256 scale = _mm256_set1_ps(level.scale), half = _mm256_set1_ps(0.5f);
-  return SampleBilinearAvx2(level, _mm256_sub_ps(_mm256_mul_ps(x0, scale), half),
-                            _mm256_sub_ps(_mm256_mul_ps(y0, scale), half));
+  return SampleBilinearAvx2(level, _mm256_mul_ps(_mm256_sub_ps(x0, half), scale),
+                            _mm256_mul_ps(_mm256_sub_ps(y0, half), scale));
 }
 
 // Shades the `count` (1 to 8) pixels u.. of one row, all of one quad, exactly as the scalar pass
@@ -1061,11 +1061,11 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
       const float t = std::clamp(scratch.t[p] * inv, 0.0f, tex.size_v);
       const float x0 = s * tex.texels_per_m, y0 = t * tex.texels_per_m;
       const auto& level0 = tex.levels[l0];
-      const float a = SampleBilinear(level0, x0 * level0.scale - 0.5f, y0 * level0.scale - 0.5f);
+      const float a = SampleBilinear(level0, (x0 - 0.5f) * level0.scale, (y0 - 0.5f) * level0.scale);
       float b = a;
       if (blend > 0.0f) {
         const auto& level1 = tex.levels[l0 + 1];
-        b = SampleBilinear(level1, x0 * level1.scale - 0.5f, y0 * level1.scale - 0.5f);
+        b = SampleBilinear(level1, (x0 - 0.5f) * level1.scale, (y0 - 0.5f) * level1.scale);
       }
       out[u] = (a + blend * (b - a)) * tex.brightness;
       if (dout) dout[u] = 1.0f / w;
