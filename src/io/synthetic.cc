@@ -353,6 +353,14 @@ template <class Level>
   return top + fy * (bottom - top);
 }
 
+// The sample at level-0 texel coordinates (x0, y0) on one mip level. Levels come from pyrDown,
+// whose texel j of level k lies over level-0 texel 2^k j, so a level-0 position x (texel i
+// spanning [i, i + 1)) is level index (x - 0.5) 2^-k there, not x 2^-k - 0.5.
+template <class Level>
+[[gnu::always_inline]] inline float SampleLevel(const Level& level, float x0, float y0) {
+  return SampleBilinear(level, (x0 - 0.5f) * level.scale, (y0 - 0.5f) * level.scale);
+}
+
 #if defined(__x86_64__) || defined(__i386__)
 // What shading a pixel of one quad needs, fixed per quad and view.
 struct QuadShading {
@@ -391,7 +399,7 @@ __attribute__((target("avx2"))) inline __m256 SampleBilinearAvx2(const TextureLe
   return _mm256_add_ps(top, _mm256_mul_ps(fy, _mm256_sub_ps(bottom, top)));
 }
 
-// The sample at level-0 texel coordinates (x0, y0) on one level, as the scalar pass takes it.
+// The sample at level-0 texel coordinates (x0, y0) on one level, as SampleLevel takes it.
 __attribute__((target("avx2"))) inline __m256 SampleLevelAvx2(const TextureLevel& level, __m256 x0, __m256 y0) {
   const __m256 scale = _mm256_set1_ps(level.scale), half = _mm256_set1_ps(0.5f);
   return SampleBilinearAvx2(level, _mm256_mul_ps(_mm256_sub_ps(x0, half), scale),
@@ -1060,13 +1068,8 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
       const float s = std::clamp(scratch.s[p] * inv, 0.0f, tex.size_u);
       const float t = std::clamp(scratch.t[p] * inv, 0.0f, tex.size_v);
       const float x0 = s * tex.texels_per_m, y0 = t * tex.texels_per_m;
-      const auto& level0 = tex.levels[l0];
-      const float a = SampleBilinear(level0, (x0 - 0.5f) * level0.scale, (y0 - 0.5f) * level0.scale);
-      float b = a;
-      if (blend > 0.0f) {
-        const auto& level1 = tex.levels[l0 + 1];
-        b = SampleBilinear(level1, (x0 - 0.5f) * level1.scale, (y0 - 0.5f) * level1.scale);
-      }
+      const float a = SampleLevel(tex.levels[l0], x0, y0);
+      const float b = blend > 0.0f ? SampleLevel(tex.levels[l0 + 1], x0, y0) : a;
       out[u] = (a + blend * (b - a)) * tex.brightness;
       if (dout) dout[u] = 1.0f / w;
     };

@@ -43,8 +43,6 @@ size_t LineCount(const fs::path& path) {
   return static_cast<size_t>(std::count(text.begin(), text.end(), '\n'));
 }
 
-// Waits (at most 120 s) until a run writing to `out` has tracked `frames` frames (its stats.csv
-// grows by a line a frame, after a header).
 // Polls `done` every 50 ms until it holds or `seconds` have passed.
 template <typename Done>
 void WaitUntil(Done done, int seconds) {
@@ -53,6 +51,8 @@ void WaitUntil(Done done, int seconds) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
 }
 
+// Waits (at most 120 s) until a run writing to `out` has tracked `frames` frames (its stats.csv
+// grows by a line a frame, after a header).
 void WaitForTrackedFrames(const fs::path& out, size_t frames) {
   WaitUntil([&] { return LineCount(out / "stats.csv") >= frames + 1; }, 120);
 }
