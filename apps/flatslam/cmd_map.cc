@@ -71,7 +71,8 @@ const char* const kMapUsage =
     "    --close-loops    then closes loops in each merged map as a SLAM session would: where the\n"
     "                     maps meet again away from the seams, or a map's own loop was never closed\n"
     "                     (a loop search per keyframe: about 0.5 s per 350 keyframes, plus 0.4 s\n"
-    "                     per loop closed)\n";
+    "                     per loop closed), then a bundle adjustment of the loops' agents (the\n"
+    "                     other agents held)\n";
 
 namespace {
 

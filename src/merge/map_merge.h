@@ -79,9 +79,10 @@ struct MapMergeOptions {
   // never closed. Costs a loop search per keyframe (about 0.5 s for 350 keyframes when nothing
   // is found, plus 0.4 s per loop closed).
   bool close_loops = false;
-  // After a replay that closed loops, a global bundle adjustment of the whole map (as a session
-  // runs after its loops). Its time follows the map (seconds at a few hundred keyframes beside
-  // running agents): the map server's live merges leave it to their final merge.
+  // After a replay that closed loops, a bundle adjustment of the loops' agents, the other agents
+  // held (as a session runs a global one after its loops). Its time follows those agents' maps
+  // (seconds at a few hundred keyframes beside running agents): the map server's live merges leave
+  // it to their final merge.
   bool adjust_after_loops = true;
 
   // The first requirement a field breaks, as its condition's text (empty: valid).

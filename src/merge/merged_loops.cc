@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <tuple>
+#include <unordered_set>
 
 #include "mapping/map_bundle_adjustment.h"
 #include "merge/map_merge.h"
@@ -29,10 +30,22 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
   }
   if (adjust && out->closures.size() > closures_before) {
     const auto gba_start = std::chrono::steady_clock::now();
-    // The gauge: the lowest agent's first keyframe, the first in replay order.
+    // The agents whose loops closed are free; every other agent's keyframes hold, as they held in
+    // the loops' corrections (their own loops were closed, and the seams tie the free agents to
+    // them). Freed, a held agent was bent by the drift being corrected: town agent 0 merged with
+    // agent 2 (no loop closing of its own) went from 0.052 to 0.114 m aligned alone (docs/STATUS.md,
+    // "Map merge"). With no agent held, the gauge is the lowest agent's first keyframe, the first in
+    // replay order.
+    std::unordered_set<uint32_t> looped;
+    for (size_t c = closures_before; c < out->closures.size(); ++c) looped.insert(out->closures[c].agent);
     const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
+    std::vector<KeyFrameHandle> free;
+    for (KeyFrameHandle h : order)
+      if (looped.count(map.keyframe(h).agent)) free.push_back(h);
+    const KeyFrameHandle anchor = free.size() == order.size() ? order.front() : KeyFrameHandle();
     MapBundleAdjustment ba;
-    if (!order.empty() && BuildGlobalBundleAdjustment(map, context, order.front(), &ba)) {
+    BuildMapBundleAdjustment(map, context.geometry, context.stereo_depth, free, anchor, 2, &ba);
+    if (!ba.problem.observations.empty()) {
       const BundleAdjustmentResult result = SolveGlobalBundleAdjustment(ba, context, [] { return false; });
       if (result.success) {
         ApplyGlobalBundleAdjustment(map, context, ba, result);

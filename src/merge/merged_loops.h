@@ -7,9 +7,10 @@
 // its neighbours moved by the loop's transform, points fused, the essential graph optimized with
 // the matched keyframe held), moving only the loop's agent (every other agent's keyframes hold,
 // as a merge holds the map merged into), then, as a session does after its loops (unless the caller leaves it
-// out), adjusts the whole map (a global bundle adjustment, the lowest agent's first keyframe held:
-// the essential graph spreads a loop's correction over the poses, the adjustment puts the points
-// and the shape along the loop back in agreement with every observation). A MergedMapLoopCloser
+// out), adjusts the loops' agents (a bundle adjustment of every keyframe of theirs and every point
+// they see, the other agents' keyframes held; with no other agent, the lowest agent's first
+// keyframe held: the essential graph spreads a loop's correction over the poses, the adjustment
+// puts the points and the shape along the loop back in agreement with every observation). A MergedMapLoopCloser
 // keeps what the replay built (keyframe database, each agent's consistent groups), so that
 // keyframes added to the map later continue it (merge/live_merge.h).
 // Concurrency: writes the map (exclusive access), on the caller's thread; a closer is used by one
@@ -33,7 +34,7 @@ struct MergedMapLoops {
   std::vector<LoopClosure> closures;  // in the order they were closed
   size_t keyframes = 0;               // replayed
   double ms = 0;                      // all of it, global bundle adjustments included
-  size_t global_adjustments = 0;      // one after each replay that closed a loop
+  size_t global_adjustments = 0;      // one after each replay that closed a loop (of the loops' agents)
   double global_adjustment_ms = 0;
 };
 
