@@ -42,9 +42,13 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
     std::vector<KeyFrameHandle> free;
     for (KeyFrameHandle h : order)
       if (looped.count(map.keyframe(h).agent)) free.push_back(h);
-    const KeyFrameHandle anchor = free.size() == order.size() ? order.front() : KeyFrameHandle();
     MapBundleAdjustment ba;
-    BuildMapBundleAdjustment(map, context.geometry, context.stereo_depth, free, anchor, 2, &ba);
+    BuildMapBundleAdjustment(map, context.geometry, context.stereo_depth, free,
+                             free.size() == order.size() ? order.front() : KeyFrameHandle(), 2, &ba);
+    // Free agents that see no point of a held one have no gauge: their first keyframe holds.
+    const auto& poses = ba.problem.poses;
+    if (!free.empty() && std::none_of(poses.begin(), poses.end(), [](const auto& p) { return p.fixed; }))
+      BuildMapBundleAdjustment(map, context.geometry, context.stereo_depth, free, free.front(), 2, &ba);
     if (!ba.problem.observations.empty()) {
       const BundleAdjustmentResult result = SolveGlobalBundleAdjustment(ba, context, [] { return false; });
       if (result.success) {
