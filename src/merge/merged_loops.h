@@ -6,14 +6,16 @@
 // verification), and corrects each verified loop as a session does (CorrectLoop: the keyframe and
 // its neighbours moved by the loop's transform, points fused, the essential graph optimized with
 // the matched keyframe held), moving only the loop's agent (every other agent's keyframes hold,
-// as a merge holds the map merged into), then, as a session does after its loops (unless the caller leaves it
-// out), adjusts the loops' agents (a bundle adjustment of every keyframe of theirs and every point
-// they see, the other agents' keyframes held; with no other agent, the lowest agent's first
-// keyframe held, and when the free keyframes see no held one's point, their first: the essential graph spreads a loop's
-// correction over the poses, the adjustment puts the points and the shape along the loop back in agreement with every
-// observation). A MergedMapLoopCloser keeps what the replay built (keyframe database, each agent's consistent groups),
-// so that keyframes added to the map later continue it (merge/live_merge.h). Concurrency: writes the map (exclusive
-// access), on the caller's thread; a closer is used by one caller at a time.
+// as a merge holds the map merged into), then, as a session does after its loops (unless the caller
+// leaves it out), adjusts the loops' agents: a bundle adjustment of every keyframe of theirs and every
+// point they see, the other agents' keyframes held (with no other agent, the lowest agent's first
+// keyframe holds; when the free keyframes see no point of a held one, their first). The essential
+// graph spreads a loop's correction over the poses; the adjustment puts the points and the shape along
+// the loop back in agreement with every observation. A MergedMapLoopCloser keeps what the replay built
+// (keyframe database, each agent's consistent groups), so that keyframes added to the map later
+// continue it (merge/live_merge.h).
+// Concurrency: writes the map (exclusive access), on the caller's thread; a closer is used by one
+// caller at a time.
 #pragma once
 
 #include <cstdint>
