@@ -31,11 +31,9 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
   if (adjust && out->closures.size() > closures_before) {
     const auto gba_start = std::chrono::steady_clock::now();
     // The agents whose loops closed are free; every other agent's keyframes hold, as they held in
-    // the loops' corrections (their own loops were closed, and the seams tie the free agents to
-    // them). Freed, a held agent was bent by the drift being corrected: town agent 0 merged with
-    // agent 2 (no loop closing of its own) went from 0.052 to 0.114 m aligned alone (docs/STATUS.md,
-    // "Map merge"). With no agent held, the gauge is the lowest agent's first keyframe, the first in
-    // replay order.
+    // the loops' corrections: freed, a held agent was bent by the drift being corrected
+    // (docs/STATUS.md, "Map merge"). With no agent held, the gauge is the lowest agent's first
+    // keyframe, the first in replay order.
     std::unordered_set<uint32_t> looped;
     for (size_t c = closures_before; c < out->closures.size(); ++c) looped.insert(out->closures[c].agent);
     const std::vector<KeyFrameHandle> order = ReplayOrder(map, map.keyframes().handles());
@@ -45,10 +43,11 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
     MapBundleAdjustment ba;
     BuildMapBundleAdjustment(map, context.geometry, context.stereo_depth, free,
                              free.size() == order.size() ? order.front() : KeyFrameHandle(), 2, &ba);
-    // Free agents that see no point of a held one have no gauge: their first keyframe holds.
-    const auto& poses = ba.problem.poses;
-    if (!free.empty() && std::none_of(poses.begin(), poses.end(), [](const auto& p) { return p.fixed; }))
-      BuildMapBundleAdjustment(map, context.geometry, context.stereo_depth, free, free.front(), 2, &ba);
+    // Free keyframes that see no point of a held one have no gauge: the first of them (the build
+    // puts `free` first, in order) holds.
+    std::vector<BundleAdjustmentPose>& poses = ba.problem.poses;
+    if (!poses.empty() && std::none_of(poses.begin(), poses.end(), [](const auto& p) { return p.fixed; }))
+      poses.front().fixed = true;
     if (!ba.problem.observations.empty()) {
       const BundleAdjustmentResult result = SolveGlobalBundleAdjustment(ba, context, [] { return false; });
       if (result.success) {
