@@ -151,6 +151,11 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
 
   ceres::Solver::Options solver_options;
   solver_options.linear_solver_type = dense ? ceres::DENSE_SCHUR : ceres::SPARSE_SCHUR;
+  if (options.linear_solver == BundleAdjustmentOptions::LinearSolver::kIterativeSchur) {
+    solver_options.linear_solver_type = ceres::ITERATIVE_SCHUR;
+    solver_options.preconditioner_type = ceres::SCHUR_JACOBI;
+    solver_options.eta = detail::kIterativeSchurTolerance;
+  }
   solver_options.linear_solver_ordering = ordering;
   solver_options.max_num_iterations = iterations;
   solver_options.num_threads = options.num_threads;
@@ -205,7 +210,8 @@ BundleAdjustmentResult LocalBundleAdjustment(BundleAdjustmentProblem& problem, c
                      (options.linear_solver == BundleAdjustmentOptions::LinearSolver::kAuto &&
                       free_poses <= static_cast<size_t>(options.dense_schur_max_poses));
   const bool ceres = options.solver == BundleAdjustmentOptions::Solver::kCeres ||
-                     free_poses > static_cast<size_t>(options.schur_lm_max_poses);
+                     (free_poses > static_cast<size_t>(options.schur_lm_max_poses) &&
+                      options.linear_solver != BundleAdjustmentOptions::LinearSolver::kIterativeSchur);
   const auto solve_pass = ceres ? SolvePassCeres : detail::SolvePassSchurLm;
   const double bf = problem.camera.fx * problem.baseline_m;
 

@@ -44,7 +44,11 @@ struct BundleAdjustmentProblem {
 };
 
 struct BundleAdjustmentOptions {
-  enum class LinearSolver { kAuto, kDenseSchur, kSparseSchur };
+  // kIterativeSchur: conjugate gradients on the reduced camera system, preconditioned by its
+  // 6x6 diagonal blocks; memory follows the blocks of keyframes that share points, never a
+  // factor's fill, so whole merged maps of a thousand keyframes and more stay in flatslam's own
+  // solver (schur_lm_max_poses does not apply to it).
+  enum class LinearSolver { kAuto, kDenseSchur, kSparseSchur, kIterativeSchur };
   enum class Solver { kSchurLm, kCeres };
 
 // X(type, name, default, requirement, description) (core/option_fields.h).

@@ -1,14 +1,18 @@
 // The hand-written bundle adjustment solver: Levenberg-Marquardt on the reduced camera system.
 // Points are eliminated per point (3x3 blocks), the pose system is solved densely when small and
 // with a sparse LDLT otherwise. Structure is analysed once per pass; an iteration is a pass over
-// the observations plus one factorization, with no per-iteration allocation.
+// the observations plus one factorization, with no per-iteration allocation. The iterative Schur
+// variant replaces the factorization by preconditioned conjugate gradients on the same blocks.
 #include "optimization/bundle_adjustment_lm.h"
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <unordered_map>
 
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 #include <Eigen/Cholesky>
 #include <Eigen/SparseCholesky>
 
@@ -66,6 +70,11 @@ struct SchurWorkspace {
   std::vector<Eigen::Matrix3d> V, V_inv;
   std::vector<Eigen::Vector3d> b_point, delta_point;
   std::vector<Vec6, Eigen::aligned_allocator<Vec6>> b_pose, delta_pose, g;
+  std::vector<Mat6, Eigen::aligned_allocator<Mat6>> block_inv;               // conjugate gradients:
+  std::vector<Vec6, Eigen::aligned_allocator<Vec6>> cg_r, cg_z, cg_p, cg_q;  // preconditioner, vectors
+  // Conjugate gradients' products: one partial product per fixed slice of the blocks, summed in
+  // slice order, so the result does not depend on how many threads ran the slices.
+  std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> cg_partial;
   std::vector<PoseState> state, trial_poses;
   std::vector<Eigen::Vector3d> trial_points;
 };
@@ -76,7 +85,14 @@ class Solver {
  public:
   Solver(const BundleAdjustmentProblem& input, const BundleAdjustmentOptions& options,
          const std::vector<uint8_t>& active, bool robust, bool dense, SchurWorkspace* w)
-      : in_(input), options_(options), robust_(robust), dense_(dense), bf_(input.camera.fx * input.baseline_m), w_(*w) {
+      : in_(input),
+        options_(options),
+        robust_(robust),
+        dense_(dense),
+        iterative_(options.linear_solver == BundleAdjustmentOptions::LinearSolver::kIterativeSchur),
+        bf_(input.camera.fx * input.baseline_m),
+        w_(*w) {
+    if (iterative_ && options.num_threads > 1) arena_.emplace(options.num_threads);
     w_.free_poses.clear();
     w_.points.clear();
     w_.block_rows.clear();
@@ -226,22 +242,28 @@ class Solver {
     return o.right_u >= 0 ? options_.huber_stereo : options_.huber_mono;
   }
 
-  // Half the robust cost, as Ceres reports it; false when a point falls behind a camera.
+  // Half the robust cost, as Ceres reports it. A point behind a camera makes the state invalid
+  // (false), except in the iterative solver: there the observation costs what one on the outlier
+  // gate does, as the outlier it will be classified. A whole merged map starts far from its
+  // minimum; its full steps put a few weakly constrained points behind a camera, and rejecting
+  // each such step would stall the adjustment on them while every other point waits.
   bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points, double* cost) const {
     double sum = 0;
     for (uint32_t i : w_.obs) {
       const BundleAdjustmentObservation& o = in_.observations[i];
       Eigen::Vector3d xc;
       double s = 0;
+      bool in_front = true;
       if (o.right_u >= 0) {
         Eigen::Vector3d r;
-        if (!Residual<3>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr)) return false;
-        s = r.squaredNorm() * o.inv_sigma2;
+        in_front = Residual<3>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr);
+        s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_stereo;
       } else {
         Eigen::Vector2d r;
-        if (!Residual<2>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr)) return false;
-        s = r.squaredNorm() * o.inv_sigma2;
+        in_front = Residual<2>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr);
+        s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_mono;
       }
+      if (!in_front && !iterative_) return false;
       double rho = 0, weight = 0;
       Huber(s, Delta(o), robust_, &rho, &weight);
       sum += rho;
@@ -344,9 +366,11 @@ class Solver {
         }
       }
     }
-    Eigen::VectorXd rhs(6 * nf), x;
-    for (size_t f = 0; f < nf; ++f) rhs.segment<6>(6 * f) = g[f];
-    if (nf > 0) {
+    if (nf > 0 && iterative_) {
+      if (!ConjugateGradients()) return false;
+    } else if (nf > 0) {
+      Eigen::VectorXd rhs(6 * nf), x;
+      for (size_t f = 0; f < nf; ++f) rhs.segment<6>(6 * f) = g[f];
       if (dense_) {
         Eigen::MatrixXd S = Eigen::MatrixXd::Zero(6 * nf, 6 * nf);
         for (size_t k = 0; k < w_.blocks.size(); ++k)
@@ -374,8 +398,8 @@ class Solver {
         x = sparse_.solve(rhs);
       }
       if (!x.allFinite()) return false;
+      for (size_t f = 0; f < nf; ++f) w_.delta_pose[f] = x.segment<6>(6 * f);
     }
-    for (size_t f = 0; f < nf; ++f) w_.delta_pose[f] = x.segment<6>(6 * f);
     for (size_t j = 0; j < w_.points.size(); ++j) {
       Eigen::Vector3d b = w_.b_point[j];
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
@@ -401,6 +425,82 @@ class Solver {
     return true;
   }
 
+  // Solves the damped reduced camera system (w_.blocks, the upper triangle by blocks; right-hand
+  // side w_.g) into w_.delta_pose by conjugate gradients from zero, each step preconditioned by
+  // the inverse diagonal blocks. False if a diagonal block is not positive definite or the
+  // iteration breaks down.
+  bool ConjugateGradients() {
+    const size_t nf = w_.free_poses.size();
+    w_.block_inv.resize(nf);
+    for (size_t f = 0; f < nf; ++f) {
+      const Eigen::LLT<Mat6> llt(w_.blocks[f]);
+      if (llt.info() != Eigen::Success) return false;
+      w_.block_inv[f] = llt.solve(Mat6::Identity());
+    }
+    constexpr size_t kSlices = 8;
+    const size_t num_blocks = w_.blocks.size();
+    w_.cg_partial.resize(kSlices);
+    for (auto& partial : w_.cg_partial) partial.resize(nf);
+    auto& r = w_.cg_r;
+    auto& z = w_.cg_z;
+    auto& p = w_.cg_p;
+    auto& q = w_.cg_q;
+    auto& x = w_.delta_pose;
+    r.assign(w_.g.begin(), w_.g.end());
+    z.resize(nf);
+    q.resize(nf);
+    double rz = 0, rhs_norm2 = 0;
+    for (size_t f = 0; f < nf; ++f) {
+      x[f].setZero();
+      z[f].noalias() = w_.block_inv[f] * r[f];
+      rz += r[f].dot(z[f]);
+      rhs_norm2 += r[f].squaredNorm();
+    }
+    p.assign(z.begin(), z.end());
+    const double stop2 = kIterativeSchurTolerance * kIterativeSchurTolerance * rhs_norm2;
+    for (int step = 0; step < kIterativeSchurMaxSteps && rhs_norm2 > 0; ++step) {
+      // q = S p, S symmetric with its blocks stored once as (row <= column): each block is read
+      // once for both of its products (the product is bound by memory).
+      auto slice = [&](size_t c) {
+        auto& partial = w_.cg_partial[c];
+        for (Vec6& v : partial) v.setZero();
+        for (size_t k = num_blocks * c / kSlices; k < num_blocks * (c + 1) / kSlices; ++k) {
+          const uint32_t a = w_.block_rows[k], b = w_.block_cols[k];
+          partial[a].noalias() += w_.blocks[k] * p[b];
+          if (a != b) partial[b].noalias() += w_.blocks[k].transpose() * p[a];
+        }
+      };
+      if (arena_) {
+        arena_->execute([&] { tbb::parallel_for(size_t{0}, kSlices, slice); });
+      } else {
+        for (size_t c = 0; c < kSlices; ++c) slice(c);
+      }
+      for (size_t f = 0; f < nf; ++f) {
+        q[f] = w_.cg_partial[0][f];
+        for (size_t c = 1; c < kSlices; ++c) q[f] += w_.cg_partial[c][f];
+      }
+      double pq = 0;
+      for (size_t f = 0; f < nf; ++f) pq += p[f].dot(q[f]);
+      if (!(pq > 0) || !std::isfinite(pq)) return step > 0;
+      const double alpha = rz / pq;
+      double r2 = 0, rz_next = 0;
+      for (size_t f = 0; f < nf; ++f) {
+        x[f].noalias() += alpha * p[f];
+        r[f].noalias() -= alpha * q[f];
+        r2 += r[f].squaredNorm();
+        z[f].noalias() = w_.block_inv[f] * r[f];
+        rz_next += r[f].dot(z[f]);
+      }
+      if (r2 <= stop2) break;
+      const double beta = rz_next / rz;
+      rz = rz_next;
+      for (size_t f = 0; f < nf; ++f) p[f] = z[f] + beta * p[f];
+    }
+    for (size_t f = 0; f < nf; ++f)
+      if (!x[f].allFinite()) return false;
+    return true;
+  }
+
   // Decrease of the quadratic model for the step just solved: (g.d + lambda d'Dd) / 2, as the
   // damped normal equations make d'Hd = g.d - lambda d'Dd.
   [[nodiscard]] double PredictedDecrease(double lambda) const {
@@ -409,10 +509,11 @@ class Solver {
 
   const BundleAdjustmentProblem& in_;
   const BundleAdjustmentOptions& options_;
-  const bool robust_, dense_;
+  const bool robust_, dense_, iterative_;
   const double bf_;
   SchurWorkspace& w_;
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Upper> sparse_;
+  std::optional<tbb::task_arena> arena_;
   bool sparse_analysed_ = false;
   double gradient_dot_delta_ = 0, damping_term_ = 0;
 };

@@ -1,6 +1,8 @@
 // Internal to bundle_adjustment.cc: the hand-written Levenberg-Marquardt solver on the reduced
 // camera system (see BundleAdjustmentOptions::Solver::kSchurLm).
-// Concurrency: stateless; one call owns its buffers and runs on the calling thread.
+// Concurrency: stateless; one call owns its buffers and runs on the calling thread, except the
+// iterative Schur variant's products, which run on options.num_threads TBB workers (the result
+// does not depend on their number).
 #pragma once
 
 #include <cstdint>
@@ -10,6 +12,13 @@
 #include "optimization/bundle_adjustment.h"
 
 namespace flatslam::detail {
+
+// Iterative Schur: conjugate gradients stop when the residual of the reduced camera system is this
+// fraction of its right-hand side (the forcing term of an inexact Newton step). A merged map's
+// long-range bend, which adjusting a whole map is for, converges last: a loose term (Ceres'
+// default, 0.1) leaves most of it to iterations a bounded adjustment does not run.
+inline constexpr double kIterativeSchurTolerance = 1e-2;
+inline constexpr int kIterativeSchurMaxSteps = 500;
 
 using SchurWorkspacePtr = std::unique_ptr<SchurWorkspace, SchurWorkspaceDeleter>;
 [[nodiscard]] SchurWorkspacePtr MakeSchurWorkspace();

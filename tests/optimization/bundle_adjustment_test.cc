@@ -186,6 +186,46 @@ TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
   }
 }
 
+// Conjugate gradients on the reduced camera system reach the minimum the sparse factorization
+// reaches (to far below the noise), mono and stereo; their products split over threads give the
+// same bits whatever the number of threads.
+TEST(LocalBundleAdjustment, IterativeSchurReachesTheFactorizationsMinimum) {
+  for (bool stereo : {false, true}) {
+    const BaScene scene = MakeScene(30, 1500, 0.05, stereo, stereo ? 61 : 60);
+    BundleAdjustmentProblem direct = Perturbed(scene.truth, 14);
+    BundleAdjustmentProblem iterative = direct, threaded = direct;
+    BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
+    options.first_pass_iterations = 10;
+    options.second_pass_iterations = 20;
+    options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
+    const BundleAdjustmentResult rd = LocalBundleAdjustment(direct, options);
+    options.linear_solver = BundleAdjustmentOptions::LinearSolver::kIterativeSchur;
+    const BundleAdjustmentResult ri = LocalBundleAdjustment(iterative, options);
+    options.num_threads = 3;
+    const BundleAdjustmentResult rt = LocalBundleAdjustment(threaded, options);
+    ASSERT_TRUE(rd.success && ri.success && rt.success);
+    EXPECT_EQ(rd.outlier, ri.outlier) << (stereo ? "stereo" : "mono");
+    EXPECT_NEAR(rd.final_rmse_px, ri.final_rmse_px, 1e-3 * scene.noise_rmse_px);
+    EXPECT_LT(ri.final_rmse_px, 1.05 * scene.noise_rmse_px);
+    // Against the truth: the iterative solve's camera centres as close as the direct one's (the
+    // cost is flat along monocular depth-and-scale modes, where both stop at their own place).
+    auto rms_error = [&](const BundleAdjustmentProblem& p) {
+      double sum = 0;
+      for (size_t k = 0; k < p.poses.size(); ++k)
+        sum += (CameraCentre(p.poses[k].T_cam_world) - CameraCentre(scene.truth.poses[k].T_cam_world)).squaredNorm();
+      return std::sqrt(sum / static_cast<double>(p.poses.size()));
+    };
+    for (size_t k = 0; k < direct.poses.size(); ++k)
+      EXPECT_TRUE(iterative.poses[k].T_cam_world.matrix() == threaded.poses[k].T_cam_world.matrix()) << "pose " << k;
+    const double direct_error = rms_error(direct), iterative_error = rms_error(iterative);
+    std::printf("  %s: %d iterations direct, %d iterative; camera centres %.2f / %.2f mm from the truth (rms)\n",
+                stereo ? "stereo" : "mono", rd.iterations, ri.iterations, direct_error * 1e3, iterative_error * 1e3);
+    EXPECT_LT(iterative_error, 1.1 * direct_error + 1e-4);
+    EXPECT_EQ(ri.outlier, rt.outlier);
+    EXPECT_EQ(iterative.points, threaded.points);
+  }
+}
+
 // The fast path against the reference: both solvers reach the same minimum (same outliers, same
 // poses and points to well under the noise), mono and stereo, from the same perturbed start.
 TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
