@@ -58,10 +58,10 @@ session 1 2 3
 session 2 1 4
 "$app" map merge "$work/town_a0_s1.fsmap" "$work/town_a1_s1.fsmap" -o "$work/town_s1.fsmap" | grep -E '^(output|time)'
 "$app" map merge "$work/town_a0_s2.fsmap" "$work/town_a1_s2.fsmap" -o "$work/town_s2.fsmap" | grep -E '^(output|time)'
-echo "== merge of the two joined maps (default: a bounded weld, then the essential graph)"
+echo "== merge of the two joined maps (default: a bounded weld, the essential graph, two iterations of a bundle adjustment of the whole map)"
 timed "$app" map merge "$work/town_s1.fsmap" "$work/town_s2.fsmap" -o "$work/town_all.fsmap"
 report_ate "$work/town_all.fsmap" town_a0_s1:0 town_a1_s1:1 town_a0_s2:2 town_a1_s2:3
-echo "== same, --refine (then a global bundle adjustment, every keyframe free)"
+echo "== same, --refine (that bundle adjustment to convergence)"
 timed "$app" map merge "$work/town_s1.fsmap" "$work/town_s2.fsmap" --refine -o "$work/town_all_refined.fsmap"
 report_ate "$work/town_all_refined.fsmap" town_a0_s1:0 town_a1_s1:1 town_a0_s2:2 town_a1_s2:3
 echo "== three town agents in one command"

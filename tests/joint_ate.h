@@ -3,6 +3,7 @@
 // misplaced agent). The tests' shorthand for EvaluateJointAte.
 #pragma once
 
+#include <cmath>
 #include <vector>
 
 #include "trajectory/metrics.h"
@@ -17,6 +18,18 @@ inline std::vector<double> JointAte(const std::vector<Trajectory>& gt, const std
   std::vector<double> ate;
   for (const ErrorStats& s : EvaluateJointAte(gt, est, options).ate_m) ate.push_back(s.rmse);
   return ate;
+}
+
+// Per-agent errors pooled into one RMS, each agent's squared error weighted by its pose pairs:
+// what one alignment of every agent's keyframes measures over all of them (JointAteResult::all_m),
+// taken for errors measured per agent (each agent's own map, aligned alone).
+inline double PooledRms(const std::vector<double>& rmse, const std::vector<size_t>& pairs) {
+  double sum = 0, count = 0;
+  for (size_t k = 0; k < rmse.size() && k < pairs.size(); ++k) {
+    sum += rmse[k] * rmse[k] * static_cast<double>(pairs[k]);
+    count += static_cast<double>(pairs[k]);
+  }
+  return count > 0 ? std::sqrt(sum / count) : 0.0;
 }
 
 }  // namespace flatslam::testing

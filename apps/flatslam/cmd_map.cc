@@ -59,20 +59,22 @@ const char* const kMapUsage =
     "           (Sim(3) for monocular maps) that several keyframe pairs must agree on; the maps\n"
     "           join along the strongest overlaps (a spanning tree of the overlap graph), each\n"
     "           merge fusing duplicate points, spreading the correction over the essential graph\n"
-    "           and welding the seam with a bundle adjustment of about 50 keyframes around it.\n"
+    "           and welding the seam with a bundle adjustment of about 50 keyframes around it;\n"
+    "           then a bundle adjustment of each merged map as a whole (two iterations, every\n"
+    "           keyframe free: the points a map shares with the others correct its shape).\n"
     "           The first map's frame is kept; maps that overlap nothing are written as separate\n"
     "           maps, each in its own frame. Inputs are never modified; OUT is written atomically.\n"
     "    --vocabulary F   the vocabulary the maps were built with (default: the shipped one or\n"
     "                     $FLATSLAM_VOCABULARY); its checksum must match the snapshots'\n"
     "    --min-matches N  map points a keyframe pair must match (default 40)\n"
     "    --min-pairs N    agreeing keyframe pairs, no keyframe used twice, needed to merge (default 3)\n"
-    "    --refine         then a global bundle adjustment (every keyframe free, the map merged into\n"
-    "                     too); time and memory grow with the maps\n"
+    "    --refine         that adjustment runs to convergence (5 robust iterations, outliers\n"
+    "                     dropped, 10 more): about 3x its time\n"
     "    --close-loops    then closes loops in each merged map as a SLAM session would: where the\n"
     "                     maps meet again away from the seams, or a map's own loop was never closed\n"
     "                     (a loop search per keyframe: about 0.5 s per 350 keyframes, plus 0.4 s\n"
     "                     per loop closed), then a bundle adjustment of the loops' agents (the\n"
-    "                     other agents held)\n";
+    "                     other agents held), before the adjustment of the whole map\n";
 
 namespace {
 

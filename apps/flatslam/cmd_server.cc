@@ -177,6 +177,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   // A global bundle adjustment after a loop in the merged map costs time in proportion to the
   // whole map, on the merge thread beside the agents; the final merge, from the agents' maps, runs it.
   live_options.adjust_after_loops = false;
+  live_options.adjust_iterations = 0;  // likewise the adjustment of a merged map as a whole
   BackgroundWorker merger;
   std::mutex merged_mutex;
   std::optional<LiveMerge> merged_result;  // handed from the merge thread

@@ -65,10 +65,16 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
         S.t.x(), S.t.y(), S.t.z(), rotation.angle() * 180.0 / M_PI, S.s, o.correspondences, o.residual_rms);
     std::printf(
         "              merged: %zu keyframes and %zu points added, %zu points fused, %zu loop edges, "
-        "%zu keyframes welded%s (%zu outlier observations), %.0f ms (fuse %.0f, essential graph %.0f, "
+        "%zu keyframes welded (%zu outlier observations), %.0f ms (fuse %.0f, essential graph %.0f, "
         "weld %.0f)\n",
-        r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes,
-        r.refined ? " then all (refine)" : "", r.weld_outliers, r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
+        r.keyframes_added, r.points_added, r.points_fused, r.loop_edges, r.welded_keyframes, r.weld_outliers,
+        r.merge_ms, r.fuse_ms, r.graph_ms, r.weld_ms);
+  }
+  for (size_t g = 0; g < merged.adjustments.size(); ++g) {
+    const MergedMapAdjustment& a = merged.adjustments[g];
+    if (a.keyframes == 0) continue;
+    std::printf("adjusted      map %zu: %zu keyframes free%s, %zu outlier observations, %.0f ms\n", g, a.keyframes,
+                a.refined ? " (refine: full passes)" : "", a.outliers, a.ms);
   }
   for (size_t g = 0; g < merged.loops.size(); ++g) {
     const MergedMapLoops& loops = merged.loops[g];

@@ -144,6 +144,7 @@ std::string MapMergeOptions::Problem() const {
   FLATSLAM_REQUIRE(r, max_scale_disagreement > 0);
   FLATSLAM_REQUIRE(r, ransac_iterations > 0);
   FLATSLAM_REQUIRE(r, pose_graph_iterations >= 0);
+  FLATSLAM_REQUIRE(r, adjust_iterations >= 0);
   FLATSLAM_REQUIRE(r, essential_graph_min_covisibility > 0);
   return r.first();
 }
@@ -384,7 +385,11 @@ size_t WeldBundleAdjustment(Map& map, const MergeCamera& camera, const BundleAdj
   BuildMapBundleAdjustment(map, camera.geometry, camera.stereo_depth, free, anchor, 1, &ba);
   if (!ba.problem.observations.empty()) {
     BundleAdjustmentOptions ba_options = options;
-    if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
+    // Beyond the sizes the own solver factorizes (a merged map as a whole), conjugate gradients:
+    // memory follows the keyframe pairs that share points, never a factor's fill.
+    if (free.size() > static_cast<size_t>(ba_options.schur_lm_max_poses))
+      ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kIterativeSchur;
+    else if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
       ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
     const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
     if (result.success) outliers = ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &map);
@@ -563,14 +568,6 @@ MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeC
   }
   report.graph_ms = MsSince(start) - report.fuse_ms - report.weld_ms;
 
-  // 7. Refine: a global bundle adjustment (every keyframe free, into's oldest held).
-  report.refined = options.refine;
-  if (options.refine) {
-    const std::vector<KeyFrameHandle> all(into.keyframes().handles().begin(), into.keyframes().handles().end());
-    const auto refine_start = std::chrono::steady_clock::now();
-    report.weld_outliers += WeldBundleAdjustment(into, camera, options.bundle_adjustment, all, anchor);
-    report.weld_ms += MsSince(refine_start);
-  }
   const std::vector<PointHandle> all_points(into.points().handles().begin(), into.points().handles().end());
   for (PointHandle p : all_points) into.UpdatePointStats(p, camera.scales);
   report.merged = true;
@@ -635,6 +632,30 @@ SystemContext MergedMapContext(const MergeCamera& camera) {
                        ScalePyramid::Make(camera.scales.levels, camera.scales.scale_factor));
 }
 
+MergedMapAdjustment AdjustMergedMap(Map& map, const MergeCamera& camera, const MapMergeOptions& options) {
+  MergedMapAdjustment out;
+  if (options.adjust_iterations == 0 && !options.refine) return out;
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<KeyFrameHandle> free(map.keyframes().handles().begin(), map.keyframes().handles().end());
+  // The lowest id is the oldest keyframe of the first map (keyframes merged in take ids after the
+  // map they join): it holds the frame the merged map keeps.
+  KeyFrameHandle anchor;
+  for (KeyFrameHandle h : free)
+    if (anchor.is_null() || map.keyframe(h).id < map.keyframe(anchor).id) anchor = h;
+  BundleAdjustmentOptions ba = options.bundle_adjustment;
+  if (!options.refine) {
+    ba.first_pass_iterations = options.adjust_iterations;
+    ba.second_pass_iterations = options.adjust_iterations;
+  }
+  out.keyframes = free.size();
+  out.refined = options.refine;
+  out.outliers = WeldBundleAdjustment(map, camera, ba, std::move(free), anchor);
+  const std::vector<PointHandle> points(map.points().handles().begin(), map.points().handles().end());
+  for (PointHandle p : points) map.UpdatePointStats(p, camera.scales);
+  out.ms = MsSince(start);
+  return out;
+}
+
 MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
                            const MapMergeOptions& options) {
   MultiMapMerge out;
@@ -688,6 +709,11 @@ MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, 
                                              options.adjust_after_loops);
     }
   }
+  // After the loops: a loop takes out drift an input carried, with the other agents held; freeing
+  // every agent before that would spread the drift into them.
+  out.adjustments.resize(out.maps.size());
+  for (size_t g = 0; g < out.maps.size(); ++g)
+    if (out.members[g].size() > 1) out.adjustments[g] = AdjustMergedMap(out.maps[g], camera, options);
   return out;
 }
 

@@ -66,9 +66,19 @@ struct MapMergeOptions {
   // the correction to every other keyframe of the map merged in (the map merged into holds). The
   // weld's cost follows the window, not the maps.
   size_t max_weld_keyframes = 50;
-  // Refine: after the weld and the essential graph, a global bundle adjustment (every keyframe
-  // free, into's oldest held) that also moves the map merged into. Costs time and memory in
-  // proportion to the whole map.
+  // After its merges (and its loops, with close_loops), each output map that joined several
+  // inputs is adjusted as a whole, as ORB-SLAM3 follows a merge with a global bundle adjustment:
+  // every keyframe free but the oldest of the first map (it holds the frame); this many robust
+  // Levenberg-Marquardt iterations, outlier classification, then as many again (conjugate
+  // gradients on the reduced camera system; 0 skips it). The essential graph moves each map
+  // merged in rigidly between its seams and holds the first; the adjustment lets every map's
+  // view of the points it shares with the others correct their shapes, which no pose graph can.
+  // An input that carries drift its own loop closing left (visible where it meets the others) is
+  // spread over every map by it: close_loops takes such drift out first. Its time follows the
+  // whole map (docs/STATUS.md, "Map merge": figures).
+  int adjust_iterations = 2;
+  // Refine: the adjustment runs bundle_adjustment's passes instead (5 robust iterations, outlier
+  // classification, 10 more), to convergence.
   bool refine = false;
   int pose_graph_iterations = 20;
   int essential_graph_min_covisibility = 100;  // within each map (SlamOptions' of the same name)
@@ -153,10 +163,8 @@ struct MergeReport {
   size_t loop_edges = 0;        // added between matched keyframes
   size_t welded_keyframes = 0;  // free in the seam bundle adjustment (the weld window)
   size_t weld_outliers = 0;     // observations dropped by it
-  bool refined = false;         // a global bundle adjustment followed (MapMergeOptions::refine)
   double place_ms = 0, merge_ms = 0;
-  // Parts of merge_ms: append and fuse, covisibility and essential graph, weld bundle adjustment
-  // (and the refining global one).
+  // Parts of merge_ms: append and fuse, covisibility and essential graph, weld bundle adjustment.
   double fuse_ms = 0, graph_ms = 0, weld_ms = 0;
 };
 
@@ -211,12 +219,25 @@ struct MergeAttempt {
   MergeReport report;
 };
 
+// The adjustment of a merged map as a whole (MapMergeOptions::adjust_iterations).
+struct MergedMapAdjustment {
+  size_t keyframes = 0;  // free (0: not adjusted)
+  size_t outliers = 0;   // observations it erased
+  bool refined = false;  // full passes (MapMergeOptions::refine)
+  double ms = 0;
+};
+
+// Adjusts a merged map as a whole (MapMergeOptions::adjust_iterations): every keyframe free but
+// the one with the lowest id, which holds the frame.
+[[nodiscard]] MergedMapAdjustment AdjustMergedMap(Map& map, const MergeCamera& camera, const MapMergeOptions& options);
+
 struct MultiMapMerge {
-  std::vector<Map> maps;                     // one per group of overlapping inputs
-  std::vector<std::vector<size_t>> members;  // input maps of each output map, first = its frame
-  std::vector<OverlapEdge> overlaps;         // every pair of inputs, as first measured
-  std::vector<MergeAttempt> attempts;        // in the order they were made
-  std::vector<MergedMapLoops> loops;         // per output map, with close_loops (else empty)
+  std::vector<Map> maps;                         // one per group of overlapping inputs
+  std::vector<std::vector<size_t>> members;      // input maps of each output map, first = its frame
+  std::vector<OverlapEdge> overlaps;             // every pair of inputs, as first measured
+  std::vector<MergeAttempt> attempts;            // in the order they were made
+  std::vector<MergedMapAdjustment> adjustments;  // per output map, after its merges and loops
+  std::vector<MergedMapLoops> loops;             // per output map, with close_loops (else empty)
   // Per output map, with close_loops: what its loop closing built, to continue it over keyframes
   // added later (empty for a map of one input, where no loop was searched).
   std::vector<MergedMapLoopCloser> loop_closers;

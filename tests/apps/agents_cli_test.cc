@@ -12,6 +12,7 @@
 #include <filesystem>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <thread>
 #include <utility>
@@ -137,6 +138,12 @@ class CorrectionListener {
   [[nodiscard]] HeardCorrections Heard() const {
     const std::lock_guard<std::mutex> lock(mutex_);
     return heard_;
+  }
+  // Waits (at most 30 s) until the listener matched a server's correction writer: the topic is
+  // volatile, so a correction written before that is never heard here.
+  void WaitForServer() const {
+    WaitUntil([&] { return reader_->matched() > 0; }, 30);
+    EXPECT_GT(reader_->matched(), 0) << "the test's listener matched no correction writer";
   }
 
  private:
@@ -295,12 +302,25 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
     merged.push_back(ReadTum(exported));
     EXPECT_EQ(merged.back().size(), ReadTum(agent_dir / "keyframes.tum").size());
   }
-  const std::vector<double> joint = testing::JointAte(gt, merged);
+  // The server's map under ONE alignment of all three adds at most half again to the error of the
+  // agents' own runs (pooled over their keyframes), and keeps each agent's shape (aligned alone,
+  // within 1.5x of its own run). Each agent's error under the one alignment is printed: it carries
+  // the others' drift where no agent sees another (MapMerge.TownAgentsJoin...: the same agents).
+  const JointAteResult joint = EvaluateJointAte(gt, merged);
+  std::vector<double> own_ate;
   for (int k = 0; k < 3; ++k) {
     const double own = testing::JointAte({gt[k]}, {ReadTum(dir / ("agent" + std::to_string(k)) / "keyframes.tum")})[0];
-    std::printf("agent %d: keyframe ATE own %.3f m, in the server's map (one alignment) %.3f m\n", k, own, joint[k]);
-    EXPECT_LE(joint[k], 1.5 * own) << "agent " << k;
+    own_ate.push_back(own);
+    std::printf(
+        "agent %d: keyframe ATE own %.3f m, in the server's map (one alignment) %.3f m (%.2fx; aligned alone "
+        "%.3f m)\n",
+        k, own, joint.ate_m[k].rmse, joint.ate_m[k].rmse / own, joint.own_ate_m[k].rmse);
+    EXPECT_LE(joint.own_ate_m[k].rmse, 1.5 * own) << "agent " << k;
   }
+  const double own_pooled = testing::PooledRms(own_ate, joint.pairs);
+  std::printf("all agents: own runs %.3f m, the server's map under one alignment %.3f m (%.2fx)\n", own_pooled,
+              joint.all_m.rmse, joint.all_m.rmse / own_pooled);
+  EXPECT_LE(joint.all_m.rmse, 1.5 * own_pooled);
 
   // The newest correction of each agent (each runs once here).
   std::array<std::optional<CorrectionMessage>, 3> corrections;
@@ -309,9 +329,13 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
     if (!last || c.revision > last->revision) last = c;
   }
   // Corrections: every agent's last one places its map in agent 0's frame (the merged map keeps
-  // the lowest agent's). It is fitted on the agent's newest keyframes, where its camera is: those
-  // keyframes of its own run, moved by it, land where the server's map has them, to within a
-  // quarter of the agent's own keyframe error. With --own-frame (deterministic runs) the agents'
+  // the lowest agent's). It is the rigid fit of the agent's newest keyframes, where its camera is,
+  // onto the server's map: those keyframes of its own run, moved by it, land where the server's
+  // map has them up to the fit's residual, which the message carries. The residual is what the
+  // server's map changed of the agent's shape there (its adjustment corrects shapes, which a rigid
+  // correction cannot carry). Both maps are within their errors of the truth, so it stays within
+  // the agent's own keyframe error; a correction fitted on the whole run, or misplaced, leaves the
+  // newest keyframes off by the run's drift. With --own-frame (deterministic runs) the agents'
   // maps stay in their own frames.
   for (int k = 0; k < 3; ++k) {
     ASSERT_TRUE(corrections[k].has_value()) << "no correction for agent " << k << "\n" << server_log;
@@ -327,12 +351,13 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
     size_t n = 0;
     const double rms = NewestKeyFramesRms(keyframes, frame, c, merged[k], &n);
     ASSERT_EQ(n, 10u) << "agent " << k;
-    const double own = testing::JointAte({gt[k]}, {keyframes})[0];
+    const double own = own_ate[k];
     std::printf(
         "agent %d: its newest 10 keyframes corrected are %.3f m from the server's map (fit: %.3f m; its own "
         "keyframe ATE %.3f m)\n",
         k, rms, c.rms_m, own);
-    EXPECT_LE(rms, 0.25 * own) << "agent " << k;
+    EXPECT_NEAR(rms, c.rms_m, 0.002) << "agent " << k;
+    EXPECT_LE(rms, own) << "agent " << k;
   }
   // Agents that heard a correction while they ran published their later poses in the merged frame
   // (agents 1 and 2 run 55 s of frames, the maps meet after about 20 s of them). The frame may
@@ -343,18 +368,34 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
                   static_cast<unsigned long long>(corrections[0]->frame_session));
     return std::string(id);
   }();
+  // Every merged frame an agent published in is one the server placed it in (a correction to that
+  // agent named it). Whether the last live merge reaches agents 1 and 2 before their runs end
+  // depends on the machine's speed (they meet each other first; agent 0 joins a merge later), so
+  // the final frame is not required of them.
+  auto frame_name = [](uint64_t session) {
+    char id[48];
+    std::snprintf(id, sizeof(id), "flatslam_map_%016llx", static_cast<unsigned long long>(session));
+    return std::string(id);
+  };
+  size_t in_merged_frames = 0;
   std::vector<Trajectory> heard_gt, heard;
   for (int k = 0; k < 3; ++k) {
+    std::set<std::string> named;
+    for (const auto& [key, c] : every_correction)
+      if (c.agent == static_cast<uint32_t>(k)) named.insert(frame_name(c.frame_session));
     Trajectory in_final;
-    for (const auto& [frame, pose] : merged_poses[k])
+    for (const auto& [frame, pose] : merged_poses[k]) {
+      EXPECT_TRUE(named.count(frame)) << "agent " << k << " published in " << frame << ", named by no correction to it";
       if (frame == final_frame) in_final.push_back(pose);
+    }
+    in_merged_frames += merged_poses[k].size();
     std::printf("agent %d: %d poses heard in its own frame, %zu in a merged frame, %zu of them in the final one\n", k,
                 poses[k], merged_poses[k].size(), in_final.size());
     if (in_final.empty()) continue;
     heard_gt.push_back(gt[k]);
     heard.push_back(std::move(in_final));
   }
-  EXPECT_FALSE(heard.empty()) << "no agent published a pose in the merged frame";
+  EXPECT_GT(in_merged_frames, 0u) << "no agent published a pose in a merged frame";
   if (!heard.empty()) {
     const std::vector<double> live = testing::JointAte(heard_gt, heard);
     for (double ate : live) std::printf("poses heard in the final merged frame: ATE %.3f m (one alignment)\n", ate);
@@ -496,6 +537,7 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   // The corrections the agents get (the agents here move their maps by them: no --own-frame).
   const CorrectionListener listener(domain);
   const pid_t server = SpawnServer(dir, 2, d);
+  listener.WaitForServer();
   const pid_t agent0 =
       Spawn({"agent", Town(0), "--id", "0", "--quiet", "--deterministic", "--dds-domain", d}, dir / "agent0.log");
   const fs::path first_out = dir / "agent1_first";
@@ -585,7 +627,10 @@ TEST(AgentsCli, MonocularAgentsMoveTheirMapsWithTheMergedMapsScale) {
   const uint32_t domain = 60 + static_cast<uint32_t>(getpid() % 20);
   const std::string d = std::to_string(domain);
   const CorrectionListener listener(domain);
-  const pid_t server = SpawnServer(dir, 2, d);
+  // The agents run their 20 s of frames in a few seconds: live merges every half second, so that
+  // one lands while both still run.
+  const pid_t server = SpawnServer(dir, 2, d, {"--live-merge", "0.5"});
+  listener.WaitForServer();
   std::vector<pid_t> agents;
   for (int k = 0; k < 2; ++k)
     agents.push_back(Spawn({"agent", "synth:room:sensor=mono,duration=20,width=480,height=360", "--seed",

@@ -97,13 +97,18 @@ TEST_F(MapMergeCli, JoinsOverlappingMapsAndKeepsOthersApart) {
   EXPECT_TRUE(Contains(none.output, "no keyframes of agent 7 (its maps hold agents [0,1,2])")) << none.output;
   EXPECT_FALSE(fs::exists(dir_ / "none.tum"));
 
-  // --refine adds a global bundle adjustment after the weld; --close-loops searches the merged map for loops
+  // The merged map was adjusted as a whole (two iterations); the street, merged with nothing, was not.
+  EXPECT_TRUE(Contains(r.output, "\nadjusted      map 0: ")) << r.output;
+  EXPECT_FALSE(Contains(r.output, "\nadjusted      map 1: ")) << r.output;
+  EXPECT_FALSE(Contains(r.output, "(refine: full passes)")) << r.output;
+  // --refine runs that adjustment to convergence; --close-loops searches the merged map for loops
   // (the plain merge above did not).
   EXPECT_FALSE(Contains(r.output, "\nloops ")) << r.output;
   const Result refined =
       RunApp("map merge " + path("room1") + " " + path("room2") + " --refine --close-loops -o " + path("refined"));
   ASSERT_EQ(refined.exit_code, 0) << refined.output;
-  EXPECT_TRUE(Contains(refined.output, "welded then all (refine)")) << refined.output;
+  EXPECT_TRUE(Contains(refined.output, "\nadjusted      map 0: ")) << refined.output;
+  EXPECT_TRUE(Contains(refined.output, "(refine: full passes)")) << refined.output;
   EXPECT_TRUE(Contains(refined.output, "\nloops         map 0: ")) << refined.output;
   EXPECT_EQ(RunApp("map verify " + path("refined")).exit_code, 0);
 }
