@@ -99,9 +99,10 @@ int Info(const std::string& file) {
   if (calib.frame_rate_hz > 0) std::printf(", %.1f Hz", calib.frame_rate_hz);
   std::printf("\nscales        factor %.3f, %d levels\n", view.scales().scale_factor, view.scales().levels);
   if (const auto session = view.session_summary()) {
-    std::printf("session       checkpoint of %s: %zu frames tracked, resumes at frame %llu (flatslam run --resume)\n",
+    std::printf("session       checkpoint of %s: %zu frames tracked, resumes at frame %llu (flatslam run --resume)%s\n",
                 session->dataset.c_str(), view.session_frame_count(),
-                static_cast<unsigned long long>(session->next_frame));
+                static_cast<unsigned long long>(session->next_frame),
+                session->global_adjustment_pending ? "; a global bundle adjustment after a loop pending" : "");
   }
   std::printf("maps          %zu\n", view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {

@@ -410,9 +410,12 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (resume_session) {
     run.first_frame = std::min<size_t>(resume_session->next_frame, frames);
     run.initial_frames = resume_session->frames;
-    char note[160];
-    std::snprintf(note, sizeof(note), ", %zu frames tracked before, resuming at frame %zu",
-                  resume_session->frames.size(), run.first_frame);
+    run.initial_global_adjustment = resume_session->global_adjustment_pending;
+    char note[200];
+    std::snprintf(
+        note, sizeof(note), ", %zu frames tracked before, resuming at frame %zu%s", resume_session->frames.size(),
+        run.first_frame,
+        resume_session->global_adjustment_pending ? " (its global bundle adjustment after a loop runs again)" : "");
     loaded_note += note;
   }
   if (loaded_map) run.initial_map = &*loaded_map;
@@ -485,6 +488,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
       session.next_frame = next_frame;
       session.dataset = args.positional()[0];
       session.arguments = arguments;
+      session.global_adjustment_pending = state.global_adjustment_pending;
       state.AnchoredToMap(&session.frames);
       with_session.session = std::move(session);
       const SnapshotMapRef ref{0, &state.map};

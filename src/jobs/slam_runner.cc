@@ -170,6 +170,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       }
     }
     slam.AdoptMap(std::move(*run.initial_map), run.initial_frames, resume_tracking);
+    if (run.initial_global_adjustment) slam.StartGlobalBundleAdjustment();
   }
   for (size_t i = run.first_frame; i < frames; ++i) {
     const bool skipped =

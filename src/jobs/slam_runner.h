@@ -24,6 +24,9 @@ struct SlamRunOptions {
   // With initial_map: the trajectory of the session it continues (a resumed checkpoint); the
   // result's trajectory starts with these frames.
   std::vector<AnchoredFramePose> initial_frames;
+  // With initial_map: the checkpoint caught a global bundle adjustment running; it runs again
+  // (SlamSession::StartGlobalBundleAdjustment).
+  bool initial_global_adjustment = false;
   // Global bundle adjustment after a loop closure inline too (it otherwise runs beside tracking),
   // and every keyframe mapped in the track stage whatever the lag: same input, same output.
   bool deterministic = false;

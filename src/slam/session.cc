@@ -254,6 +254,16 @@ void SlamSession::DetectAndCloseLoop(KeyFrameHandle current) {
   }
   // Started after the place step released its access: the adjustment takes its own (inline,
   // on this thread, when no background lane is set).
+  LaunchGlobalBundleAdjustment(loops);
+}
+
+void SlamSession::StartGlobalBundleAdjustment() {
+  if (!context_.options.global_bundle_adjustment || abandon_background_ || map_.keyframes().empty()) return;
+  global_ba_running_ = true;
+  LaunchGlobalBundleAdjustment(loops_.closures.size());
+}
+
+void SlamSession::LaunchGlobalBundleAdjustment(size_t loops) {
   auto task = [this, loops] {
     try {
       GlobalBundleAdjustment(loops);
@@ -360,6 +370,7 @@ void SlamSession::CaptureState(State* out) const {
   out->culled = mapping_.culled;
   out->moves = frame_moves_;
   out->next_frame = next_frame_;
+  out->global_adjustment_pending = global_ba_running_.load();
 }
 
 void SlamSession::ReadMap(const std::function<void(const Map&)>& read) const {

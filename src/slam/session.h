@@ -100,6 +100,11 @@ class SlamSession {
   // resumed checkpoint of the same dataset): tracking goes on from the last two frames' motion
   // (ResumeTracking) rather than relocalizing, and relocalizes only if that fails.
   void AdoptMap(Map&& map, std::span<const AnchoredFramePose> frames = {}, bool resume_tracking = false);
+  // Runs a global bundle adjustment of the map as one after a loop runs (on the background lane,
+  // no loop searched meanwhile): for an adopted checkpoint whose copy caught one running
+  // (State::global_adjustment_pending), so that the resumed session does not lose it. Call after
+  // AdoptMap, before the first frame.
+  void StartGlobalBundleAdjustment();
   // A move of the map's frame (MoveMapFrame, X_new = move * X_old) after the first
   // `frames_before` frame records.
   struct FrameMoveRecord {
@@ -118,6 +123,9 @@ class SlamSession {
     CulledKeyFrames culled;
     std::vector<FrameMoveRecord> moves;
     size_t next_frame = 0;  // input index after the last frame given to Track
+    // A global bundle adjustment after a loop was running: `map` holds the loop's correction
+    // without it (a session resumed from this copy runs it again: StartGlobalBundleAdjustment).
+    bool global_adjustment_pending = false;
     // Every frame anchored at a keyframe of `map` (culled references followed to live ones; none
     // where no live keyframe is left), for a snapshot's session.
     void AnchoredToMap(std::vector<AnchoredFramePose>* out) const;
@@ -149,6 +157,9 @@ class SlamSession {
   void DetectAndCloseLoop(KeyFrameHandle keyframe);
   // Global bundle adjustment after the loops-th loop closure; dropped if another loop came meanwhile.
   void GlobalBundleAdjustment(size_t loops);
+  // Hands GlobalBundleAdjustment(loops) to the background lane (inline without one); the caller
+  // set global_ba_running_.
+  void LaunchGlobalBundleAdjustment(size_t loops);
   void Warn(const std::string& message) const;
 
   OrbExtractor extractor_;

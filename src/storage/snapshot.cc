@@ -295,7 +295,8 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
     const auto frame_vector = builder.CreateVectorOfStructs(frames);
     const auto arguments = builder.CreateVectorOfStrings(s->arguments);
     const auto dataset = builder.CreateString(s->dataset);
-    session = schema::CreateSession(builder, s->next_frame, s->map, dataset, arguments, frame_vector);
+    session = schema::CreateSession(builder, s->next_frame, s->map, dataset, arguments, frame_vector,
+                                    s->global_adjustment_pending);
   }
   const schema::ContentHash placeholder(0);
   const auto root =
@@ -707,6 +708,7 @@ std::optional<SnapshotSession> MapSnapshotView::session_summary() const {
   SnapshotSession session;
   session.next_frame = s->next_frame();
   session.map = s->map();
+  session.global_adjustment_pending = s->global_adjustment_pending();
   if (s->dataset()) session.dataset = s->dataset()->str();
   if (s->arguments())
     for (const fb::String* a : *s->arguments()) session.arguments.push_back(a->str());

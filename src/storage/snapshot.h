@@ -39,6 +39,9 @@ struct SnapshotSession {
   // The trajectory so far, in frame order; references are keyframes of that map (handles of the
   // saved map when saving, of the loaded one after LoadMapSnapshot).
   std::vector<AnchoredFramePose> frames;
+  // The session's global bundle adjustment after a loop was running when it was copied (the map
+  // holds the loop's correction without it): a resumed session runs it again.
+  bool global_adjustment_pending = false;
 };
 
 // What a snapshot records besides the maps.

@@ -201,5 +201,52 @@ TEST(SessionRun, AContinuedSessionIsAsAccurateAsTheWholeRun) {
   }
 }
 
+// A checkpoint whose copy caught the global bundle adjustment after a loop still running holds the
+// loop's correction without the adjustment; the resumed session runs it again. The copy here is
+// taken (deterministically) from a run whose adjustment after its loop (the 32-s room closes one
+// at frame 562) is switched off: the map such a copy holds.
+TEST(SessionRun, AResumedCheckpointRunsTheGlobalAdjustmentItCaughtRunning) {
+  const auto dataset = OpenDataset("synth:room:duration=32,width=480,height=360");
+  const size_t n = dataset->size(), k = 600;
+  SlamOptions options = Options();
+  options.global_bundle_adjustment = false;
+  SlamRunOptions first;
+  first.deterministic = true;
+  first.max_frames = k;
+  Map map;
+  std::vector<AnchoredFramePose> frames;
+  size_t loops = 0;
+  first.on_finished = [&](const SlamSession& slam) {
+    SlamSession::State state;
+    slam.CaptureState(&state);
+    EXPECT_FALSE(state.global_adjustment_pending);  // none ran
+    state.AnchoredToMap(&frames);
+    map = state.map;
+    loops = slam.loop_closures().size();
+  };
+  (void)RunSlam(*dataset, options, first);
+  ASSERT_EQ(loops, 1u) << "the room's loop closes before frame " << k;
+  options.global_bundle_adjustment = true;
+  double ate[2] = {0, 0};
+  uint64_t corrections[2] = {0, 0};
+  for (int pending = 0; pending < 2; ++pending) {
+    Map copy = map;
+    SlamRunOptions rest;
+    rest.deterministic = true;
+    rest.initial_map = &copy;
+    rest.initial_frames = frames;
+    rest.first_frame = k;
+    rest.initial_global_adjustment = pending == 1;
+    rest.on_finished = [&](const SlamSession& slam) { corrections[pending] = slam.map_corrections(); };
+    const SlamRunResult continued = RunSlam(*dataset, options, rest);
+    ASSERT_EQ(continued.trajectory.size(), n);
+    ate[pending] = testing::ScoreTrajectory(*dataset->ground_truth(), continued.trajectory).se3.ate_m.rmse;
+  }
+  std::printf("resumed at frame %zu without the adjustment: ATE %.4f m; with it: ATE %.4f m\n", k, ate[0], ate[1]);
+  EXPECT_EQ(corrections[0], 0u);  // nothing moved the adopted map's keyframes
+  EXPECT_EQ(corrections[1], 1u);  // the adjustment, once
+  EXPECT_LT(ate[1], ate[0]);
+}
+
 }  // namespace
 }  // namespace flatslam

@@ -298,6 +298,7 @@ TEST(MapSnapshot, SessionRoundTrips) {
   session.next_frame = 1234;
   session.dataset = "synth:room";
   session.arguments = {"synth:room", "--out=/tmp/x", "--checkpoint-every=2"};
+  session.global_adjustment_pending = true;
   const auto handles = map.keyframes().handles();
   for (size_t i = 0; i < 40; ++i) {
     AnchoredFramePose f;
@@ -321,6 +322,7 @@ TEST(MapSnapshot, SessionRoundTrips) {
   ASSERT_TRUE(loaded.metadata.session.has_value());
   const SnapshotSession& back = *loaded.metadata.session;
   EXPECT_EQ(back.dataset, "synth:room");
+  EXPECT_TRUE(back.global_adjustment_pending);
   ASSERT_EQ(back.frames.size(), 40u);
   const Map& loaded_map = loaded.maps[0].map;
   for (size_t i = 0; i < 40; ++i) {
@@ -337,6 +339,10 @@ TEST(MapSnapshot, SessionRoundTrips) {
     EXPECT_EQ(std::memcmp(&f.T_cam_ref, &session.frames[i].T_cam_ref, sizeof(CompactPose)), 0);
     EXPECT_EQ(std::memcmp(&f.T_cam_world, &session.frames[i].T_cam_world, sizeof(CompactPose)), 0);
   }
+  metadata.session->global_adjustment_pending = false;
+  EXPECT_FALSE(MapSnapshotView::FromBytes(SerializeMapSnapshot({&ref, 1}, metadata), "memory")
+                   .session_summary()
+                   ->global_adjustment_pending);
   // A plain map snapshot has no session.
   EXPECT_FALSE(MapSnapshotView::FromBytes(SerializeMapSnapshot({&ref, 1}, TestMetadata(5)), "plain").session_summary());
 }
