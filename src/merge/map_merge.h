@@ -2,9 +2,11 @@
 // verified Sim(3)/SE(3) alignment, and a merge that appends one map into another through a
 // handle remap, fuses duplicate points across the seam, welds the seam (a bundle adjustment
 // around it), then bends the map appended to every seam (essential graph; the map merged into
-// holds). Maps that share no verified place are left apart.
+// holds). A merge of several maps ends each merged map with a bundle adjustment of the whole
+// map. Maps that share no verified place are left apart.
 // Concurrency: each call owns the maps it is given; place recognition runs queries on TBB
-// workers (reads only), everything that writes a map is serial.
+// workers (reads only), as do the whole-map adjustment's conjugate-gradient products
+// (bundle_adjustment.num_threads); everything that writes a map is serial.
 #pragma once
 
 #include <cstddef>
