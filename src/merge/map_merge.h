@@ -71,8 +71,9 @@ struct MapMergeOptions {
   // After its merges (and its loops, with close_loops), each output map that joined several
   // inputs is adjusted as a whole, as ORB-SLAM3 follows a merge with a global bundle adjustment:
   // every keyframe free but the oldest of the first map (it holds the frame); this many robust
-  // Levenberg-Marquardt iterations, outlier classification, then as many again (conjugate
-  // gradients on the reduced camera system; 0 skips it). The essential graph moves each map
+  // Levenberg-Marquardt iterations, outlier classification, then as many again (0 skips it;
+  // conjugate gradients on the reduced camera system beyond bundle_adjustment.schur_lm_max_poses
+  // free keyframes, below it the own solver's factorization). The essential graph moves each map
   // merged in rigidly between its seams and holds the first; the adjustment lets every map's
   // view of the points it shares with the others correct their shapes, which no pose graph can.
   // An input that carries drift its own loop closing left (visible where it meets the others) is

@@ -458,18 +458,18 @@ class Solver {
     }
     p.assign(z.begin(), z.end());
     const double stop2 = kIterativeSchurTolerance * kIterativeSchurTolerance * rhs_norm2;
+    // q = S p by slices, S symmetric with its blocks stored once as (row <= column): each block is
+    // read once for both of its products (the product is bound by memory).
+    auto slice = [&](size_t c) {
+      auto& partial = w_.cg_partial[c];
+      for (Vec6& v : partial) v.setZero();
+      for (size_t k = num_blocks * c / kSlices; k < num_blocks * (c + 1) / kSlices; ++k) {
+        const uint32_t a = w_.block_rows[k], b = w_.block_cols[k];
+        partial[a].noalias() += w_.blocks[k] * p[b];
+        if (a != b) partial[b].noalias() += w_.blocks[k].transpose() * p[a];
+      }
+    };
     for (int step = 0; step < kIterativeSchurMaxSteps && rhs_norm2 > 0; ++step) {
-      // q = S p, S symmetric with its blocks stored once as (row <= column): each block is read
-      // once for both of its products (the product is bound by memory).
-      auto slice = [&](size_t c) {
-        auto& partial = w_.cg_partial[c];
-        for (Vec6& v : partial) v.setZero();
-        for (size_t k = num_blocks * c / kSlices; k < num_blocks * (c + 1) / kSlices; ++k) {
-          const uint32_t a = w_.block_rows[k], b = w_.block_cols[k];
-          partial[a].noalias() += w_.blocks[k] * p[b];
-          if (a != b) partial[b].noalias() += w_.blocks[k].transpose() * p[a];
-        }
-      };
       if (arena_) {
         arena_->execute([&] { tbb::parallel_for(size_t{0}, kSlices, slice); });
       } else {

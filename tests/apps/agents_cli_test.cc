@@ -362,21 +362,16 @@ TEST(AgentsCli, ServerJoinsThreeAgentsInOneFrameAndASubscriberHearsTheirPoses) {
   // Agents that heard a correction while they ran published their later poses in the merged frame
   // (agents 1 and 2 run 55 s of frames, the maps meet after about 20 s of them). The frame may
   // change once more while they run (two agents meet before the third joins).
-  const std::string final_frame = [&] {
-    char id[48];
-    std::snprintf(id, sizeof(id), "flatslam_map_%016llx",
-                  static_cast<unsigned long long>(corrections[0]->frame_session));
-    return std::string(id);
-  }();
-  // Every merged frame an agent published in is one the server placed it in (a correction to that
-  // agent named it). Whether the last live merge reaches agents 1 and 2 before their runs end
-  // depends on the machine's speed (they meet each other first; agent 0 joins a merge later), so
-  // the final frame is not required of them.
   auto frame_name = [](uint64_t session) {
     char id[48];
     std::snprintf(id, sizeof(id), "flatslam_map_%016llx", static_cast<unsigned long long>(session));
     return std::string(id);
   };
+  const std::string final_frame = frame_name(corrections[0]->frame_session);
+  // Every merged frame an agent published in is one the server placed it in (a correction to that
+  // agent named it). Whether the last live merge reaches agents 1 and 2 before their runs end
+  // depends on the machine's speed (they meet each other first; agent 0 joins a merge later), so
+  // the final frame is not required of them.
   size_t in_merged_frames = 0;
   std::vector<Trajectory> heard_gt, heard;
   for (int k = 0; k < 3; ++k) {
