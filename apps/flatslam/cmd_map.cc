@@ -1,6 +1,7 @@
 // flatslam map: describe, verify, export and merge map snapshots (files written by `run --save-map`).
 #include <algorithm>
 #include <chrono>
+#include <exception>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -10,6 +11,8 @@
 #include <string>
 #include <system_error>
 #include <thread>
+
+#include <tbb/parallel_for.h>
 
 #include "args.h"
 #include "merge_and_save.h"
@@ -281,9 +284,29 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
 
   const auto start = std::chrono::steady_clock::now();
   // Load everything first: any bad input stops the command before work is done or anything written.
+  // The inputs and the vocabulary load side by side; failures and mismatches are then reported
+  // input by input in command-line order (the vocabulary last), as a load one by one would.
+  const std::filesystem::path vocabulary_path =
+      args.get("vocabulary") ? std::filesystem::path(*args.get("vocabulary")) : DefaultVocabularyPath();
+  std::vector<std::optional<LoadedSnapshot>> loaded(inputs.size());
+  std::vector<std::exception_ptr> failed(inputs.size() + 1);
+  Vocabulary vocabulary;
+  tbb::parallel_for(size_t{0}, inputs.size() + 1, [&](size_t i) {
+    try {
+      if (i < inputs.size())
+        loaded[i] = LoadMapSnapshot(inputs[i]);
+      else
+        vocabulary = Vocabulary::Load(vocabulary_path);
+    } catch (...) {
+      failed[i] = std::current_exception();
+    }
+  });
   std::vector<LoadedSnapshot> snapshots;
-  for (const std::string& in : inputs) {
-    snapshots.push_back(LoadMapSnapshot(in));
+  for (size_t i = 0; i < inputs.size(); ++i) {
+    const std::string& in = inputs[i];
+    if (failed[i]) std::rethrow_exception(failed[i]);
+    snapshots.push_back(std::move(*loaded[i]));
+    loaded[i].reset();
     const SnapshotMetadata& first = snapshots.front().metadata;
     const SnapshotMetadata& m = snapshots.back().metadata;
     FLATSLAM_CHECK(SameCalibration(first.calibration, m.calibration), "cannot merge ", in, ": its calibration (",
@@ -306,9 +329,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
                    vocabulary_name(first.vocabulary_checksum));
   }
   const SnapshotMetadata metadata = snapshots.front().metadata;
-  const std::filesystem::path vocabulary_path =
-      args.get("vocabulary") ? std::filesystem::path(*args.get("vocabulary")) : DefaultVocabularyPath();
-  const Vocabulary vocabulary = Vocabulary::Load(vocabulary_path);
+  if (failed.back()) std::rethrow_exception(failed.back());
   if (metadata.vocabulary_checksum != 0) {
     FLATSLAM_CHECK(vocabulary.checksum() == metadata.vocabulary_checksum, "vocabulary ", vocabulary_path.string(),
                    " (checksum ", std::hex, vocabulary.checksum(), ") is not the one the maps were built with (",

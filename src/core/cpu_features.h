@@ -14,4 +14,14 @@ namespace flatslam {
 #endif
 }
 
+// True when this CPU executes AVX2 and fused multiply-add instructions.
+[[nodiscard]] inline bool HasAvx2Fma() {
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+#else
+  return false;
+#endif
+}
+
 }  // namespace flatslam

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <sstream>
+#include <utility>
 #include <unordered_map>
 
 #include "core/error.h"
@@ -183,18 +184,27 @@ void Map::UpdateCovisibility(KeyFrameHandle kf, int min_shared) {
 }
 
 Map::CovisibilityLinks Map::ComputeCovisibility(KeyFrameHandle kf, int min_shared) const {
-  std::unordered_map<KeyFrameHandle, int> shared;
+  // Shared points counted per keyframe slot (live keyframes only, so a slot holds one handle):
+  // a keyframe's points reach a few hundred others through some ten thousand observations.
+  // Scratch per thread, as callers compute several keyframes' links in parallel; the counts are
+  // left at zero after each call.
+  thread_local std::vector<int> count_of_slot;
+  thread_local std::vector<KeyFrameHandle> others;
+  if (count_of_slot.size() < keyframes_.slot_count()) count_of_slot.resize(keyframes_.slot_count(), 0);
+  others.clear();
   const KeyFrame& frame = keyframes_.get(kf);
   for (PointHandle p : frame.points) {
     const MapPoint* point = points_.try_get(p);
     if (!point) continue;
-    for (const Observation& o : point->observations)
-      if (o.keyframe != kf) ++shared[o.keyframe];
+    for (const Observation& o : point->observations) {
+      if (o.keyframe == kf || !keyframes_.contains(o.keyframe)) continue;
+      if (count_of_slot[o.keyframe.index()]++ == 0) others.push_back(o.keyframe);
+    }
   }
   CovisibilityLinks links;
   std::pair<KeyFrameHandle, int> best{KeyFrameHandle::null(), 0};
-  for (const auto& [other, weight] : shared) {
-    if (!keyframes_.contains(other)) continue;
+  for (KeyFrameHandle other : others) {
+    const int weight = std::exchange(count_of_slot[other.index()], 0);
     const bool better = weight > best.second || (weight == best.second && other < best.first);
     if (better) best = {other, weight};
     if (weight >= min_shared) links.emplace_back(other, weight);

@@ -1,7 +1,8 @@
 #include "mapping/map_bundle_adjustment.h"
 
 #include <algorithm>
-#include <unordered_map>
+#include <cstdint>
+#include <vector>
 
 namespace flatslam {
 
@@ -12,45 +13,48 @@ void BuildMapBundleAdjustment(const Map& map, const CameraGeometry& geometry, co
   BundleAdjustmentProblem& problem = out->problem;
   problem.camera = geometry.camera;
   problem.baseline_m = geometry.camera.fx > 0 ? geometry.bf / geometry.camera.fx : 0.0;
-  struct PoseInfo {
-    uint32_t index;
-    double far_depth;
-  };
-  std::unordered_map<KeyFrameHandle, PoseInfo> poses;
-  poses.reserve(free.size() * 2);
-  auto add_pose = [&](KeyFrameHandle h, bool fixed) -> const PoseInfo& {
+  // Problem pose of each live keyframe and whether a live point is taken, by arena slot (a live
+  // handle owns its slot): the window can be a whole map.
+  constexpr uint32_t kNone = UINT32_MAX;
+  std::vector<uint32_t> pose_of_slot(map.keyframes().slot_count(), kNone);
+  std::vector<double> far_depth;
+  auto add_pose = [&](KeyFrameHandle h, bool fixed) {
     const KeyFrame& kf = map.keyframe(h);
-    const PoseInfo info{static_cast<uint32_t>(problem.poses.size()), stereo.FarDepth(kf.depth)};
+    pose_of_slot[h.index()] = static_cast<uint32_t>(problem.poses.size());
+    far_depth.push_back(stereo.FarDepth(kf.depth));
     problem.poses.push_back({kf.T_cam_world, fixed || h == anchor});
     out->keyframes.push_back(h);
-    return poses.emplace(h, info).first->second;
+    return pose_of_slot[h.index()];
   };
   for (KeyFrameHandle h : free)
-    if (map.keyframes().contains(h) && !poses.count(h)) add_pose(h, false);
+    if (map.keyframes().contains(h) && pose_of_slot[h.index()] == kNone) add_pose(h, false);
 
-  std::unordered_map<PointHandle, uint32_t> taken;
+  std::vector<uint8_t> taken(map.points().slot_count(), 0);
   const size_t free_count = out->keyframes.size();
   for (size_t k = 0; k < free_count; ++k) {
     for (PointHandle p : map.keyframe(out->keyframes[k]).points) {
-      if (p.is_null() || taken.count(p)) continue;
+      if (p.is_null()) continue;
       const MapPoint* point = map.points().try_get(p);
-      if (!point || point->observations.size() < min_observations) continue;
-      taken.emplace(p, static_cast<uint32_t>(out->points.size()));
+      if (!point || taken[p.index()] || point->observations.size() < min_observations) continue;
+      taken[p.index()] = 1;
       out->points.push_back(p);
       problem.points.push_back(point->position);
     }
   }
+  size_t num_observations = 0;
+  for (PointHandle p : out->points) num_observations += map.point(p).observations.size();
+  problem.observations.reserve(num_observations);
   for (size_t j = 0; j < out->points.size(); ++j) {
     for (const Observation& o : map.point(out->points[j]).observations) {
-      auto pose = poses.find(o.keyframe);
-      const PoseInfo& info = pose != poses.end() ? pose->second : add_pose(o.keyframe, true);  // outside: fixed
+      const uint32_t known = pose_of_slot[o.keyframe.index()];
+      const uint32_t index = known != kNone ? known : add_pose(o.keyframe, true);  // outside: fixed
       const KeyFrame& kf = map.keyframe(o.keyframe);
       BundleAdjustmentObservation obs;
-      obs.pose_index = info.index;
+      obs.pose_index = index;
       obs.point_index = static_cast<uint32_t>(j);
       obs.uv = kf.uv[o.keypoint].cast<double>();
       obs.right_u = geometry.bf > 0
-                        ? StereoDepthRule::RightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], info.far_depth)
+                        ? StereoDepthRule::RightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], far_depth[index])
                         : -1.0;
       obs.inv_sigma2 = geometry.pyramid.inv_sigma2[kf.octave[o.keypoint]];
       problem.observations.push_back(obs);

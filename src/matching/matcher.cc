@@ -441,19 +441,17 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
   return out;
 }
 
-int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> points, const CameraGeometry& g,
-               const MatcherOptions& options) {
+std::vector<std::pair<PointHandle, uint32_t>> FindFusion(const Map& map, KeyFrameHandle kf_handle,
+                                                         std::span<const PointHandle> points, const CameraGeometry& g,
+                                                         const MatcherOptions& options) {
+  const KeyFrame& kf = map.keyframe(kf_handle);
   FeatureGrid grid;
-  {
-    const KeyFrame& kf = map.keyframe(kf_handle);
-    grid.Build(kf.uv, g.camera.width, g.camera.height);
-  }
+  grid.Build(kf.uv, g.camera.width, g.camera.height);
   std::vector<uint32_t> candidates;
-  int fused = 0;
+  std::vector<std::pair<PointHandle, uint32_t>> matches;
   for (PointHandle p : points) {
     const MapPoint* point = map.points().try_get(p);
     if (!point) continue;
-    const KeyFrame& kf = map.keyframe(kf_handle);
     if (std::any_of(point->observations.begin(), point->observations.end(),
                     [&](const Observation& o) { return o.keyframe == kf_handle; }))
       continue;
@@ -489,9 +487,21 @@ int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> 
       }
     }
     if (best_index < 0 || best > options.max_distance_strict) continue;
-    const PointHandle existing = kf.points[best_index];
+    matches.emplace_back(p, static_cast<uint32_t>(best_index));
+  }
+  return matches;
+}
+
+int ApplyFusion(Map& map, KeyFrameHandle kf_handle, std::span<const std::pair<PointHandle, uint32_t>> matches) {
+  int fused = 0;
+  for (const auto& [p, keypoint] : matches) {
+    const MapPoint* point = map.points().try_get(p);
+    if (!point || std::any_of(point->observations.begin(), point->observations.end(),
+                              [&](const Observation& o) { return o.keyframe == kf_handle; }))
+      continue;
+    const PointHandle existing = map.keyframe(kf_handle).points[keypoint];
     if (existing.is_null()) {
-      map.AddObservation(p, kf_handle, static_cast<uint32_t>(best_index));
+      map.AddObservation(p, kf_handle, keypoint);
     } else if (existing != p) {
       const size_t n_existing = map.point(existing).observations.size();
       if (n_existing >= point->observations.size())
@@ -502,6 +512,11 @@ int FusePoints(Map& map, KeyFrameHandle kf_handle, std::span<const PointHandle> 
     ++fused;
   }
   return fused;
+}
+
+int FusePoints(Map& map, KeyFrameHandle kf, std::span<const PointHandle> points, const CameraGeometry& g,
+               const MatcherOptions& options) {
+  return ApplyFusion(map, kf, FindFusion(map, kf, points, g, options));
 }
 
 }  // namespace flatslam

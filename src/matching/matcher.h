@@ -64,8 +64,21 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
 
 // Projects `points` into kf and either adds an observation (free keypoint) or merges with the
 // point already there (the one with more observations survives). Returns the number of fusions.
+// Equals ApplyFusion(map, kf, FindFusion(map, kf, points, ...)).
 int FusePoints(Map& map, KeyFrameHandle kf, std::span<const PointHandle> points, const CameraGeometry& geometry,
                const MatcherOptions& options);
+
+// FusePoints in two steps. FindFusion reads the map (callers may run it for several keyframes at
+// once): for each point of `points` that kf does not observe, the keypoint of kf it matches, if
+// any. ApplyFusion writes the map: each match in order, skipping a point erased or already seen
+// by kf since. The keypoint a point matches depends only on the point's position, normal,
+// distance range and descriptor and on kf's keypoints, none of which a fusion changes, so
+// finding the matches of several keyframes first and applying them keyframe by keyframe gives
+// the map FusePoints does, keyframe by keyframe.
+std::vector<std::pair<PointHandle, uint32_t>> FindFusion(const Map& map, KeyFrameHandle kf,
+                                                         std::span<const PointHandle> points,
+                                                         const CameraGeometry& geometry, const MatcherOptions& options);
+int ApplyFusion(Map& map, KeyFrameHandle kf, std::span<const std::pair<PointHandle, uint32_t>> matches);
 
 // Monocular initialization: for each keypoint of `first`, the best keypoint of `second` within
 // `window` pixels of the same position at the same level (ratio and orientation checked).

@@ -56,6 +56,15 @@ void UpdateCovisibilities(const std::vector<KeyFrameHandle>& keyframes, Map* map
   for (size_t k = 0; k < keyframes.size(); ++k) map->SetCovisibility(keyframes[k], std::move(links[k]));
 }
 
+// Every point's normal, distance range and descriptor, in parallel: each point's statistics read
+// the keyframes and write that point alone.
+void UpdateAllPointStats(const MapScales& scales, Map* map) {
+  const std::vector<PointHandle> points(map->points().handles().begin(), map->points().handles().end());
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, points.size(), 256), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t i = r.begin(); i != r.end(); ++i) map->UpdatePointStats(points[i], scales);
+  });
+}
+
 // Verifies one place-recognition candidate: bag-of-words matches, RANSAC, guided search.
 bool VerifyPair(const Map& into, const Map& from, KeyFrameHandle query, KeyFrameHandle candidate,
                 const MergeCamera& camera, const MapMergeOptions& options, std::mt19937_64& rng, MergePair* out) {
@@ -391,7 +400,8 @@ size_t WeldBundleAdjustment(Map& map, const MergeCamera& camera, const BundleAdj
       ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kIterativeSchur;
     else if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))
       ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
-    const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options);
+    BundleAdjustmentWorkspace workspace;  // both passes reuse the solver's buffers
+    const BundleAdjustmentResult result = LocalBundleAdjustment(ba.problem, ba_options, &workspace);
     if (result.success) outliers = ApplyMapBundleAdjustment(ba, result, /*erase_outliers=*/true, &map);
   }
   std::erase_if(free, [&](KeyFrameHandle h) { return !map.keyframes().contains(h); });
@@ -475,29 +485,37 @@ MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeC
     return out;
   };
   {
-    // Each seam keyframe is offered only the other side's points that project into its image:
-    // found first for every keyframe in parallel over a copy of the positions (the fuse moves
-    // no point), so that FusePoints visits the map only for those.
-    auto in_view = [&](const std::vector<KeyFrameHandle>& keyframes, const std::vector<PointHandle>& points) {
-      std::vector<Eigen::Vector3d> positions(points.size());
-      for (size_t k = 0; k < points.size(); ++k) positions[k] = into.point(points[k]).position;
-      std::vector<std::vector<PointHandle>> out(keyframes.size());
-      tbb::parallel_for(tbb::blocked_range<size_t>(0, keyframes.size(), 4), [&](const tbb::blocked_range<size_t>& r) {
-        for (size_t i = r.begin(); i != r.end(); ++i) {
-          const Eigen::Isometry3d T = into.keyframe(keyframes[i]).T_cam_world;
-          double u, v;
-          for (size_t k = 0; k < points.size(); ++k)
-            if (camera.geometry.Project(T * positions[k], &u, &v)) out[i].push_back(points[k]);
-        }
-      });
-      return out;
+    // Each seam keyframe is offered the other side's points that project into its image (found
+    // over a copy of the positions: the fuse moves no point), and its matches among them are found
+    // for every keyframe in parallel, then applied in order: the map FusePoints would make
+    // keyframe by keyframe (see FindFusion).
+    struct Side {
+      std::vector<PointHandle> points;
+      std::vector<Eigen::Vector3d> positions;
     };
-    const std::vector<std::vector<PointHandle>> into_seen = in_view(seam_from, points_of(seam_into));
-    const std::vector<std::vector<PointHandle>> from_seen = in_view(seam_into, points_of(seam_from));
-    for (size_t i = 0; i < seam_from.size(); ++i)
-      FusePoints(into, seam_from[i], into_seen[i], camera.geometry, options.matcher);
-    for (size_t i = 0; i < seam_into.size(); ++i)
-      FusePoints(into, seam_into[i], from_seen[i], camera.geometry, options.matcher);
+    auto side_of = [&](const std::vector<KeyFrameHandle>& keyframes) {
+      Side side{points_of(keyframes), {}};
+      side.positions.reserve(side.points.size());
+      for (PointHandle p : side.points) side.positions.push_back(into.point(p).position);
+      return side;
+    };
+    const Side into_side = side_of(seam_into), from_side = side_of(seam_from);
+    std::vector<KeyFrameHandle> order(seam_from);
+    order.insert(order.end(), seam_into.begin(), seam_into.end());
+    std::vector<std::vector<std::pair<PointHandle, uint32_t>>> matches(order.size());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, order.size(), 2), [&](const tbb::blocked_range<size_t>& r) {
+      std::vector<PointHandle> seen;
+      for (size_t i = r.begin(); i != r.end(); ++i) {
+        const Side& other = i < seam_from.size() ? into_side : from_side;
+        const Eigen::Isometry3d T = into.keyframe(order[i]).T_cam_world;
+        seen.clear();
+        double u, v;
+        for (size_t k = 0; k < other.points.size(); ++k)
+          if (camera.geometry.Project(T * other.positions[k], &u, &v)) seen.push_back(other.points[k]);
+        matches[i] = FindFusion(std::as_const(into), order[i], seen, camera.geometry, options.matcher);
+      }
+    });
+    for (size_t i = 0; i < order.size(); ++i) ApplyFusion(into, order[i], matches[i]);
   }
   report.points_fused = points_before - into.points().size();
   report.fuse_ms = MsSince(start);
@@ -568,8 +586,7 @@ MergeReport MergeMaps(Map& into, const Map& from, MapOverlap found, const MergeC
   }
   report.graph_ms = MsSince(start) - report.fuse_ms - report.weld_ms;
 
-  const std::vector<PointHandle> all_points(into.points().handles().begin(), into.points().handles().end());
-  for (PointHandle p : all_points) into.UpdatePointStats(p, camera.scales);
+  UpdateAllPointStats(camera.scales, &into);
   report.merged = true;
   report.merge_ms = MsSince(start);
   return report;
@@ -650,8 +667,7 @@ MergedMapAdjustment AdjustMergedMap(Map& map, const MergeCamera& camera, const M
   out.keyframes = free.size();
   out.refined = options.refine;
   out.outliers = WeldBundleAdjustment(map, camera, ba, std::move(free), anchor);
-  const std::vector<PointHandle> points(map.points().handles().begin(), map.points().handles().end());
-  for (PointHandle p : points) map.UpdatePointStats(p, camera.scales);
+  UpdateAllPointStats(camera.scales, &map);
   out.ms = MsSince(start);
   return out;
 }

@@ -2,7 +2,10 @@
 // Points are eliminated per point (3x3 blocks), the pose system is solved densely when small and
 // with a sparse LDLT otherwise. Structure is analysed once per pass; an iteration is a pass over
 // the observations plus one factorization, with no per-iteration allocation. The iterative Schur
-// variant replaces the factorization by preconditioned conjugate gradients on the same blocks.
+// variant replaces the factorization by preconditioned conjugate gradients on the same system,
+// kept implicit: only its diagonal blocks are formed, and each product passes over the
+// observations' pose-point blocks, so memory follows the observations, not the pairs of poses
+// that share points (a whole merged map has some 175,000 such pairs).
 #include "optimization/bundle_adjustment_lm.h"
 
 #include <algorithm>
@@ -11,10 +14,16 @@
 #include <optional>
 #include <unordered_map>
 
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 #include <Eigen/Cholesky>
 #include <Eigen/SparseCholesky>
+
+#include "core/cpu_features.h"
 
 namespace flatslam::detail {
 
@@ -28,6 +37,9 @@ namespace {
 constexpr double kMinDepth = 1e-6;
 constexpr double kMinDiagonal = 1e-6;  // lower clamp of the LM scaling diagonal (as Ceres)
 constexpr double kMaxDiagonal = 1e32;
+// Conjugate gradients split their passes over the points into this many fixed slices, whatever
+// the number of threads: the sums they make in slice order do not depend on it.
+constexpr size_t kSlices = 8;
 
 using Mat6 = Eigen::Matrix<double, 6, 6>;
 using Mat63 = Eigen::Matrix<double, 6, 3>;
@@ -55,6 +67,71 @@ inline void Huber(double s, double delta, bool robust, double* rho, double* weig
   *weight = delta / e;
 }
 
+// One slice of the implicit Schur product over points [j0, j1): for each point, t = sum W' p over
+// its free observations, u = V^-1 t, then partial -= W u at each of them. W: 18 doubles per
+// observation (6x3, column-major), p and partial: 6 doubles per free pose. The vector path keeps
+// each 6-vector in a 4-lane and a 2-lane register.
+void SchurProductSlice(const uint32_t* obs_start, const int* obs_free, const double* W, const Eigen::Matrix3d* V_inv,
+                       const double* p, double* partial, size_t j0, size_t j1) {
+  using ConstVec6Map = Eigen::Map<const Eigen::Matrix<double, 6, 1>>;
+  for (size_t j = j0; j < j1; ++j) {
+    Eigen::Vector3d t = Eigen::Vector3d::Zero();
+    for (uint32_t a = obs_start[j]; a < obs_start[j + 1]; ++a)
+      if (obs_free[a] >= 0)
+        t.noalias() += Eigen::Map<const Mat63>(W + 18 * a).transpose() * ConstVec6Map(p + 6 * obs_free[a]);
+    const Eigen::Vector3d u = V_inv[j] * t;
+    for (uint32_t a = obs_start[j]; a < obs_start[j + 1]; ++a)
+      if (obs_free[a] >= 0)
+        Eigen::Map<Vec6>(partial + 6 * obs_free[a]).noalias() -= Eigen::Map<const Mat63>(W + 18 * a) * u;
+  }
+}
+
+#if defined(__x86_64__)
+__attribute__((target("avx2,fma"))) inline double Sum(__m256d a, __m128d b) {
+  const __m128d s = _mm_add_pd(_mm_add_pd(_mm256_castpd256_pd128(a), _mm256_extractf128_pd(a, 1)), b);
+  return _mm_cvtsd_f64(_mm_add_sd(s, _mm_unpackhi_pd(s, s)));
+}
+
+__attribute__((target("avx2,fma"))) void SchurProductSliceAvx2(const uint32_t* obs_start, const int* obs_free,
+                                                               const double* W, const Eigen::Matrix3d* V_inv,
+                                                               const double* p, double* partial, size_t j0, size_t j1) {
+  for (size_t j = j0; j < j1; ++j) {
+    __m256d t0 = _mm256_setzero_pd(), t1 = t0, t2 = t0;
+    __m128d s0 = _mm_setzero_pd(), s1 = s0, s2 = s0;
+    for (uint32_t a = obs_start[j]; a < obs_start[j + 1]; ++a) {
+      if (obs_free[a] < 0) continue;
+      const double* w = W + 18 * a;
+      const double* x = p + 6 * obs_free[a];
+      const __m256d x4 = _mm256_loadu_pd(x);
+      const __m128d x2 = _mm_loadu_pd(x + 4);
+      t0 = _mm256_fmadd_pd(_mm256_loadu_pd(w), x4, t0);
+      s0 = _mm_fmadd_pd(_mm_loadu_pd(w + 4), x2, s0);
+      t1 = _mm256_fmadd_pd(_mm256_loadu_pd(w + 6), x4, t1);
+      s1 = _mm_fmadd_pd(_mm_loadu_pd(w + 10), x2, s1);
+      t2 = _mm256_fmadd_pd(_mm256_loadu_pd(w + 12), x4, t2);
+      s2 = _mm_fmadd_pd(_mm_loadu_pd(w + 16), x2, s2);
+    }
+    const Eigen::Vector3d u = V_inv[j] * Eigen::Vector3d(Sum(t0, s0), Sum(t1, s1), Sum(t2, s2));
+    const __m256d u0 = _mm256_set1_pd(u.x()), u1 = _mm256_set1_pd(u.y()), u2 = _mm256_set1_pd(u.z());
+    for (uint32_t a = obs_start[j]; a < obs_start[j + 1]; ++a) {
+      if (obs_free[a] < 0) continue;
+      const double* w = W + 18 * a;
+      double* y = partial + 6 * obs_free[a];
+      __m256d y4 = _mm256_loadu_pd(y);
+      __m128d y2 = _mm_loadu_pd(y + 4);
+      y4 = _mm256_fnmadd_pd(_mm256_loadu_pd(w), u0, y4);
+      y2 = _mm_fnmadd_pd(_mm_loadu_pd(w + 4), _mm256_castpd256_pd128(u0), y2);
+      y4 = _mm256_fnmadd_pd(_mm256_loadu_pd(w + 6), u1, y4);
+      y2 = _mm_fnmadd_pd(_mm_loadu_pd(w + 10), _mm256_castpd256_pd128(u1), y2);
+      y4 = _mm256_fnmadd_pd(_mm256_loadu_pd(w + 12), u2, y4);
+      y2 = _mm_fnmadd_pd(_mm_loadu_pd(w + 16), _mm256_castpd256_pd128(u2), y2);
+      _mm256_storeu_pd(y, y4);
+      _mm_storeu_pd(y + 4, y2);
+    }
+  }
+}
+#endif
+
 }  // namespace
 
 // Buffers of one solve, kept between solves so that their capacity is reused.
@@ -62,19 +139,22 @@ struct SchurWorkspace {
   std::vector<int> free_id, point_id;
   std::vector<uint32_t> free_poses, points;  // free pose -> problem pose, point id -> problem point
   std::vector<uint32_t> obs_start, obs;      // observations by point (CSR over point ids)
+  std::vector<int> obs_free;                 // free pose of each of obs, -1 if fixed
   std::vector<uint32_t> fill;
   std::vector<uint32_t> block_rows, block_cols, pair_blocks;
   std::unordered_map<uint64_t, uint32_t> block_of;
-  std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks, U;
+  std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks, U, U_damped;
   std::vector<Mat63, Eigen::aligned_allocator<Mat63>> W;
   std::vector<Eigen::Matrix3d> V, V_inv;
   std::vector<Eigen::Vector3d> b_point, delta_point;
   std::vector<Vec6, Eigen::aligned_allocator<Vec6>> b_pose, delta_pose, g;
   std::vector<Mat6, Eigen::aligned_allocator<Mat6>> block_inv;               // conjugate gradients:
   std::vector<Vec6, Eigen::aligned_allocator<Vec6>> cg_r, cg_z, cg_p, cg_q;  // preconditioner, vectors
-  // Conjugate gradients' products: one partial product per fixed slice of the blocks, summed in
+  // Conjugate gradients' products: one partial product per fixed slice of the points, summed in
   // slice order, so the result does not depend on how many threads ran the slices.
   std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> cg_partial;
+  std::vector<std::vector<Mat6, Eigen::aligned_allocator<Mat6>>> lin_U;  // linearization's, by slice
+  std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> lin_b;
   std::vector<PoseState> state, trial_poses;
   std::vector<Eigen::Vector3d> trial_points;
 };
@@ -124,6 +204,8 @@ class Solver {
       for (size_t i = 0; i < input.observations.size(); ++i)
         if (active[i]) w_.obs[fill[w_.point_id[input.observations[i].point_index]]++] = static_cast<uint32_t>(i);
     }
+    w_.obs_free.resize(w_.obs.size());
+    for (size_t a = 0; a < w_.obs.size(); ++a) w_.obs_free[a] = w_.free_id[input.observations[w_.obs[a]].pose_index];
     // Blocks of the reduced camera system: the diagonal, then every pair of free poses that
     // share a point, in the order the elimination visits them.
     const size_t nf = w_.free_poses.size();
@@ -139,7 +221,8 @@ class Solver {
       return it->second;
     };
     for (uint32_t f = 0; f < nf; ++f) block(f, f);
-    for (size_t j = 0; j < w_.points.size(); ++j) {
+    // Conjugate gradients keep the off-diagonal blocks implicit (see ConjugateGradients).
+    for (size_t j = 0; j < (iterative_ ? 0 : w_.points.size()); ++j) {
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
         const int fa = w_.free_id[input.observations[w_.obs[a]].pose_index];
         if (fa < 0) continue;
@@ -275,12 +358,12 @@ class Solver {
   // Accumulates one observation's normal-equation blocks.
   template <int N>
   void Accumulate(const PoseState& pose, const Eigen::Vector3d& X, const BundleAdjustmentObservation& o, int free,
-                  Eigen::Matrix3d* V, Eigen::Vector3d* bl, Mat63* W) {
+                  Eigen::Matrix3d* V, Eigen::Vector3d* bl, uint32_t a, Mat6* U, Vec6* b) {
     Eigen::Vector3d xc;
     Eigen::Matrix<double, N, 1> r;
     Eigen::Matrix<double, N, 3> J;
     if (!Residual<N>(pose, X, o, &xc, &r, &J)) {
-      W->setZero();
+      w_.W[a].setZero();
       return;
     }
     double rho = 0, weight = 0;
@@ -296,17 +379,48 @@ class Solver {
     Jp.col(0) = J.col(1) * -xc.z() + J.col(2) * xc.y();
     Jp.col(1) = J.col(0) * xc.z() - J.col(2) * xc.x();
     Jp.col(2) = J.col(1) * xc.x() - J.col(0) * xc.y();
-    w_.U[free].noalias() += w * Jp.transpose() * Jp;
-    w_.b_pose[free].noalias() += w * Jp.transpose() * r;
-    W->noalias() = w * Jp.transpose() * Jl;
+    U[free].noalias() += w * Jp.transpose() * Jp;
+    b[free].noalias() += w * Jp.transpose() * r;
+    w_.W[a].noalias() = w * Jp.transpose() * Jl;
   }
 
+  // Normal-equation blocks at the current estimate. Conjugate gradients linearize on num_threads
+  // over fixed slices of the points, each with its own pose blocks summed in slice order (the same
+  // bits on any number of threads); the factorizing solvers in one pass.
   void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
-    for (size_t f = 0; f < w_.free_poses.size(); ++f) {
-      w_.U[f].setZero();
-      w_.b_pose[f].setZero();
+    const size_t nf = w_.free_poses.size();
+    if (!iterative_) {
+      for (size_t f = 0; f < nf; ++f) {
+        w_.U[f].setZero();
+        w_.b_pose[f].setZero();
+      }
+      LinearizePoints(poses, points, 0, w_.points.size(), w_.U.data(), w_.b_pose.data());
+      return;
     }
-    for (size_t j = 0; j < w_.points.size(); ++j) {
+    w_.lin_U.resize(kSlices);
+    w_.lin_b.resize(kSlices);
+    const size_t num_points = w_.points.size();
+    auto slice = [&](size_t c) {
+      w_.lin_U[c].assign(nf, Mat6::Zero());
+      w_.lin_b[c].assign(nf, Vec6::Zero());
+      LinearizePoints(poses, points, num_points * c / kSlices, num_points * (c + 1) / kSlices, w_.lin_U[c].data(),
+                      w_.lin_b[c].data());
+    };
+    RunSlices(slice);
+    for (size_t f = 0; f < nf; ++f) {
+      w_.U[f] = w_.lin_U[0][f];
+      w_.b_pose[f] = w_.lin_b[0][f];
+      for (size_t c = 1; c < kSlices; ++c) {
+        w_.U[f] += w_.lin_U[c][f];
+        w_.b_pose[f] += w_.lin_b[c][f];
+      }
+    }
+  }
+
+  // Points [j0, j1): their blocks, and their observations' pose blocks added to U and b.
+  void LinearizePoints(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points, size_t j0,
+                       size_t j1, Mat6* U, Vec6* b) {
+    for (size_t j = j0; j < j1; ++j) {
       Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
       Eigen::Vector3d bl = Eigen::Vector3d::Zero();
       const Eigen::Vector3d& X = points[w_.points[j]];
@@ -314,12 +428,22 @@ class Solver {
         const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
         const int free = w_.free_id[o.pose_index];
         if (o.right_u >= 0)
-          Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+          Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, a, U, b);
         else
-          Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, &w_.W[a]);
+          Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, a, U, b);
       }
       w_.V[j] = V;
       w_.b_point[j] = bl;
+    }
+  }
+
+  // Runs slice(c) for c in [0, kSlices): on the solver's arena when it has one, else in order.
+  template <class Slice>
+  void RunSlices(const Slice& slice) {
+    if (arena_) {
+      arena_->execute([&] { tbb::parallel_for(size_t{0}, kSlices, slice); });
+    } else {
+      for (size_t c = 0; c < kSlices; ++c) slice(c);
     }
   }
 
@@ -329,8 +453,10 @@ class Solver {
     for (Mat6& b : w_.blocks) b.setZero();
     std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = w_.g;
     g.assign(w_.b_pose.begin(), w_.b_pose.end());
+    w_.U_damped.resize(nf);
     for (size_t f = 0; f < nf; ++f) {
-      Mat6 damped = w_.U[f];
+      Mat6& damped = w_.U_damped[f];
+      damped = w_.U[f];
       for (int d = 0; d < 6; ++d) damped(d, d) += lambda * std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal);
       w_.blocks[f] = damped;
     }
@@ -357,6 +483,7 @@ class Solver {
             w_.blocks[fa].noalias() -= Y * w_.W[b].transpose() + w_.W[b] * Y.transpose();
             continue;
           }
+          if (iterative_) continue;
           // The block is stored once, as (min, max).
           if (fa < fb)
             w_.blocks[w_.pair_blocks[pair]].noalias() -= Y * w_.W[b].transpose();
@@ -425,10 +552,10 @@ class Solver {
     return true;
   }
 
-  // Solves the damped reduced camera system (w_.blocks, the upper triangle by blocks; right-hand
-  // side w_.g) into w_.delta_pose by conjugate gradients from zero, each step preconditioned by
-  // the inverse diagonal blocks. False if a diagonal block is not positive definite or the
-  // iteration breaks down.
+  // Solves the damped reduced camera system S = U_damped - W V^-1 W' (right-hand side w_.g) into
+  // w_.delta_pose by conjugate gradients from zero, each step preconditioned by the inverse of
+  // S's diagonal blocks (w_.blocks). S stays implicit: each product passes over the points. False
+  // if a diagonal block is not positive definite or the iteration breaks down.
   bool ConjugateGradients() {
     const size_t nf = w_.free_poses.size();
     w_.block_inv.resize(nf);
@@ -437,8 +564,7 @@ class Solver {
       if (llt.info() != Eigen::Success) return false;
       w_.block_inv[f] = llt.solve(Mat6::Identity());
     }
-    constexpr size_t kSlices = 8;
-    const size_t num_blocks = w_.blocks.size();
+    const size_t num_points = w_.points.size();
     w_.cg_partial.resize(kSlices);
     for (auto& partial : w_.cg_partial) partial.resize(nf);
     auto& r = w_.cg_r;
@@ -458,26 +584,24 @@ class Solver {
     }
     p.assign(z.begin(), z.end());
     const double stop2 = kIterativeSchurTolerance * kIterativeSchurTolerance * rhs_norm2;
-    // q = S p by slices, S symmetric with its blocks stored once as (row <= column): each block is
-    // read once for both of its products (the product is bound by memory).
+    // q = U_damped p - sum over points of W V^-1 W' p, the sum by slices of the points.
+    static const auto product = [] {
+#if defined(__x86_64__)
+      if (HasAvx2Fma()) return &SchurProductSliceAvx2;
+#endif
+      return &SchurProductSlice;
+    }();
     auto slice = [&](size_t c) {
       auto& partial = w_.cg_partial[c];
       for (Vec6& v : partial) v.setZero();
-      for (size_t k = num_blocks * c / kSlices; k < num_blocks * (c + 1) / kSlices; ++k) {
-        const uint32_t a = w_.block_rows[k], b = w_.block_cols[k];
-        partial[a].noalias() += w_.blocks[k] * p[b];
-        if (a != b) partial[b].noalias() += w_.blocks[k].transpose() * p[a];
-      }
+      product(w_.obs_start.data(), w_.obs_free.data(), w_.W.data()->data(), w_.V_inv.data(), p.data()->data(),
+              partial.data()->data(), num_points * c / kSlices, num_points * (c + 1) / kSlices);
     };
     for (int step = 0; step < kIterativeSchurMaxSteps && rhs_norm2 > 0; ++step) {
-      if (arena_) {
-        arena_->execute([&] { tbb::parallel_for(size_t{0}, kSlices, slice); });
-      } else {
-        for (size_t c = 0; c < kSlices; ++c) slice(c);
-      }
+      RunSlices(slice);
       for (size_t f = 0; f < nf; ++f) {
-        q[f] = w_.cg_partial[0][f];
-        for (size_t c = 1; c < kSlices; ++c) q[f] += w_.cg_partial[c][f];
+        q[f].noalias() = w_.U_damped[f] * p[f];
+        for (size_t c = 0; c < kSlices; ++c) q[f] += w_.cg_partial[c][f];
       }
       double pq = 0;
       for (size_t f = 0; f < nf; ++f) pq += p[f].dot(q[f]);
