@@ -67,10 +67,8 @@ inline void Huber(double s, double delta, bool robust, double* rho, double* weig
   *weight = delta / e;
 }
 
-// One slice of the implicit Schur product over points [j0, j1): for each point, t = sum W' p over
-// its free observations, u = V^-1 t, then partial -= W u at each of them. W: 18 doubles per
-// observation (6x3, column-major), p and partial: 6 doubles per free pose. The vector path keeps
-// each 6-vector in a 4-lane and a 2-lane register.
+}  // namespace
+
 void SchurProductSlice(const uint32_t* obs_start, const int* obs_free, const double* W, const Eigen::Matrix3d* V_inv,
                        const double* p, double* partial, size_t j0, size_t j1) {
   using ConstVec6Map = Eigen::Map<const Eigen::Matrix<double, 6, 1>>;
@@ -87,11 +85,14 @@ void SchurProductSlice(const uint32_t* obs_start, const int* obs_free, const dou
 }
 
 #if defined(__x86_64__)
+namespace {
 __attribute__((target("avx2,fma"))) inline double Sum(__m256d a, __m128d b) {
   const __m128d s = _mm_add_pd(_mm_add_pd(_mm256_castpd256_pd128(a), _mm256_extractf128_pd(a, 1)), b);
   return _mm_cvtsd_f64(_mm_add_sd(s, _mm_unpackhi_pd(s, s)));
 }
+}  // namespace
 
+// Each 6-vector in a 4-lane and a 2-lane register; t's lanes summed once per point.
 __attribute__((target("avx2,fma"))) void SchurProductSliceAvx2(const uint32_t* obs_start, const int* obs_free,
                                                                const double* W, const Eigen::Matrix3d* V_inv,
                                                                const double* p, double* partial, size_t j0, size_t j1) {
@@ -131,8 +132,6 @@ __attribute__((target("avx2,fma"))) void SchurProductSliceAvx2(const uint32_t* o
   }
 }
 #endif
-
-}  // namespace
 
 // Buffers of one solve, kept between solves so that their capacity is reused.
 struct SchurWorkspace {

@@ -20,6 +20,18 @@ namespace flatslam::detail {
 inline constexpr double kIterativeSchurTolerance = 1e-2;
 inline constexpr int kIterativeSchurMaxSteps = 500;
 
+// The iterative Schur product's kernel over points [j0, j1): for each point, t = sum of W' p over
+// its observations with a free pose (obs_free >= 0), u = V_inv t, then partial -= W u at each of
+// them. obs_start: CSR of observations by point; W: 18 doubles per observation (6x3,
+// column-major); p and partial: 6 doubles per free pose. The AVX2 variant (x86-64 only; callers
+// check HasAvx2Fma()) computes the same sums with fused multiply-adds, in another order.
+void SchurProductSlice(const uint32_t* obs_start, const int* obs_free, const double* W, const Eigen::Matrix3d* V_inv,
+                       const double* p, double* partial, size_t j0, size_t j1);
+#if defined(__x86_64__)
+void SchurProductSliceAvx2(const uint32_t* obs_start, const int* obs_free, const double* W,
+                           const Eigen::Matrix3d* V_inv, const double* p, double* partial, size_t j0, size_t j1);
+#endif
+
 using SchurWorkspacePtr = std::unique_ptr<SchurWorkspace, SchurWorkspaceDeleter>;
 [[nodiscard]] SchurWorkspacePtr MakeSchurWorkspace();
 
