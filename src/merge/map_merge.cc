@@ -395,7 +395,7 @@ size_t WeldBundleAdjustment(Map& map, const MergeCamera& camera, const BundleAdj
   if (!ba.problem.observations.empty()) {
     BundleAdjustmentOptions ba_options = options;
     // Beyond the sizes the own solver factorizes (a merged map as a whole), conjugate gradients:
-    // memory follows the keyframe pairs that share points, never a factor's fill.
+    // memory follows the observations, never a factor's fill.
     if (free.size() > static_cast<size_t>(ba_options.schur_lm_max_poses))
       ba_options.linear_solver = BundleAdjustmentOptions::LinearSolver::kIterativeSchur;
     else if (free.size() > static_cast<size_t>(ba_options.dense_schur_max_poses))

@@ -45,8 +45,9 @@ struct BundleAdjustmentProblem {
 
 struct BundleAdjustmentOptions {
   // kIterativeSchur: conjugate gradients on the reduced camera system, preconditioned by its
-  // 6x6 diagonal blocks; memory follows the blocks of keyframes that share points, never a
-  // factor's fill, so whole merged maps of a thousand keyframes and more stay in flatslam's own
+  // 6x6 diagonal blocks; the system stays implicit (each product passes over the observations),
+  // so memory follows the observations, never the pairs of keyframes that share points nor a
+  // factor's fill, and whole merged maps of a thousand keyframes and more stay in flatslam's own
   // solver (schur_lm_max_poses does not apply to it).
   enum class LinearSolver { kAuto, kDenseSchur, kSparseSchur, kIterativeSchur };
   enum class Solver { kSchurLm, kCeres };
