@@ -313,8 +313,12 @@ std::string Map::Validate() const {
     for (const auto& [other, w] : kf.covisible) {
       const KeyFrame* o = keyframes_.try_get(other);
       if (!o) return (problem << h << " covisible with erased " << other, problem.str());
-      const bool mirrored = std::any_of(o->covisible.begin(), o->covisible.end(),
-                                        [&](const auto& l) { return l.first == h && l.second == w; });
+      // Lists are kept sorted by StrongerLink: a binary search finds the mirror; the scan decides
+      // only when it does not (an unsorted list).
+      const std::pair<KeyFrameHandle, int> mirror(h, w);
+      const bool mirrored =
+          std::binary_search(o->covisible.begin(), o->covisible.end(), mirror, StrongerLink) ||
+          std::any_of(o->covisible.begin(), o->covisible.end(), [&](const auto& l) { return l == mirror; });
       if (!mirrored) return (problem << "covisibility " << h << "-" << other << " not mirrored", problem.str());
     }
     for (KeyFrameHandle other : kf.loop_edges) {

@@ -58,12 +58,16 @@ bool Reprojects(const PinholeCamera& cam, const Eigen::Vector3d& Xc, const Eigen
   return e.x() * e.x() + e.y() * e.y() < gate;
 }
 
+// Correspondences that reproject both ways under S_21. With to_beat >= 0 the count stops, at
+// some value <= to_beat, once the correspondences left cannot take it above to_beat (a RANSAC
+// hypothesis that cannot win needs no full count; *inlier is then partial).
 int CountInliers(const PinholeCamera& cam, std::span<const PointCorrespondence> m, const Similarity3& S_21, double chi2,
-                 std::vector<bool>* inlier) {
+                 std::vector<bool>* inlier, int to_beat = -1) {
   const Similarity3 S_12 = S_21.inverse();
   int n = 0;
   inlier->assign(m.size(), false);
   for (size_t k = 0; k < m.size(); ++k) {
+    if (to_beat >= 0 && n + static_cast<int>(m.size() - k) <= to_beat) break;
     const bool ok = Reprojects(cam, S_21 * m[k].X1, m[k].uv2, chi2 * m[k].sigma2_2) &&
                     Reprojects(cam, S_12 * m[k].X2, m[k].uv1, chi2 * m[k].sigma2_1);
     (*inlier)[k] = ok;
@@ -173,7 +177,7 @@ std::optional<SimilarityRansacResult> EstimateSimilarityRansac(const PinholeCame
     const Eigen::Vector3d X2[3] = {matches[a].X2, matches[b].X2, matches[c].X2};
     const auto S = AlignPoints(X1, X2, options.fix_scale);
     if (!S) continue;
-    const int count = CountInliers(camera, matches, *S, options.chi2, &inlier);
+    const int count = CountInliers(camera, matches, *S, options.chi2, &inlier, best.num_inliers);
     if (count > best.num_inliers) {
       best.num_inliers = count;
       best.S_21 = *S;

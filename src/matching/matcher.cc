@@ -452,9 +452,7 @@ std::vector<std::pair<PointHandle, uint32_t>> FindFusion(const Map& map, KeyFram
   for (PointHandle p : points) {
     const MapPoint* point = map.points().try_get(p);
     if (!point) continue;
-    if (std::any_of(point->observations.begin(), point->observations.end(),
-                    [&](const Observation& o) { return o.keyframe == kf_handle; }))
-      continue;
+    // The geometric tests first: they read the point alone, its observations live elsewhere.
     const Eigen::Vector3d Xc = kf.T_cam_world * point->position;
     double u, v;
     if (!g.Project(Xc, &u, &v)) continue;
@@ -463,6 +461,9 @@ std::vector<std::pair<PointHandle, uint32_t>> FindFusion(const Map& map, KeyFram
     const double distance = ray.norm();
     if (distance < 0.8 * point->min_distance || distance > 1.2 * point->max_distance) continue;
     if (ray.dot(point->normal) < 0.5 * distance) continue;
+    if (std::any_of(point->observations.begin(), point->observations.end(),
+                    [&](const Observation& o) { return o.keyframe == kf_handle; }))
+      continue;
     const int level = PredictLevel(*point, distance, g.pyramid);
     const float r = options.fusion_radius * g.pyramid.scale[level];
     candidates.clear();

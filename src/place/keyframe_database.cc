@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <unordered_map>
 #include <unordered_set>
+#include <utility>
+#include <vector>
 
 #include "core/error.h"
 #include "place/vocabulary.h"
@@ -52,13 +54,38 @@ std::vector<PlaceCandidate> KeyFrameDatabase::Rank(const Map& map, const BowVect
     excluded.insert(exclude_around);
     for (const auto& [n, w] : map.keyframe(exclude_around).covisible) excluded.insert(n);
   }
-  // Words in common with the query, per keyframe.
-  std::unordered_map<KeyFrameHandle, int> common;
+  // Words in common with the query, per keyframe, counted by arena slot: a query walks some ten
+  // thousand entries of a few hundred keyframes. A slot counts the first handle met there; another
+  // generation of it (a keyframe erased and its slot reused) is counted apart. Scratch per
+  // thread, left at zero.
+  thread_local std::vector<int> count_of_slot;
+  thread_local std::vector<KeyFrameHandle> handle_of_slot;
+  std::vector<KeyFrameHandle> seen;
+  std::unordered_map<KeyFrameHandle, int> other_generation;
   for (const auto& [w, weight] : bow) {
     if (w >= inverted_.size()) continue;
-    for (KeyFrameHandle kf : inverted_[w])
-      if (!excluded.count(kf)) ++common[kf];
+    for (KeyFrameHandle kf : inverted_[w]) {
+      if (!excluded.empty() && excluded.count(kf)) continue;
+      const uint32_t slot = kf.index();
+      if (slot >= count_of_slot.size()) {
+        count_of_slot.resize(slot + 1, 0);
+        handle_of_slot.resize(slot + 1);
+      }
+      if (count_of_slot[slot] == 0) {
+        handle_of_slot[slot] = kf;
+        seen.push_back(kf);
+        count_of_slot[slot] = 1;
+      } else if (handle_of_slot[slot] == kf) {
+        ++count_of_slot[slot];
+      } else {
+        ++other_generation[kf];
+      }
+    }
   }
+  std::vector<std::pair<KeyFrameHandle, int>> common;
+  common.reserve(seen.size() + other_generation.size());
+  for (KeyFrameHandle kf : seen) common.emplace_back(kf, std::exchange(count_of_slot[kf.index()], 0));
+  common.insert(common.end(), other_generation.begin(), other_generation.end());
   if (common.empty()) return {};
   int max_common = 0;
   for (const auto& [kf, n] : common) max_common = std::max(max_common, n);
