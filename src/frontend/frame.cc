@@ -20,25 +20,26 @@ void FeatureGrid::Build(std::span<const Eigen::Vector2f> uv, int width, int heig
   }
   for (size_t c = 0; c < cells; ++c) cell_start_[c + 1] += cell_start_[c];
   indices_.resize(uv.size());
+  uv_.resize(uv.size());
   std::vector<uint32_t> fill(cell_start_.begin(), cell_start_.end() - 1);
-  for (size_t i = 0; i < uv.size(); ++i) indices_[fill[cell_of[i]]++] = static_cast<uint32_t>(i);
+  for (size_t i = 0; i < uv.size(); ++i) {
+    const uint32_t k = fill[cell_of[i]]++;
+    indices_[k] = static_cast<uint32_t>(i);
+    uv_[k] = uv[i];
+  }
 }
 
-void FeatureGrid::Query(float u, float v, float r, std::span<const Eigen::Vector2f> uv,
-                        std::vector<uint32_t>* out) const {
+void FeatureGrid::Query(float u, float v, float r, std::vector<uint32_t>* out) const {
   if (cols_ == 0) return;
   const int c0 = std::max(0, static_cast<int>((u - r) * inv_cell_));
   const int c1 = std::min(cols_ - 1, static_cast<int>((u + r) * inv_cell_));
   const int r0 = std::max(0, static_cast<int>((v - r) * inv_cell_));
   const int r1 = std::min(rows_ - 1, static_cast<int>((v + r) * inv_cell_));
+  // Cells c0..c1 of a row are one run of the grid order.
   for (int row = r0; row <= r1; ++row) {
-    for (int col = c0; col <= c1; ++col) {
-      const size_t cell = static_cast<size_t>(row) * cols_ + col;
-      for (uint32_t k = cell_start_[cell]; k < cell_start_[cell + 1]; ++k) {
-        const uint32_t i = indices_[k];
-        if (std::abs(uv[i].x() - u) <= r && std::abs(uv[i].y() - v) <= r) out->push_back(i);
-      }
-    }
+    const size_t first = static_cast<size_t>(row) * cols_;
+    for (uint32_t k = cell_start_[first + c0]; k < cell_start_[first + c1 + 1]; ++k)
+      if (std::abs(uv_[k].x() - u) <= r && std::abs(uv_[k].y() - v) <= r) out->push_back(indices_[k]);
   }
 }
 

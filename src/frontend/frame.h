@@ -18,14 +18,16 @@ namespace flatslam {
 class FeatureGrid {
  public:
   void Build(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px = 24.0f);
-  // Appends to out the keypoints within the square of half-size r around (u, v).
-  void Query(float u, float v, float r, std::span<const Eigen::Vector2f> uv, std::vector<uint32_t>* out) const;
+  // Appends to out the keypoints (indices into the uv it was built from) within the square of
+  // half-size r around (u, v), cell by cell, each cell's in keypoint order.
+  void Query(float u, float v, float r, std::vector<uint32_t>* out) const;
 
  private:
   int cols_ = 0, rows_ = 0;
   float inv_cell_ = 1;
   std::vector<uint32_t> cell_start_;  // cols_*rows_ + 1 offsets into indices_
   std::vector<uint32_t> indices_;
+  std::vector<Eigen::Vector2f> uv_;  // uv[indices_[k]], read in order by queries
 };
 
 struct TrackedFrame {

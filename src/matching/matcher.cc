@@ -89,7 +89,7 @@ int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOcta
     const int octave = get_octave(i);
     const float r = radius * g.pyramid.scale[octave];
     candidates.clear();
-    current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, current.keypoints.uv, &candidates);
+    current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, &candidates);
     int best = 257;
     int best_index = -1;
     for (uint32_t k : candidates) {
@@ -117,8 +117,8 @@ int ProjectAndMatch(TrackedFrame& current, size_t n, GetPoint get_point, GetOcta
 
 // Appends the keypoints within kStep pixels of the image segment from p to q (the epipolar
 // line of a depth range); stamp deduplicates across overlapping queries.
-void SegmentBand(Eigen::Vector2d p, Eigen::Vector2d q, const FeatureGrid& grid, std::span<const Eigen::Vector2f> uv,
-                 std::vector<uint32_t>* out, std::vector<uint32_t>* stamp, uint32_t stamp_value) {
+void SegmentBand(Eigen::Vector2d p, Eigen::Vector2d q, const FeatureGrid& grid, std::vector<uint32_t>* out,
+                 std::vector<uint32_t>* stamp, uint32_t stamp_value) {
   constexpr float kStep = 12.0f;
   const double length = (q - p).norm();
   const int steps = std::max(1, static_cast<int>(std::ceil(length / kStep)));
@@ -126,7 +126,7 @@ void SegmentBand(Eigen::Vector2d p, Eigen::Vector2d q, const FeatureGrid& grid, 
   for (int k = 0; k <= steps; ++k) {
     const Eigen::Vector2d x = p + (q - p) * (static_cast<double>(k) / steps);
     found.clear();
-    grid.Query(static_cast<float>(x.x()), static_cast<float>(x.y()), kStep, uv, &found);
+    grid.Query(static_cast<float>(x.x()), static_cast<float>(x.y()), kStep, &found);
     for (uint32_t i : found) {
       if ((*stamp)[i] == stamp_value) continue;
       (*stamp)[i] = stamp_value;
@@ -217,7 +217,7 @@ int MatchLocalPoints(TrackedFrame& current, const Map& map, std::span<const Poin
     if (seen) seen->push_back(p);
     const float r = radius_scale * (view_cos > 0.998 ? 2.5f : 4.0f) * g.pyramid.scale[level];
     candidates.clear();
-    current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, current.keypoints.uv, &candidates);
+    current.grid.Query(static_cast<float>(u), static_cast<float>(v), r, &candidates);
     int best = 257, second = 257, best_level = -1, second_level = -1, best_index = -1;
     for (uint32_t k : candidates) {
       if (!Usable(current, k, level - 1, level, u - g.bf * inv_z, g.bf > 0, r)) continue;
@@ -248,7 +248,7 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForInitialization(const TrackedF
   std::vector<uint32_t> candidates;
   for (uint32_t i1 = 0; i1 < first.size(); ++i1) {
     candidates.clear();
-    second.grid.Query(first.keypoints.uv[i1].x(), first.keypoints.uv[i1].y(), window, second.keypoints.uv, &candidates);
+    second.grid.Query(first.keypoints.uv[i1].x(), first.keypoints.uv[i1].y(), window, &candidates);
     int best = 257, second_best = 257, best_index = -1;
     for (uint32_t i2 : candidates) {
       if (second.keypoints.octave[i2] != first.keypoints.octave[i1]) continue;
@@ -389,7 +389,7 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
     if (!region_of(i1, &region)) continue;
     candidates.clear();
     grid2.Query(static_cast<float>(region.p.x()), static_cast<float>(region.p.y()), static_cast<float>(region.radius),
-                kf2.uv, &candidates);
+                &candidates);
     consider(i1, region, candidates, false);
   }
   auto without_depth = [&](uint32_t i1) { return !(kf1.right_u[i1] >= 0 && kf1.depth[i1] > 0); };
@@ -424,7 +424,7 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
     for (uint32_t i1 = 0; i1 < kf1.size(); ++i1) {
       if (!kf1.points[i1].is_null() || !without_depth(i1) || !region_of(i1, &region)) continue;
       candidates.clear();
-      SegmentBand(region.p, region.q, grid2, kf2.uv, &candidates, &stamp, ++stamp_value);
+      SegmentBand(region.p, region.q, grid2, &candidates, &stamp, ++stamp_value);
       consider(i1, region, candidates, false);
     }
   }
@@ -467,7 +467,7 @@ std::vector<std::pair<PointHandle, uint32_t>> FindFusion(const Map& map, KeyFram
     const int level = PredictLevel(*point, distance, g.pyramid);
     const float r = options.fusion_radius * g.pyramid.scale[level];
     candidates.clear();
-    grid.Query(static_cast<float>(u), static_cast<float>(v), r, kf.uv, &candidates);
+    grid.Query(static_cast<float>(u), static_cast<float>(v), r, &candidates);
     int best = 257, best_index = -1;
     for (uint32_t k : candidates) {
       const int o = kf.octave[k];
@@ -644,7 +644,7 @@ int MatchBySimilarity(const KeyFrame& kf, const Similarity3& S_cw, std::span<con
     const int level = PredictLevel(*point, distance, g.pyramid);
     const float r = radius * g.pyramid.scale[level];
     candidates.clear();
-    grid.Query(static_cast<float>(u), static_cast<float>(v), r, kf.uv, &candidates);
+    grid.Query(static_cast<float>(u), static_cast<float>(v), r, &candidates);
     int best = 257, best_k = -1;
     for (uint32_t k : candidates) {
       if (!(*matched)[k].is_null()) continue;
