@@ -587,10 +587,11 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   // The restarted run moved its map into the merged map's frame (agent 0's) while it ran; what
   // it sent stayed in its run's frame: its newest keyframes, taken back by the correction it moved
   // by and moved by the last one, land where the server's map has them, as near as the server's
-  // own fit of that correction says (the fit's residual is how much the merge bent those
-  // keyframes while it took out the run's drift: 0.003-0.23 m in runs of this test, against
-  // 0.27-0.33 m of the run's own error). A run whose sent or saved frame were mixed up would miss
-  // by the move itself, metres here.
+  // own fit of that correction says. A run whose sent or saved frame were mixed up would miss by
+  // the move itself: 75-85 m here. The fit's residual is how much the server's map bent those
+  // keyframes against the run's own shape (a correction is rigid, the merged map is adjusted as
+  // a whole): 0.014-0.16 m in runs of this test, which is at times more than the run's own error
+  // (0.06-0.10 m since the synthetic textures were registered), so it is bounded against the move.
   const HeardCorrections corrections = listener.Heard();
   const AgentFrame frame = AgentFrameOf(ReadBytes(dir / "agent1_again.log"), corrections);
   EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / "agent1_again.log");
@@ -607,9 +608,20 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
       "restarted agent 1: map moved %llu times (last by merge %llu); newest 10 keyframes %.3f m from the "
       "server's map after the last correction (revision %u, fit %.3f m on %u keyframes; own keyframe ATE %.3f m)\n",
       frame.moves, frame.by, rms, static_cast<unsigned>(last->revision), last->rms_m, last->keyframes, own);
+  // The newest keyframes' displacement by the run's move: what a mix-up would miss by.
+  double move2 = 0;
+  for (size_t k = again.size() - n; k < again.size(); ++k) {
+    const Eigen::Vector3d p = again[k].T_world_cam.translation();
+    const Eigen::Vector3d run =
+        frame.T_map_run.linear().transpose() * (p - frame.T_map_run.translation()) / frame.scale;
+    move2 += (p - run).squaredNorm();
+  }
+  const double move = n > 0 ? std::sqrt(move2 / static_cast<double>(n)) : 0.0;
+  std::printf("restarted agent 1: its move displaced its newest keyframes by %.3f m\n", move);
   EXPECT_EQ(n, 10u);
   EXPECT_NEAR(rms, last->rms_m, 0.01);
-  EXPECT_LT(rms, own);
+  EXPECT_GT(move, 1.0);  // the check below has something to tell apart
+  EXPECT_LT(rms, 0.01 * move);
   fs::remove_all(dir);
 }
 
