@@ -17,8 +17,7 @@ namespace flatslam {
 // True when this CPU executes AVX2 and fused multiply-add instructions.
 [[nodiscard]] inline bool HasAvx2Fma() {
 #if defined(__x86_64__) || defined(__i386__)
-  __builtin_cpu_init();
-  return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return HasAvx2() && __builtin_cpu_supports("fma");
 #else
   return false;
 #endif
