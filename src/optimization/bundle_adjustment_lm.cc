@@ -133,6 +133,30 @@ __attribute__((target("avx2,fma"))) void SchurProductSliceAvx2(const uint32_t* o
 }
 #endif
 
+void SubtractBlockProduct(double* S, const double* A, const double* B) {
+  Eigen::Map<Mat6>(S).noalias() -= Eigen::Map<const Mat63>(A) * Eigen::Map<const Mat63>(B).transpose();
+}
+
+#if defined(__x86_64__)
+// Column c of S: rows 0-3 in one register, rows 4-5 in another; A's columns loaded once.
+__attribute__((target("avx2"))) void SubtractBlockProductAvx(double* S, const double* A, const double* B) {
+  const __m256d a0 = _mm256_loadu_pd(A), a1 = _mm256_loadu_pd(A + 6), a2 = _mm256_loadu_pd(A + 12);
+  const __m128d c0 = _mm_loadu_pd(A + 4), c1 = _mm_loadu_pd(A + 10), c2 = _mm_loadu_pd(A + 16);
+  for (int c = 0; c < 6; ++c) {
+    const __m256d b0 = _mm256_broadcast_sd(B + c), b1 = _mm256_broadcast_sd(B + 6 + c),
+                  b2 = _mm256_broadcast_sd(B + 12 + c);
+    const __m256d top =
+        _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(a0, b0), _mm256_mul_pd(a1, b1)), _mm256_mul_pd(a2, b2));
+    const __m128d bottom =
+        _mm_add_pd(_mm_add_pd(_mm_mul_pd(c0, _mm256_castpd256_pd128(b0)), _mm_mul_pd(c1, _mm256_castpd256_pd128(b1))),
+                   _mm_mul_pd(c2, _mm256_castpd256_pd128(b2)));
+    double* s = S + 6 * c;
+    _mm256_storeu_pd(s, _mm256_sub_pd(_mm256_loadu_pd(s), top));
+    _mm_storeu_pd(s + 4, _mm_sub_pd(_mm_loadu_pd(s + 4), bottom));
+  }
+}
+#endif
+
 // Buffers of one solve, kept between solves so that their capacity is reused.
 struct SchurWorkspace {
   std::vector<int> free_id, point_id;
@@ -156,6 +180,8 @@ struct SchurWorkspace {
   std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> lin_b;
   std::vector<PoseState> state, trial_poses;
   std::vector<Eigen::Vector3d> trial_points;
+  std::vector<Mat63, Eigen::aligned_allocator<Mat63>> Y;  // one point's W V^-1, by free observation
+  std::vector<uint32_t> point_free_obs;                   // and those observations
 };
 
 namespace {
@@ -460,6 +486,12 @@ class Solver {
       w_.blocks[f] = damped;
     }
     w_.V_inv.resize(w_.points.size());
+    static const auto subtract = [] {
+#if defined(__x86_64__)
+      if (HasAvx2()) return &SubtractBlockProductAvx;
+#endif
+      return &SubtractBlockProduct;
+    }();
     size_t pair = 0;
     for (size_t j = 0; j < w_.points.size(); ++j) {
       Eigen::Matrix3d V = w_.V[j];
@@ -468,26 +500,36 @@ class Solver {
       if (ldlt.info() != Eigen::Success || !ldlt.isPositive() || ldlt.vectorD().minCoeff() <= 0) return false;
       w_.V_inv[j] = ldlt.solve(Eigen::Matrix3d::Identity());
       const Eigen::Vector3d Vb = w_.V_inv[j] * w_.b_point[j];
-      const uint32_t begin = w_.obs_start[j], end = w_.obs_start[j + 1];
-      for (uint32_t a = begin; a < end; ++a) {
-        const int fa = w_.free_id[in_.observations[w_.obs[a]].pose_index];
-        if (fa < 0) continue;
-        const Mat63 Y = w_.W[a] * w_.V_inv[j];
-        g[fa].noalias() -= w_.W[a] * Vb;
-        w_.blocks[fa].noalias() -= Y * w_.W[a].transpose();
-        for (uint32_t b = a + 1; b < end; ++b) {
-          const int fb = w_.free_id[in_.observations[w_.obs[b]].pose_index];
-          if (fb < 0) continue;
+      // The point's observations in free poses, each with its W V^-1.
+      std::vector<uint32_t>& obs = w_.point_free_obs;
+      obs.clear();
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a)
+        if (w_.obs_free[a] >= 0) obs.push_back(a);
+      w_.Y.resize(std::max(w_.Y.size(), obs.size()));
+      for (size_t m = 0; m < obs.size(); ++m) {
+        const Mat63& Wa = w_.W[obs[m]];
+        w_.Y[m].noalias() = Wa * w_.V_inv[j];
+        g[w_.obs_free[obs[m]]].noalias() -= Wa * Vb;
+      }
+      // Every pair of them, in observation order; each block sees its terms in the order the
+      // elimination visits them.
+      for (size_t m = 0; m < obs.size(); ++m) {
+        const int fa = w_.obs_free[obs[m]];
+        const Mat63& Y = w_.Y[m];
+        subtract(w_.blocks[fa].data(), Y.data(), w_.W[obs[m]].data());
+        for (size_t l = m + 1; l < obs.size(); ++l) {
+          const int fb = w_.obs_free[obs[l]];
+          const Mat63& Wb = w_.W[obs[l]];
           if (fb == fa) {  // two observations in one keyframe: both cross terms on its diagonal
-            w_.blocks[fa].noalias() -= Y * w_.W[b].transpose() + w_.W[b] * Y.transpose();
+            w_.blocks[fa].noalias() -= Y * Wb.transpose() + Wb * Y.transpose();
             continue;
           }
           if (iterative_) continue;
           // The block is stored once, as (min, max).
           if (fa < fb)
-            w_.blocks[w_.pair_blocks[pair]].noalias() -= Y * w_.W[b].transpose();
+            subtract(w_.blocks[w_.pair_blocks[pair]].data(), Y.data(), Wb.data());
           else
-            w_.blocks[w_.pair_blocks[pair]].noalias() -= w_.W[b] * Y.transpose();
+            subtract(w_.blocks[w_.pair_blocks[pair]].data(), Wb.data(), Y.data());
           ++pair;
         }
       }

@@ -32,6 +32,16 @@ void SchurProductSliceAvx2(const uint32_t* obs_start, const int* obs_free, const
                            const Eigen::Matrix3d* V_inv, const double* p, double* partial, size_t j0, size_t j1);
 #endif
 
+// One block of the reduced camera system less a product of two observations' blocks:
+// S (6x6) -= A B' for A, B 6x3 (all column-major). Each element is S - ((A0 B0 + A1 B1) + A2 B2)
+// with separate multiplies and adds, the order Eigen's product of fixed-size blocks takes, so
+// both variants give the same bits; the AVX variant (x86-64 only; callers check HasAvx2()) does
+// four rows at once.
+void SubtractBlockProduct(double* S, const double* A, const double* B);
+#if defined(__x86_64__)
+void SubtractBlockProductAvx(double* S, const double* A, const double* B);
+#endif
+
 using SchurWorkspacePtr = std::unique_ptr<SchurWorkspace, SchurWorkspaceDeleter>;
 [[nodiscard]] SchurWorkspacePtr MakeSchurWorkspace();
 
