@@ -249,8 +249,10 @@ void Map::UpdatePointStats(PointHandle p, const MapScales& scales) {
   MapPoint& point = points_.get(p);
   if (point.observations.empty()) return;
   Eigen::Vector3d normal = Eigen::Vector3d::Zero();
-  std::vector<const Descriptor*> descriptors;
-  descriptors.reserve(point.observations.size());
+  // Buffers reused across calls: local mapping updates thousands of points per keyframe.
+  thread_local std::vector<const Descriptor*> descriptors;
+  thread_local std::vector<int> distances, row;
+  descriptors.clear();
   for (const Observation& o : point.observations) {
     const KeyFrame& frame = keyframes_.get(o.keyframe);
     normal += (point.position - frame.camera_center()).normalized();
@@ -273,13 +275,20 @@ void Map::UpdatePointStats(PointHandle p, const MapScales& scales) {
   point.max_distance = distance * level_scale;
   point.min_distance = point.max_distance / std::pow(scales.scale_factor, static_cast<float>(scales.levels - 1));
 
-  // Representative descriptor: least median distance to the others.
+  // Representative descriptor: least median distance to the others. Distances are symmetric:
+  // each pair is measured once.
   const size_t n = descriptors.size();
+  distances.resize(n * n);
+  for (size_t i = 0; i < n; ++i) {
+    distances[i * n + i] = 0;
+    for (size_t j = i + 1; j < n; ++j)
+      distances[i * n + j] = distances[j * n + i] = DescriptorDistance(*descriptors[i], *descriptors[j]);
+  }
   int best_median = 1 << 30;
-  std::vector<int> row(n);
+  row.resize(n);
   const size_t k = (n - 1) / 2;
   for (size_t i = 0; i < n; ++i) {
-    for (size_t j = 0; j < n; ++j) row[j] = DescriptorDistance(*descriptors[i], *descriptors[j]);
+    std::copy_n(distances.begin() + static_cast<std::ptrdiff_t>(i * n), n, row.begin());
     // The median beats the best so far only if more than k distances lie below it: counting them
     // is cheaper than selecting the median, and skips most candidates of a long-seen point.
     size_t below = 0;
