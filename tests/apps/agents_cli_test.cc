@@ -591,7 +591,7 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   // the move itself: 75-85 m here. The fit's residual is how much the server's map bent those
   // keyframes against the run's own shape (a correction is rigid, the merged map is adjusted as
   // a whole): 0.014-0.16 m in runs of this test, which is at times more than the run's own error
-  // (0.06-0.10 m since the synthetic textures were registered), so it is bounded against the move.
+  // (0.06-0.11 m since the synthetic textures were registered), so it is bounded against the move.
   const HeardCorrections corrections = listener.Heard();
   const AgentFrame frame = AgentFrameOf(ReadBytes(dir / "agent1_again.log"), corrections);
   EXPECT_GE(frame.moves, 1u) << ReadBytes(dir / "agent1_again.log");
