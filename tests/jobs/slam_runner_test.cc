@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <initializer_list>
 #include <optional>
 #include <sstream>
@@ -455,6 +456,26 @@ TEST(SlamRun, EurocHandheldStereoAtAHalfAndAQuarterOfTheFrameRate) {
   }
 }
 
+// Copies calib.txt from `source` to `target`, passing each line's 12 numbers (a 3x4 projection
+// matrix, row-major) through edit(name, numbers) on the way.
+void RewriteKittiCalibration(const std::filesystem::path& source, const std::filesystem::path& target,
+                             const std::function<void(const std::string& name, double* v)>& edit) {
+  std::ifstream in(source / "calib.txt");
+  std::ofstream out(target / "calib.txt");
+  out.precision(12);
+  for (std::string line; std::getline(in, line);) {
+    std::istringstream fields(line);
+    std::string name;
+    fields >> name;
+    double v[12];
+    for (double& x : v) fields >> x;
+    edit(name, v);
+    out << name;
+    for (double x : v) out << " " << x;
+    out << "\n";
+  }
+}
+
 // A KITTI sequence with every image scaled by `factor` (area-averaged) and the projection
 // matrices scaled to match (pixel centres kept): the same scene seen by a smaller camera.
 std::filesystem::path KittiResized(const std::string& sequence, double factor) {
@@ -478,25 +499,14 @@ std::filesystem::path KittiResized(const std::string& sequence, double factor) {
   }
   // P = K [I | t]: rows 0 and 1 scale (focal lengths, fx * baseline), principal points move
   // with the pixel centres.
-  std::ifstream in(source / "calib.txt");
-  std::ofstream out(target / "calib.txt");
-  out.precision(12);
-  for (std::string line; std::getline(in, line);) {
-    std::istringstream fields(line);
-    std::string name;
-    fields >> name;
-    out << name;
-    double v[12];
-    for (int k = 0; k < 12; ++k) fields >> v[k];
+  RewriteKittiCalibration(source, target, [&](const std::string&, double* v) {
     for (int k = 0; k < 4; ++k) {
       v[k] *= factor;
       v[4 + k] *= factor;
     }
     v[2] += 0.5 * factor - 0.5;  // c' = (c + 0.5) f - 0.5, with P[0][2], P[1][2] = cx, cy (P[2][2] = 1)
     v[6] += 0.5 * factor - 0.5;
-    for (double x : v) out << " " << x;
-    out << "\n";
-  }
+  });
   return target;
 }
 
@@ -551,22 +561,10 @@ std::filesystem::path KittiReversedOrMirrored(const std::string& sequence, bool 
 
   // calib.txt: a mirror moves each principal point to width - 1 - cx; P1 keeps its -fx * baseline.
   double baseline_m = 0;
-  std::ifstream calib_in(source / "calib.txt");
-  std::ofstream calib_out(target / "calib.txt");
-  calib_out.precision(12);
-  for (std::string line; std::getline(calib_in, line);) {
-    std::istringstream fields(line);
-    std::string name;
-    fields >> name;
-    double v[12];
-    for (double& x : v) fields >> x;
+  RewriteKittiCalibration(source, target, [&](const std::string& name, double* v) {
     if (name == "P1:") baseline_m = -v[3] / v[0];
     if (mirror) v[2] = (width - 1) - v[2];
-    calib_out << name;
-    for (double x : v) calib_out << " " << x;
-    calib_out << "\n";
-  }
-  calib_out.close();
+  });
 
   std::ofstream times_out(target / "times.txt"), poses_out(root / "poses" / (sequence + ".txt"));
   poses_out.precision(12);
