@@ -65,6 +65,14 @@ Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 
   return out;
 }
 
+// The index of the first frame that tracking gave a pose (the end of the start).
+size_t FirstTracked(const SlamRunResult& run) {
+  size_t first = run.reports.size();
+  for (const FrameReport& r : run.reports)
+    if (r.state == TrackingState::kOk) first = std::min(first, r.index);
+  return first;
+}
+
 TEST(SlamRun, StereoRoomTracksEveryFrameBelowOnePercent) {
   const Outcome o = RunAndScore("synth:room:duration=15,width=480,height=360", false);
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size());
@@ -525,9 +533,7 @@ TEST(SlamRun, KittiAtThreeQuartersAndHalfTheResolution) {
     EXPECT_NEAR(stereo.sim3.alignment.scale, 1.0, 0.01) << factor;
     if (factor < 0.75) continue;
     const Outcome mono = RunAndScore(seq, false, 0, Sensor::kMonocular);
-    size_t first_tracked = mono.run.reports.size();
-    for (const FrameReport& r : mono.run.reports)
-      if (r.state == TrackingState::kOk) first_tracked = std::min(first_tracked, r.index);
+    const size_t first_tracked = FirstTracked(mono.run);
     EXPECT_LE(first_tracked, 5u) << factor;
     EXPECT_EQ(mono.run.trajectory.size(), mono.run.reports.size() - first_tracked) << factor;
     EXPECT_LT(mono.sim3.ate_m.rmse, 0.02 * mono.path_m) << factor;
@@ -621,9 +627,7 @@ TEST(SlamRun, KittiDrivenBackwardAndInAMirror) {
 
     const Outcome mono =
         RunAndScore(KittiReversedOrMirrored("07", reverse, mirror).string(), false, 0, Sensor::kMonocular);
-    size_t first_tracked = mono.run.reports.size();
-    for (const FrameReport& r : mono.run.reports)
-      if (r.state == TrackingState::kOk) first_tracked = std::min(first_tracked, r.index);
+    const size_t first_tracked = FirstTracked(mono.run);
     EXPECT_LE(first_tracked, 10u) << what;
     EXPECT_EQ(mono.run.trajectory.size(), mono.run.reports.size() - first_tracked) << what;
     EXPECT_LT(mono.sim3.ate_m.rmse, 0.005 * mono.path_m) << what;
@@ -633,9 +637,7 @@ TEST(SlamRun, KittiDrivenBackwardAndInAMirror) {
 TEST(SlamRun, KittiMonocularSnippet) {
   const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "07";
   const Outcome o = RunAndScore(seq.string(), false, 0);
-  size_t first_tracked = o.run.reports.size();
-  for (const FrameReport& r : o.run.reports)
-    if (r.state == TrackingState::kOk) first_tracked = std::min(first_tracked, r.index);
+  const size_t first_tracked = FirstTracked(o.run);
   EXPECT_LE(first_tracked, 10u);                                             // ORB-SLAM2 initializes at frame 5
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size() - first_tracked);  // nothing lost after that
   // Bar: 0.28 m after Sim(3) (ORB-SLAM2 0.283 m).
