@@ -115,12 +115,26 @@ void SetSlamOption(SlamOptions* options, std::string_view key, std::string_view 
   if (!found) Fail(where, ": unknown option '", key, "' (flatslam run --list-options prints every option)");
 }
 
-void ApplySlamSetting(SlamOptions* options, std::string_view setting) {
+namespace {
+
+// Sets "KEY=VALUE" without checking the options' ranges (the caller checks them once all
+// settings it was given are in, so that related values may change together).
+void SetFromSetting(SlamOptions* options, std::string_view setting) {
   const size_t eq = setting.find('=');
   FLATSLAM_CHECK(eq != std::string_view::npos, "--set: expected KEY=VALUE, got '", setting, "'");
   SetSlamOption(options, setting.substr(0, eq), setting.substr(eq + 1), "--set");
-  const std::string problem = options->Problem();
-  FLATSLAM_CHECK(problem.empty(), "--set ", setting, ": out of range (", problem, " does not hold)");
+}
+
+void CheckSettingsRange(const SlamOptions& options, std::string_view settings) {
+  const std::string problem = options.Problem();
+  FLATSLAM_CHECK(problem.empty(), "--set ", settings, ": out of range (", problem, " does not hold)");
+}
+
+}  // namespace
+
+void ApplySlamSetting(SlamOptions* options, std::string_view setting) {
+  SetFromSetting(options, setting);
+  CheckSettingsRange(*options, setting);
 }
 
 void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options) {
@@ -164,13 +178,19 @@ void ApplySlamOptionSources(SlamOptions* options, const OrbSettings* settings, S
       SetSlamOption(options, key, value, settings->file.string());
   if (features != 0) options->orb.features = features;
   if (!config.empty()) LoadSlamConfig(config, options);
+  // Every --set first, then one range check: lowering both FAST thresholds, say, works in either
+  // order, where a check after each value would refuse the first that passes the other.
+  std::string applied;
   for (const std::string& settings_list : set) {
     for (size_t pos = 0; pos <= settings_list.size();) {
       const size_t comma = std::min(settings_list.find(',', pos), settings_list.size());
-      ApplySlamSetting(options, std::string_view(settings_list).substr(pos, comma - pos));
+      const std::string_view setting = std::string_view(settings_list).substr(pos, comma - pos);
+      SetFromSetting(options, setting);
+      applied += (applied.empty() ? "" : ",") + std::string(setting);
       pos = comma + 1;
     }
   }
+  if (!applied.empty()) CheckSettingsRange(*options, applied);
 }
 
 }  // namespace flatslam

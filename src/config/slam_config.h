@@ -33,8 +33,9 @@ void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options);
 
 // Applies the option sources of a run in their order (later wins): an ORB-SLAM2/3 settings
 // file's ORB and depth options for `sensor` (may be null), `features` when non-zero (--features),
-// a config file (may be empty), then each "KEY=VALUE,..." of `set` (--set). Errors name the
-// source: the settings or config file and line, or --set.
+// a config file (may be empty), then each "KEY=VALUE,..." of `set` (--set), whose ranges are
+// checked once all of them are in. Errors name the source: the settings or config file and line,
+// or --set.
 void ApplySlamOptionSources(SlamOptions* options, const OrbSettings* settings, Sensor sensor, int features,
                             const std::string& config, const std::vector<std::string>& set);
 

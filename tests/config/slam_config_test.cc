@@ -50,6 +50,26 @@ TEST(SlamConfig, SetsEveryKindOfOptionByName) {
   EXPECT_EQ(o.bundle_adjustment.solver, BundleAdjustmentOptions::Solver::kSchurLm);
 }
 
+// Related values change together: --set checks the ranges after its last setting, so lowering
+// both FAST thresholds works with the main one first (a check after each value refused it: 6
+// under the default floor of 7).
+TEST(SlamConfig, SetChecksRangesOnceEverySettingIsIn) {
+  SlamOptions o;
+  ApplySlamOptionSources(&o, nullptr, Sensor::kStereo, 0, "", {"orb.fast_threshold=6,orb.min_fast_threshold=2"});
+  EXPECT_EQ(o.orb.fast_threshold, 6);
+  EXPECT_EQ(o.orb.min_fast_threshold, 2);
+  SlamOptions p;
+  ApplySlamOptionSources(&p, nullptr, Sensor::kStereo, 0, "", {"orb.fast_threshold=6", "orb.min_fast_threshold=2"});
+  EXPECT_EQ(p.orb.min_fast_threshold, 2);
+  // What stays out of range when all are in is refused, naming every setting and the requirement.
+  SlamOptions q;
+  const std::string error = ErrorOf(
+      [&] { ApplySlamOptionSources(&q, nullptr, Sensor::kStereo, 0, "", {"orb.fast_threshold=6,local_keyframes=3"}); });
+  EXPECT_NE(error.find("--set orb.fast_threshold=6,local_keyframes=3: out of range (orb: min_fast_threshold"),
+            std::string::npos)
+      << error;
+}
+
 TEST(SlamConfig, ErrorsNameTheKeyAndWhatWasExpected) {
   SlamOptions o;
   EXPECT_NE(ErrorOf([&] { SetSlamOption(&o, "orb.featurez", "1"); }).find("unknown option 'orb.featurez'"),
