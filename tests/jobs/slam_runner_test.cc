@@ -28,6 +28,7 @@
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"
+#include "trajectory/trajectory_io.h"
 
 namespace flatslam {
 namespace {
@@ -556,12 +557,12 @@ std::filesystem::path KittiReversedOrMirrored(const std::string& sequence, bool 
   fs::create_directories(target);
   fs::create_directories(root / "poses");
   const bool stereo = fs::exists(source / "image_1");
-  std::vector<std::string> times, poses;
+  std::vector<std::string> times;
   {
-    std::ifstream times_in(source / "times.txt"), poses_in(kitti / "poses" / (sequence + ".txt"));
+    std::ifstream times_in(source / "times.txt");
     for (std::string line; std::getline(times_in, line);) times.push_back(line);
-    for (std::string line; std::getline(poses_in, line);) poses.push_back(line);
   }
+  const Trajectory poses = ReadKitti(kitti / "poses" / (sequence + ".txt"));
   const size_t n = std::min(times.size(), poses.size());
   const int width = cv::imread((source / "image_0" / "000000.png").string(), cv::IMREAD_UNCHANGED).cols;
 
@@ -572,8 +573,8 @@ std::filesystem::path KittiReversedOrMirrored(const std::string& sequence, bool 
     if (mirror) v[2] = (width - 1) - v[2];
   });
 
-  std::ofstream times_out(target / "times.txt"), poses_out(root / "poses" / (sequence + ".txt"));
-  poses_out.precision(12);
+  std::ofstream times_out(target / "times.txt");
+  Trajectory poses_out;
   for (size_t k = 0; k < n; ++k) {
     const size_t i = reverse ? n - 1 - k : k;
     char from[32], to[32];
@@ -593,21 +594,19 @@ std::filesystem::path KittiReversedOrMirrored(const std::string& sequence, bool 
       cv::imwrite((dir / to).string(), flipped);
     }
     times_out << times[k] << "\n";
-    std::istringstream fields(poses[i]);
-    Eigen::Matrix<double, 3, 4> T;
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 4; ++c) fields >> T(r, c);
+    TimedPose pose = poses[i];
     if (mirror) {
       // M T M with M = diag(-1, 1, 1) on rotation and translation; with stereo, the new left
       // camera is the old right one: one baseline along the mirrored camera's -x.
+      Eigen::Isometry3d& T = pose.T_world_cam;
       const Eigen::Matrix3d M = Eigen::Vector3d(-1, 1, 1).asDiagonal();
-      T.leftCols<3>() = M * T.leftCols<3>() * M;
-      T.col(3) = M * T.col(3);
-      if (stereo) T.col(3) -= baseline_m * T.col(0);
+      T.linear() = M * T.linear() * M;
+      T.translation() = M * T.translation();
+      if (stereo) T.translation() -= baseline_m * T.linear().col(0);
     }
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 4; ++c) poses_out << T(r, c) << (r == 2 && c == 3 ? "\n" : " ");
+    poses_out.push_back(pose);
   }
+  WriteKitti(root / "poses" / (sequence + ".txt"), poses_out);
   return target;
 }
 
