@@ -18,6 +18,9 @@ namespace flatslam {
 class FeatureGrid {
  public:
   void Build(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px = 24.0f);
+  // The same over the keypoints i with keep(i) only (queries return their indices into uv).
+  template <typename Keep>
+  void BuildWhere(std::span<const Eigen::Vector2f> uv, int width, int height, Keep keep, float cell_px = 24.0f);
   // Appends to out the keypoints (indices into the uv it was built from) within the square of
   // half-size r around (u, v), cell by cell, each cell's in keypoint order.
   void Query(float u, float v, float r, std::vector<uint32_t>* out) const;
@@ -28,7 +31,21 @@ class FeatureGrid {
   std::vector<uint32_t> cell_start_;  // cols_*rows_ + 1 offsets into indices_
   std::vector<uint32_t> indices_;
   std::vector<Eigen::Vector2f> uv_;  // uv[indices_[k]], read in order by queries
+  std::vector<uint32_t> cell_of_, fill_;  // build scratch, kept for its capacity
+
+  // Lays out the keypoints whose cell_of_ is not kSkipped, each cell's in index order.
+  void Layout(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px);
+  uint32_t CellOf(const Eigen::Vector2f& p) const;
+  static constexpr uint32_t kSkipped = ~uint32_t{0};
 };
+
+template <typename Keep>
+void FeatureGrid::BuildWhere(std::span<const Eigen::Vector2f> uv, int width, int height, Keep keep, float cell_px) {
+  cell_of_.assign(uv.size(), 0);
+  for (size_t i = 0; i < uv.size(); ++i)
+    if (!keep(i)) cell_of_[i] = kSkipped;
+  Layout(uv, width, height, cell_px);
+}
 
 struct TrackedFrame {
   size_t index = 0;

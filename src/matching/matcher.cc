@@ -308,8 +308,9 @@ std::vector<std::pair<uint32_t, uint32_t>> MatchForTriangulation(const KeyFrame&
   // a short search, the fuller grid search gave the lower trajectory error on KITTI 06 and the
   // synthetic town.
   const bool by_words = g.bf <= 0 && !kf1.bow_features.empty() && !kf2.bow_features.empty();
+  // Only kf2 keypoints without a map point can take a new one: the grid holds those alone.
   FeatureGrid grid2;
-  grid2.Build(kf2.uv, g.camera.width, g.camera.height);
+  grid2.BuildWhere(kf2.uv, g.camera.width, g.camera.height, [&](size_t i) { return kf2.points[i].is_null(); });
   std::vector<uint32_t> candidates, stamp(by_words ? 0 : kf2.size(), 0);
   uint32_t stamp_value = 0;
   constexpr double kBand = 12.0;  // pixels around the epipolar segment of the depth range
