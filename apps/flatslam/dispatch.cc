@@ -52,14 +52,16 @@ void PrintHelp(std::FILE* out) {
 namespace flatslam::app {
 
 int Dispatch(int argc, char** argv) {
-  // Pages the program frees go back to the system at once instead of staying cached in the
-  // allocator: a session that runs for hours keeps a flat resident set (measured on a 3,000-frame
-  // room run: +3.7% from lap 2 to the end, against +7.6% with mimalloc's defaults; no measurable
-  // change in frames/s). The environment (MIMALLOC_PAGE_RESET, MIMALLOC_DECOMMIT_DELAY) can
-  // still override both.
-  if (!std::getenv("MIMALLOC_PAGE_RESET")) mi_option_set(mi_option_page_reset, 1);
+  // Memory the program frees goes back to the system half a second after it was last used, so a
+  // session that runs for hours keeps a flat resident set, while the buffers every frame and
+  // keyframe frees and allocates again (pyramids, matching, bundle adjustment) are reused
+  // instead of being returned and faulted in again on the next frame: half a second covers
+  // several frames at the 10-30 Hz of the cameras supported and a keyframe's mapping. Returning
+  // pages at once (page reset, no delay) cost 20-40% of the run in page faults (room stereo 101
+  // against 140 frames/s); docs/STATUS.md has the figures, resident sets included. The
+  // environment (MIMALLOC_PAGE_RESET, MIMALLOC_DECOMMIT_DELAY) can still override both.
   if (!std::getenv("MIMALLOC_DECOMMIT_DELAY") && !std::getenv("MIMALLOC_RESET_DELAY"))
-    mi_option_set(mi_option_decommit_delay, 0);
+    mi_option_set(mi_option_decommit_delay, 500);
   std::vector<std::string> args(argv + 1, argv + argc);
   if (args.empty()) {
     PrintHelp(stderr);
