@@ -280,9 +280,13 @@ class Solver {
     std::vector<Eigen::Vector3d>& trial_points = w_.trial_points;
     trial_poses = *poses;
     trial_points = *points;
+    bool linearized = false;  // the normal equations are those of the current estimate
     for (int it = 0; it < iterations; ++it) {
       ++*iterations_done;
-      Linearize(*poses, *points);
+      // A rejected step leaves the estimate as it was: only the damping changes, so the blocks
+      // of the last linearization still hold (a quarter of the iterations on the motorway).
+      if (!linearized) Linearize(*poses, *points);
+      linearized = true;
       const double lambda = 1.0 / radius;
       bool solved = Solve(lambda);
       double trial_cost = std::numeric_limits<double>::infinity();
@@ -305,6 +309,7 @@ class Solver {
         for (size_t f = 0; f < w_.free_poses.size(); ++f) (*poses)[w_.free_poses[f]] = trial_poses[w_.free_poses[f]];
         for (size_t j = 0; j < w_.points.size(); ++j) (*points)[w_.points[j]] = trial_points[w_.points[j]];
         cost = trial_cost;
+        linearized = false;
         radius /= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * gain - 1.0, 3));
         radius = std::min(radius, 1e16);
         nu = 2;
