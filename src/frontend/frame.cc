@@ -6,36 +6,34 @@
 namespace flatslam {
 
 void FeatureGrid::Build(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px) {
-  cell_of_.assign(uv.size(), 0);
-  Layout(uv, width, height, cell_px);
+  Layout(uv, width, height, {}, cell_px);
 }
 
-uint32_t FeatureGrid::CellOf(const Eigen::Vector2f& p) const {
-  const int c = std::clamp(static_cast<int>(p.x() * inv_cell_), 0, cols_ - 1);
-  const int r = std::clamp(static_cast<int>(p.y() * inv_cell_), 0, rows_ - 1);
-  return static_cast<uint32_t>(r * cols_ + c);
-}
-
-void FeatureGrid::Layout(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px) {
+void FeatureGrid::Layout(std::span<const Eigen::Vector2f> uv, int width, int height, std::span<const uint8_t> keep,
+                         float cell_px) {
   inv_cell_ = 1.0f / cell_px;
   cols_ = std::max(1, static_cast<int>(std::ceil(width * inv_cell_)));
   rows_ = std::max(1, static_cast<int>(std::ceil(height * inv_cell_)));
   const size_t cells = static_cast<size_t>(cols_) * rows_;
+  constexpr uint32_t kSkipped = ~uint32_t{0};
+  std::vector<uint32_t> cell_of(uv.size(), kSkipped);
   cell_start_.assign(cells + 1, 0);
   size_t kept = 0;
   for (size_t i = 0; i < uv.size(); ++i) {
-    if (cell_of_[i] == kSkipped) continue;
-    cell_of_[i] = CellOf(uv[i]);
-    ++cell_start_[cell_of_[i] + 1];
+    if (!keep.empty() && !keep[i]) continue;
+    const int c = std::clamp(static_cast<int>(uv[i].x() * inv_cell_), 0, cols_ - 1);
+    const int r = std::clamp(static_cast<int>(uv[i].y() * inv_cell_), 0, rows_ - 1);
+    cell_of[i] = static_cast<uint32_t>(r * cols_ + c);
+    ++cell_start_[cell_of[i] + 1];
     ++kept;
   }
   for (size_t c = 0; c < cells; ++c) cell_start_[c + 1] += cell_start_[c];
   indices_.resize(kept);
   uv_.resize(kept);
-  fill_.assign(cell_start_.begin(), cell_start_.end() - 1);
+  std::vector<uint32_t> fill(cell_start_.begin(), cell_start_.end() - 1);
   for (size_t i = 0; i < uv.size(); ++i) {
-    if (cell_of_[i] == kSkipped) continue;
-    const uint32_t k = fill_[cell_of_[i]]++;
+    if (cell_of[i] == kSkipped) continue;
+    const uint32_t k = fill[cell_of[i]]++;
     indices_[k] = static_cast<uint32_t>(i);
     uv_[k] = uv[i];
   }

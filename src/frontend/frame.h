@@ -31,20 +31,18 @@ class FeatureGrid {
   std::vector<uint32_t> cell_start_;  // cols_*rows_ + 1 offsets into indices_
   std::vector<uint32_t> indices_;
   std::vector<Eigen::Vector2f> uv_;  // uv[indices_[k]], read in order by queries
-  std::vector<uint32_t> cell_of_, fill_;  // build scratch, kept for its capacity
 
-  // Lays out the keypoints whose cell_of_ is not kSkipped, each cell's in index order.
-  void Layout(std::span<const Eigen::Vector2f> uv, int width, int height, float cell_px);
-  uint32_t CellOf(const Eigen::Vector2f& p) const;
-  static constexpr uint32_t kSkipped = ~uint32_t{0};
+  // Lays out the keypoints i with keep[i] (all of them when keep is empty), each cell's in index
+  // order.
+  void Layout(std::span<const Eigen::Vector2f> uv, int width, int height, std::span<const uint8_t> keep,
+              float cell_px);
 };
 
 template <typename Keep>
 void FeatureGrid::BuildWhere(std::span<const Eigen::Vector2f> uv, int width, int height, Keep keep, float cell_px) {
-  cell_of_.assign(uv.size(), 0);
-  for (size_t i = 0; i < uv.size(); ++i)
-    if (!keep(i)) cell_of_[i] = kSkipped;
-  Layout(uv, width, height, cell_px);
+  std::vector<uint8_t> mask(uv.size());
+  for (size_t i = 0; i < uv.size(); ++i) mask[i] = keep(i) ? 1 : 0;
+  Layout(uv, width, height, mask, cell_px);
 }
 
 struct TrackedFrame {
