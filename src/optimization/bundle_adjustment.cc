@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "core/requirements.h"
 #include "optimization/bundle_adjustment_lm.h"
+#include "optimization/inverse_depth.h"
 #include "optimization/pose_optimizer.h"
 
 namespace flatslam {
@@ -20,62 +21,61 @@ constexpr double kMinDepth = 1e-6;
 
 using PoseBlock = std::array<double, detail::kPoseParameterSize>;
 
-// Reprojection residual of a point block in a pose block; stereo adds the right-image u.
+// Reprojection residual of a point block (in inverse depth with an anchor, see
+// optimization/inverse_depth.h, else in world coordinates) in a pose block; stereo adds the
+// right-image u.
 template <int kResiduals>
 class BaCost final : public ceres::SizedCostFunction<kResiduals, detail::kPoseParameterSize, 3> {
  public:
-  BaCost(const PinholeCamera& camera, double bf, const BundleAdjustmentObservation& obs)
-      : fx_(camera.fx),
-        fy_(camera.fy),
-        cx_(camera.cx),
-        cy_(camera.cy),
+  BaCost(const PinholeCamera& camera, double bf, const BundleAdjustmentObservation& obs,
+         const std::optional<detail::InverseDepthAnchor>& anchor)
+      : camera_(camera),
         bf_(bf),
         uv_(obs.uv),
         right_u_(obs.right_u),
-        sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))) {}
+        sqrt_info_(std::sqrt(static_cast<double>(obs.inv_sigma2))),
+        anchor_(anchor) {}
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
-    const Eigen::Map<const Eigen::Quaterniond> q(parameters[0]);
+    const Eigen::Matrix3d R = Eigen::Map<const Eigen::Quaterniond>(parameters[0]).toRotationMatrix();
     const Eigen::Map<const Eigen::Vector3d> t(parameters[0] + 4);
-    const Eigen::Map<const Eigen::Vector3d> X(parameters[1]);
-    const Eigen::Vector3d xc = q * X + t;
-    if (xc.z() <= kMinDepth) return false;  // the step crossed the image plane: reject it
-    const double inv_z = 1.0 / xc.z();
-    const double u = fx_ * xc.x() * inv_z + cx_;
-    const double v = fy_ * xc.y() * inv_z + cy_;
-    Eigen::Map<Eigen::Matrix<double, kResiduals, 1>> r(residuals);
-    r(0) = sqrt_info_ * (uv_.x() - u);
-    r(1) = sqrt_info_ * (uv_.y() - v);
-    if constexpr (kResiduals == 3) r(2) = sqrt_info_ * (right_u_ - (u - bf_ * inv_z));
-    if (!jacobians || (!jacobians[0] && !jacobians[1])) return true;
-    // Whitened, negated d(projection)/d(x_cam).
-    Eigen::Matrix<double, kResiduals, 3> Jp;
-    const double inv_z2 = inv_z * inv_z;
-    Jp.row(0) << fx_ * inv_z, 0, -fx_ * xc.x() * inv_z2;
-    Jp.row(1) << 0, fy_ * inv_z, -fy_ * xc.y() * inv_z2;
-    if constexpr (kResiduals == 3) Jp.row(2) << fx_ * inv_z, 0, -fx_ * xc.x() * inv_z2 + bf_ * inv_z2;
-    Jp *= -sqrt_info_;
+    const Eigen::Map<const Eigen::Vector3d> theta(parameters[1]);
+    const bool want_jacobians = jacobians && (jacobians[0] || jacobians[1]);
+    Eigen::Vector3d h;
+    Eigen::Matrix<double, kResiduals, 1> r;
+    Eigen::Matrix<double, kResiduals, 3> J;
+    // Behind the camera: the step crossed the image plane, reject it.
+    const double rho = anchor_ ? theta.z() : 1.0;
+    const Eigen::Vector3d q = anchor_ ? anchor_->Homogeneous(theta) : Eigen::Vector3d(theta);
+    if (!detail::ReprojectHomogeneous<kResiduals>(camera_, bf_, R, t, q, rho, uv_, right_u_, &h, &r,
+                                                  want_jacobians ? &J : nullptr))
+      return false;
+    Eigen::Map<Eigen::Matrix<double, kResiduals, 1>> residual(residuals);
+    residual = sqrt_info_ * r;
+    if (!want_jacobians) return true;
+    Eigen::Matrix<double, kResiduals, 6> J_pose;
+    Eigen::Matrix<double, kResiduals, 3> J_point;
+    detail::PointJacobians<kResiduals>(J, h, rho, bf_, R, t, anchor_ ? &*anchor_ : nullptr, &J_pose, &J_point);
+    // Residuals are measured - predicted, whitened.
     if (jacobians[0]) {
-      // Left perturbation: d x_cam / d delta = [-[x_cam]x, I].
-      Eigen::Matrix3d skew;
-      skew << 0, -xc.z(), xc.y(), xc.z(), 0, -xc.x(), -xc.y(), xc.x(), 0;
-      Eigen::Map<Eigen::Matrix<double, kResiduals, 7, Eigen::RowMajor>> J(jacobians[0]);
-      J.template leftCols<3>() = -Jp * skew;
-      J.template middleCols<3>(3) = Jp;
-      J.col(6).setZero();
+      Eigen::Map<Eigen::Matrix<double, kResiduals, 7, Eigen::RowMajor>> Jm(jacobians[0]);
+      Jm.template leftCols<6>() = -sqrt_info_ * J_pose;
+      Jm.col(6).setZero();
     }
     if (jacobians[1]) {
-      Eigen::Map<Eigen::Matrix<double, kResiduals, 3, Eigen::RowMajor>> J(jacobians[1]);
-      J = Jp * q.toRotationMatrix();
+      Eigen::Map<Eigen::Matrix<double, kResiduals, 3, Eigen::RowMajor>> Jm(jacobians[1]);
+      Jm = -sqrt_info_ * J_point;
     }
     return true;
   }
 
  private:
-  double fx_, fy_, cx_, cy_, bf_;
+  PinholeCamera camera_;
+  double bf_;
   Eigen::Vector2d uv_;
   double right_u_;
   double sqrt_info_;
+  std::optional<detail::InverseDepthAnchor> anchor_;  // none: a world point
 };
 
 // Left-image pixel error and unwhitened chi2 of one observation; nullopt behind the camera.
@@ -123,13 +123,33 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
 
   const size_t num_poses = poses->size();
   std::vector<uint8_t> pose_added(num_poses, 0), point_added(points->size(), 0);
+  // Points in inverse depth where options.inverse_depth_points asks, anchored as flatslam's
+  // solver anchors them: in the first camera, in observation order, that sees the point in front.
+  std::vector<uint8_t> measured_depth(points->size(), 0);
+  for (size_t i = 0; i < input.observations.size(); ++i)
+    if (active[i] && input.observations[i].right_u >= 0) measured_depth[input.observations[i].point_index] = 1;
+  std::vector<Eigen::Vector3d> theta = *points;
+  std::vector<std::optional<detail::InverseDepthAnchor>> anchors(points->size());
+  std::vector<uint8_t> anchored(points->size(), 0);
+  for (size_t i = 0; i < input.observations.size(); ++i) {
+    const BundleAdjustmentObservation& obs = input.observations[i];
+    if (!active[i] || anchored[obs.point_index]) continue;
+    if (options.inverse_depth_points == 0 || (options.inverse_depth_points == 1 && measured_depth[obs.point_index]))
+      continue;
+    const Eigen::Isometry3d& T = (*isometries)[obs.pose_index];
+    const Eigen::Vector3d& X = (*points)[obs.point_index];
+    if ((T * X).z() <= detail::kMinHomogeneousDepth) continue;
+    anchors[obs.point_index] = detail::InverseDepthAnchor::Of(T.linear(), T.translation());
+    theta[obs.point_index] = detail::ToInverseDepth(T.linear(), T.translation(), X);
+    anchored[obs.point_index] = 1;
+  }
   auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
   int residuals = 0;
   for (size_t i = 0; i < input.observations.size(); ++i) {
     if (!active[i]) continue;
     const BundleAdjustmentObservation& obs = input.observations[i];
     double* pose = (*poses)[obs.pose_index].data();
-    double* point = (*points)[obs.point_index].data();
+    double* point = theta[obs.point_index].data();
     if (!pose_added[obs.pose_index]) {
       pose_added[obs.pose_index] = 1;
       problem.AddParameterBlock(pose, detail::kPoseParameterSize, manifold.get());
@@ -141,10 +161,13 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
       problem.AddParameterBlock(point, 3);
       ordering->AddElementToGroup(point, 0);  // points are eliminated first (Schur complement)
     }
+    const std::optional<detail::InverseDepthAnchor>& anchor = anchors[obs.point_index];
     if (obs.right_u >= 0)
-      problem.AddResidualBlock(new BaCost<3>(input.camera, bf, obs), robust ? &loss_stereo : nullptr, pose, point);
+      problem.AddResidualBlock(new BaCost<3>(input.camera, bf, obs, anchor), robust ? &loss_stereo : nullptr, pose,
+                               point);
     else
-      problem.AddResidualBlock(new BaCost<2>(input.camera, bf, obs), robust ? &loss_mono : nullptr, pose, point);
+      problem.AddResidualBlock(new BaCost<2>(input.camera, bf, obs, anchor), robust ? &loss_mono : nullptr, pose,
+                               point);
     ++residuals;
   }
   if (residuals == 0) return true;
@@ -176,6 +199,11 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
   // Ceres leaves the parameters at the last accepted iterate even when it reports failure.
   for (size_t k = 0; k < blocks.size(); ++k)
     if (!input.poses[k].fixed) (*isometries)[k] = detail::ParametersToPose(blocks[k].data());
+  for (size_t j = 0; j < points->size(); ++j)
+    if (!anchored[j])
+      (*points)[j] = theta[j];
+    else
+      detail::FromInverseDepth(*anchors[j], theta[j], &(*points)[j]);
   return summary.IsSolutionUsable();
 }
 

@@ -60,6 +60,9 @@ struct BundleAdjustmentOptions {
   X(int, second_pass_iterations, 10, second_pass_iterations >= 0, "pass on inliers only (ORB-SLAM2: 10); 0 skips it") \
   FLATSLAM_OUTLIER_GATE_OPTIONS(X)                                                                                    \
   X(bool, robust_second_pass, false, true, "keep the robust kernel in the second pass (ORB-SLAM2 drops it)")          \
+  X(int, inverse_depth_points, 0, inverse_depth_points >= 0 && inverse_depth_points <= 2,                             \
+    "points adjusted in inverse depth (optimization/inverse_depth.h): 0 none (world coordinates), 1 those without a "  \
+    "stereo or depth observation, 2 all")                                                                             \
   X(int, dense_schur_max_poses, 40, dense_schur_max_poses >= 0,                                                       \
     "automatic linear solver: dense Schur up to this many free poses, else sparse")                                   \
   X(int, schur_lm_max_poses, 150, schur_lm_max_poses >= 0,                                                            \

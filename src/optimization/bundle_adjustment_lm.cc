@@ -24,6 +24,7 @@
 #include <Eigen/SparseCholesky>
 
 #include "core/cpu_features.h"
+#include "optimization/inverse_depth.h"
 
 namespace flatslam::detail {
 
@@ -34,7 +35,6 @@ struct PoseState {
 
 namespace {
 
-constexpr double kMinDepth = 1e-6;
 constexpr double kMinDiagonal = 1e-6;  // lower clamp of the LM scaling diagonal (as Ceres)
 constexpr double kMaxDiagonal = 1e32;
 // Conjugate gradients split their passes over the points into this many fixed slices, whatever
@@ -179,7 +179,12 @@ struct SchurWorkspace {
   std::vector<std::vector<Mat6, Eigen::aligned_allocator<Mat6>>> lin_U;  // linearization's, by slice
   std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> lin_b;
   std::vector<PoseState> state, trial_poses;
-  std::vector<Eigen::Vector3d> trial_points;
+  // Points by solver id (optimization/inverse_depth.h): parameters (inverse depth or world
+  // coordinates), trial parameters, anchors.
+  std::vector<Eigen::Vector3d> theta, trial_theta;
+  std::vector<InverseDepthAnchor> anchors;
+  std::vector<uint8_t> unanchored;                        // behind every camera that observes it: it stays where it is
+  std::vector<uint8_t> euclidean;                         // adjusted in world coordinates (theta = X, rho = 1)
   std::vector<Mat63, Eigen::aligned_allocator<Mat63>> Y;  // one point's W V^-1, by free observation
   std::vector<uint32_t> point_free_obs;                   // and those observations
 };
@@ -272,20 +277,22 @@ class Solver {
   bool Run(std::vector<PoseState>* poses, std::vector<Eigen::Vector3d>* points, int iterations, int* iterations_done,
            bool* stopped) {
     if (w_.obs.empty()) return true;
+    ToInverseDepth(*poses, *points);
+    std::vector<Eigen::Vector3d>& theta = w_.theta;
     double cost = 0;
-    if (!Cost(*poses, *points, &cost)) return false;
+    if (!Cost(*poses, theta, &cost)) return false;
     double radius = 1e4;  // trust region radius; the damping is 1 / radius (Ceres' defaults)
     double nu = 2;
     std::vector<PoseState>& trial_poses = w_.trial_poses;
-    std::vector<Eigen::Vector3d>& trial_points = w_.trial_points;
+    std::vector<Eigen::Vector3d>& trial_theta = w_.trial_theta;
     trial_poses = *poses;
-    trial_points = *points;
+    trial_theta = theta;
     bool linearized = false;  // the normal equations are those of the current estimate
     for (int it = 0; it < iterations; ++it) {
       ++*iterations_done;
       // A rejected step leaves the estimate as it was: only the damping changes, so the blocks
-      // of the last linearization still hold (a quarter of the iterations on the motorway).
-      if (!linearized) Linearize(*poses, *points);
+      // of the last linearization still hold.
+      if (!linearized) Linearize(*poses, theta);
       linearized = true;
       const double lambda = 1.0 / radius;
       bool solved = Solve(lambda);
@@ -297,9 +304,8 @@ class Solver {
           trial_poses[k].R = dR * (*poses)[k].R;
           trial_poses[k].t = dR * (*poses)[k].t + w_.delta_pose[f].tail<3>();
         }
-        for (size_t j = 0; j < w_.points.size(); ++j)
-          trial_points[w_.points[j]] = (*points)[w_.points[j]] + w_.delta_point[j];
-        solved = Cost(trial_poses, trial_points, &trial_cost);
+        for (size_t j = 0; j < w_.points.size(); ++j) trial_theta[j] = theta[j] + w_.delta_point[j];
+        solved = Cost(trial_poses, trial_theta, &trial_cost);
       }
       // Gain ratio against the decrease the damped linear model predicts.
       const double predicted = solved ? PredictedDecrease(lambda) : 0;
@@ -307,7 +313,8 @@ class Solver {
       if (solved && gain > 0 && std::isfinite(trial_cost)) {
         const double relative_decrease = (cost - trial_cost) / std::max(cost, 1e-300);
         for (size_t f = 0; f < w_.free_poses.size(); ++f) (*poses)[w_.free_poses[f]] = trial_poses[w_.free_poses[f]];
-        for (size_t j = 0; j < w_.points.size(); ++j) (*points)[w_.points[j]] = trial_points[w_.points[j]];
+        theta.swap(trial_theta);
+        trial_theta = theta;
         cost = trial_cost;
         linearized = false;
         radius /= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * gain - 1.0, 3));
@@ -324,31 +331,69 @@ class Solver {
         break;
       }
     }
+    FromInverseDepth(points);
     return true;
   }
 
  private:
-  // Projection of point X in pose k: camera point, residual (whitened by the octave) and its
-  // derivative w.r.t. the camera point. False behind the camera.
-  template <int N>
-  bool Residual(const PoseState& pose, const Eigen::Vector3d& X, const BundleAdjustmentObservation& o,
-                Eigen::Vector3d* xc, Eigen::Matrix<double, N, 1>* r, Eigen::Matrix<double, N, 3>* J) const {
-    *xc = pose.R * X + pose.t;
-    if (xc->z() <= kMinDepth) return false;
-    const double inv_z = 1.0 / xc->z();
-    const PinholeCamera& c = in_.camera;
-    const double u = c.fx * xc->x() * inv_z + c.cx;
-    const double v = c.fy * xc->y() * inv_z + c.cy;
-    (*r)(0) = o.uv.x() - u;
-    (*r)(1) = o.uv.y() - v;
-    if constexpr (N == 3) (*r)(2) = o.right_u - (u - bf_ * inv_z);
-    if (J) {
-      const double inv_z2 = inv_z * inv_z;
-      J->row(0) << c.fx * inv_z, 0, -c.fx * xc->x() * inv_z2;
-      J->row(1) << 0, c.fy * inv_z, -c.fy * xc->y() * inv_z2;
-      if constexpr (N == 3) J->row(2) << c.fx * inv_z, 0, -c.fx * xc->x() * inv_z2 + bf_ * inv_z2;
+  // Points are adjusted in inverse depth (optimization/inverse_depth.h) as
+  // options.inverse_depth_points asks, else in world coordinates. An inverse-depth point is
+  // anchored in the first camera that sees it in front as the pass begins. Every active
+  // observation does when a factorizing pass begins; the iterative one may start with points
+  // behind all their cameras, which keep their place and count as outliers.
+  void ToInverseDepth(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
+    const size_t n = w_.points.size();
+    w_.theta.resize(n);
+    w_.anchors.resize(n);
+    w_.unanchored.assign(n, 0);
+    w_.euclidean.assign(n, 0);
+    for (size_t j = 0; j < n; ++j) {
+      const Eigen::Vector3d& X = points[w_.points[j]];
+      bool measured_depth = false;
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a)
+        measured_depth = measured_depth || in_.observations[w_.obs[a]].right_u >= 0;
+      if (options_.inverse_depth_points == 0 || (options_.inverse_depth_points == 1 && measured_depth)) {
+        w_.euclidean[j] = 1;
+        w_.anchors[j] = {Eigen::Matrix3d::Identity(), Eigen::Vector3d::Zero()};
+        w_.theta[j] = X;
+        continue;
+      }
+      w_.unanchored[j] = 1;
+      w_.theta[j] = Eigen::Vector3d(0, 0, 1);
+      w_.anchors[j] = InverseDepthAnchor::Of(poses[0].R, poses[0].t);
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const PoseState& pose = poses[in_.observations[w_.obs[a]].pose_index];
+        if ((pose.R * X + pose.t).z() <= kMinHomogeneousDepth) continue;
+        w_.anchors[j] = InverseDepthAnchor::Of(pose.R, pose.t);
+        w_.theta[j] = detail::ToInverseDepth(pose.R, pose.t, X);
+        w_.unanchored[j] = 0;
+        break;
+      }
     }
-    return true;
+  }
+
+  // Back to world points; one the pass moved to or beyond infinity keeps the position it came with.
+  void FromInverseDepth(std::vector<Eigen::Vector3d>* points) const {
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      if (w_.euclidean[j])
+        (*points)[w_.points[j]] = w_.theta[j];
+      else if (!w_.unanchored[j])
+        detail::FromInverseDepth(w_.anchors[j], w_.theta[j], &(*points)[w_.points[j]]);
+    }
+  }
+
+  // rho of point j's parameters (1 for a point in world coordinates).
+  [[nodiscard]] double InverseDepthOf(size_t j, const Eigen::Vector3d& theta) const {
+    return w_.euclidean[j] ? 1.0 : theta.z();
+  }
+
+  // Point j's reprojection in pose; false where it is behind the camera (or unanchored).
+  template <int N>
+  bool Residual(const PoseState& pose, size_t j, const Eigen::Vector3d& q, double rho,
+                const BundleAdjustmentObservation& o, Eigen::Vector3d* h, Eigen::Matrix<double, N, 1>* r,
+                Eigen::Matrix<double, N, 3>* J) const {
+    if (w_.unanchored[j]) return false;
+    return ReprojectHomogeneous<N>(in_.camera, bf_, pose.R, pose.t, q, rho, o.uv, o.right_u, h, r, J);
   }
 
   [[nodiscard]] double Delta(const BundleAdjustmentObservation& o) const {
@@ -360,26 +405,29 @@ class Solver {
   // gate does, as the outlier it will be classified. A whole merged map starts far from its
   // minimum; its full steps put a few weakly constrained points behind a camera, and rejecting
   // each such step would stall the adjustment on them while every other point waits.
-  bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points, double* cost) const {
+  bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta, double* cost) const {
     double sum = 0;
-    for (uint32_t i : w_.obs) {
-      const BundleAdjustmentObservation& o = in_.observations[i];
-      Eigen::Vector3d xc;
-      double s = 0;
-      bool in_front = true;
-      if (o.right_u >= 0) {
-        Eigen::Vector3d r;
-        in_front = Residual<3>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr);
-        s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_stereo;
-      } else {
-        Eigen::Vector2d r;
-        in_front = Residual<2>(poses[o.pose_index], points[o.point_index], o, &xc, &r, nullptr);
-        s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_mono;
+    for (size_t j = 0; j < w_.points.size(); ++j) {
+      const Eigen::Vector3d q = w_.anchors[j].Homogeneous(theta[j]);
+      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+        const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
+        Eigen::Vector3d h;
+        double s = 0;
+        bool in_front = true;
+        if (o.right_u >= 0) {
+          Eigen::Vector3d r;
+          in_front = Residual<3>(poses[o.pose_index], j, q, InverseDepthOf(j, theta[j]), o, &h, &r, nullptr);
+          s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_stereo;
+        } else {
+          Eigen::Vector2d r;
+          in_front = Residual<2>(poses[o.pose_index], j, q, InverseDepthOf(j, theta[j]), o, &h, &r, nullptr);
+          s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_mono;
+        }
+        if (!in_front && !iterative_) return false;
+        double rho = 0, weight = 0;
+        Huber(s, Delta(o), robust_, &rho, &weight);
+        sum += rho;
       }
-      if (!in_front && !iterative_) return false;
-      double rho = 0, weight = 0;
-      Huber(s, Delta(o), robust_, &rho, &weight);
-      sum += rho;
     }
     *cost = 0.5 * sum;
     return std::isfinite(*cost);
@@ -387,28 +435,27 @@ class Solver {
 
   // Accumulates one observation's normal-equation blocks.
   template <int N>
-  void Accumulate(const PoseState& pose, const Eigen::Vector3d& X, const BundleAdjustmentObservation& o, int free,
-                  Eigen::Matrix3d* V, Eigen::Vector3d* bl, uint32_t a, Mat6* U, Vec6* b) {
-    Eigen::Vector3d xc;
+  void Accumulate(const PoseState& pose, size_t j, const Eigen::Vector3d& q, const Eigen::Vector3d& theta,
+                  const InverseDepthAnchor& anchor, const BundleAdjustmentObservation& o, int free, Eigen::Matrix3d* V,
+                  Eigen::Vector3d* bl, uint32_t a, Mat6* U, Vec6* b) {
+    Eigen::Vector3d h;
     Eigen::Matrix<double, N, 1> r;
     Eigen::Matrix<double, N, 3> J;
-    if (!Residual<N>(pose, X, o, &xc, &r, &J)) {
+    const double inv_depth = InverseDepthOf(j, theta);
+    if (!Residual<N>(pose, j, q, inv_depth, o, &h, &r, &J)) {
       w_.W[a].setZero();
       return;
     }
     double rho = 0, weight = 0;
     Huber(r.squaredNorm() * o.inv_sigma2, Delta(o), robust_, &rho, &weight);
     const double w = weight * o.inv_sigma2;
-    const Eigen::Matrix<double, N, 3> Jl = J * pose.R;
+    Eigen::Matrix<double, N, 3> Jl;
+    Eigen::Matrix<double, N, 6> Jp;
+    PointJacobians<N>(J, h, inv_depth, bf_, pose.R, pose.t, w_.euclidean[j] ? nullptr : &anchor,
+                      free < 0 ? nullptr : &Jp, &Jl);
     *V += w * Jl.transpose() * Jl;
     *bl += w * Jl.transpose() * r;
     if (free < 0) return;
-    // Left perturbation of T_cam_world: d xc / d [w, v] = [-[xc]x, I].
-    Eigen::Matrix<double, N, 6> Jp;
-    Jp.template rightCols<3>() = J;
-    Jp.col(0) = J.col(1) * -xc.z() + J.col(2) * xc.y();
-    Jp.col(1) = J.col(0) * xc.z() - J.col(2) * xc.x();
-    Jp.col(2) = J.col(1) * xc.x() - J.col(0) * xc.y();
     U[free].noalias() += w * Jp.transpose() * Jp;
     b[free].noalias() += w * Jp.transpose() * r;
     w_.W[a].noalias() = w * Jp.transpose() * Jl;
@@ -417,14 +464,14 @@ class Solver {
   // Normal-equation blocks at the current estimate. Conjugate gradients linearize on num_threads
   // over fixed slices of the points, each with its own pose blocks summed in slice order (the same
   // bits on any number of threads); the factorizing solvers in one pass.
-  void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
+  void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta) {
     const size_t nf = w_.free_poses.size();
     if (!iterative_) {
       for (size_t f = 0; f < nf; ++f) {
         w_.U[f].setZero();
         w_.b_pose[f].setZero();
       }
-      LinearizePoints(poses, points, 0, w_.points.size(), w_.U.data(), w_.b_pose.data());
+      LinearizePoints(poses, theta, 0, w_.points.size(), w_.U.data(), w_.b_pose.data());
       return;
     }
     w_.lin_U.resize(kSlices);
@@ -433,7 +480,7 @@ class Solver {
     auto slice = [&](size_t c) {
       w_.lin_U[c].assign(nf, Mat6::Zero());
       w_.lin_b[c].assign(nf, Vec6::Zero());
-      LinearizePoints(poses, points, num_points * c / kSlices, num_points * (c + 1) / kSlices, w_.lin_U[c].data(),
+      LinearizePoints(poses, theta, num_points * c / kSlices, num_points * (c + 1) / kSlices, w_.lin_U[c].data(),
                       w_.lin_b[c].data());
     };
     RunSlices(slice);
@@ -448,19 +495,20 @@ class Solver {
   }
 
   // Points [j0, j1): their blocks, and their observations' pose blocks added to U and b.
-  void LinearizePoints(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points, size_t j0,
+  void LinearizePoints(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta, size_t j0,
                        size_t j1, Mat6* U, Vec6* b) {
     for (size_t j = j0; j < j1; ++j) {
       Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
       Eigen::Vector3d bl = Eigen::Vector3d::Zero();
-      const Eigen::Vector3d& X = points[w_.points[j]];
+      const Eigen::Vector3d q = w_.anchors[j].Homogeneous(theta[j]);
+      const InverseDepthAnchor& anchor = w_.anchors[j];
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
         const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
         const int free = w_.free_id[o.pose_index];
         if (o.right_u >= 0)
-          Accumulate<3>(poses[o.pose_index], X, o, free, &V, &bl, a, U, b);
+          Accumulate<3>(poses[o.pose_index], j, q, theta[j], anchor, o, free, &V, &bl, a, U, b);
         else
-          Accumulate<2>(poses[o.pose_index], X, o, free, &V, &bl, a, U, b);
+          Accumulate<2>(poses[o.pose_index], j, q, theta[j], anchor, o, free, &V, &bl, a, U, b);
       }
       w_.V[j] = V;
       w_.b_point[j] = bl;

@@ -6,6 +6,9 @@
 #include <random>
 #include <span>
 #include <cstring>
+#include <set>
+#include <string>
+#include <utility>
 
 #include <gtest/gtest.h>
 
@@ -194,11 +197,13 @@ TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
 // reaches (to far below the noise), mono and stereo; their products split over threads give the
 // same bits whatever the number of threads.
 TEST(LocalBundleAdjustment, IterativeSchurReachesTheFactorizationsMinimum) {
-  for (bool stereo : {false, true}) {
+  for (const auto& [stereo, inverse_depth] : {std::pair{false, 0}, {false, 2}, {true, 0}, {true, 1}, {true, 2}}) {
+    SCOPED_TRACE("inverse_depth_points " + std::to_string(inverse_depth));
     const BaScene scene = MakeScene(30, 1500, 0.05, stereo, stereo ? 61 : 60);
     BundleAdjustmentProblem direct = Perturbed(scene.truth, 14);
     BundleAdjustmentProblem iterative = direct, threaded = direct;
     BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
+    options.inverse_depth_points = inverse_depth;
     options.first_pass_iterations = 10;
     options.second_pass_iterations = 20;
     options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
@@ -208,7 +213,14 @@ TEST(LocalBundleAdjustment, IterativeSchurReachesTheFactorizationsMinimum) {
     options.num_threads = 3;
     const BundleAdjustmentResult rt = LocalBundleAdjustment(threaded, options);
     ASSERT_TRUE(rd.success && ri.success && rt.success);
-    EXPECT_EQ(rd.outlier, ri.outlier) << (stereo ? "stereo" : "mono");
+    // The same outliers, but on at most one point: with a robust cost a point whose observations
+    // include a gross error can have two local minima, each keeping a different subset of its
+    // observations (in the monocular scene one point of 1500 does: each solve keeps another pair
+    // of its four, 0.35 m apart along its ray).
+    std::set<uint32_t> reclassified;
+    for (size_t i = 0; i < rd.outlier.size(); ++i)
+      if (rd.outlier[i] != ri.outlier[i]) reclassified.insert(direct.observations[i].point_index);
+    EXPECT_LE(reclassified.size(), 1u) << (stereo ? "stereo" : "mono");
     EXPECT_NEAR(rd.final_rmse_px, ri.final_rmse_px, 1e-3 * scene.noise_rmse_px);
     EXPECT_LT(ri.final_rmse_px, 1.05 * scene.noise_rmse_px);
     // Against the truth: the iterative solve's camera centres as close as the direct one's (the
@@ -317,11 +329,13 @@ TEST(ReducedCameraSystem, BlockUpdateKernelsGiveTheWrittenOutProductsBits) {
 // The fast path against the reference: both solvers reach the same minimum (same outliers, same
 // poses and points to well under the noise), mono and stereo, from the same perturbed start.
 TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
-  for (bool stereo : {false, true}) {
+  for (const auto& [stereo, inverse_depth] : {std::pair{false, 0}, {false, 2}, {true, 0}, {true, 1}, {true, 2}}) {
+    SCOPED_TRACE("inverse_depth_points " + std::to_string(inverse_depth));
     const BaScene scene = MakeScene(12, 1500, 0.05, stereo, stereo ? 51 : 50);
     BundleAdjustmentProblem fast = Perturbed(scene.truth, 12);
     BundleAdjustmentProblem reference = fast;
     BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
+    options.inverse_depth_points = inverse_depth;
     options.first_pass_iterations = 20;  // run both to convergence
     options.second_pass_iterations = 40;
     const BundleAdjustmentResult rf = LocalBundleAdjustment(fast, options);
@@ -334,18 +348,29 @@ TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
     for (size_t k = 0; k < fast.poses.size(); ++k)
       max_pose = std::max(
           max_pose, (CameraCentre(fast.poses[k].T_cam_world) - CameraCentre(reference.poses[k].T_cam_world)).norm());
+    EXPECT_LT(max_pose, 2e-4) << (stereo ? "stereo" : "mono");
     // Points seen in at least two keyframes after outlier removal (one view leaves a mono depth
     // free: each solver's damping settles it differently). Both stop at a relative cost decrease
-    // of 1e-6, so weakly constrained points stop at slightly different places: the bulk must
-    // agree to 0.1 mm and every point to well under its own uncertainty (centimetres at 5 m).
+    // of 1e-6, so weakly constrained points stop at slightly different depths along their rays,
+    // where the cost is flattest (millimetres, against their centimetres of error at 5 m): what
+    // the observations measure, their projections, must agree to a hundredth of a pixel (the
+    // noise is one), and every point to well under its own uncertainty.
     std::vector<int> views(fast.points.size(), 0);
     for (size_t i = 0; i < fast.observations.size(); ++i) views[fast.observations[i].point_index] += !rf.outlier[i];
-    std::vector<double> differences;
+    auto pixel = [](const BundleAdjustmentProblem& p, const BundleAdjustmentObservation& o) {
+      const Eigen::Vector3d x = p.poses[o.pose_index].T_cam_world * p.points[o.point_index];
+      return Eigen::Vector2d(p.camera.fx * x.x() / x.z(), p.camera.fy * x.y() / x.z());
+    };
+    std::vector<double> pixel_differences;
+    for (size_t i = 0; i < fast.observations.size(); ++i) {
+      const BundleAdjustmentObservation& o = fast.observations[i];
+      if (!rf.outlier[i] && views[o.point_index] >= 2)
+        pixel_differences.push_back((pixel(fast, o) - pixel(reference, o)).norm());
+    }
+    std::sort(pixel_differences.begin(), pixel_differences.end());
+    EXPECT_LT(pixel_differences[pixel_differences.size() * 99 / 100], 0.01) << (stereo ? "stereo" : "mono");
     for (size_t j = 0; j < fast.points.size(); ++j)
-      if (views[j] >= 2) differences.push_back((fast.points[j] - reference.points[j]).norm());
-    std::sort(differences.begin(), differences.end());
-    max_point = differences.back();
-    EXPECT_LT(differences[differences.size() * 99 / 100], 1e-4) << (stereo ? "stereo" : "mono");
+      if (views[j] >= 2) max_point = std::max(max_point, (fast.points[j] - reference.points[j]).norm());
     EXPECT_LT(max_point, 0.05) << (stereo ? "stereo" : "mono");
   }
 }
@@ -372,6 +397,98 @@ TEST(LocalBundleAdjustment, StopEarlyEndsTheSolveAndKeepsItsProgress) {
     // Progress made before the stop is kept: the error fell well below its start.
     EXPECT_LT(rs.final_rmse_px, 0.5 * rs.initial_rmse_px);
     EXPECT_LE(rf.final_rmse_px, rs.final_rmse_px);
+  }
+}
+
+// Points in inverse depth (BundleAdjustmentOptions::inverse_depth_points). A motorway's window:
+// keyframes 2.5 m apart driving straight ahead, stereo on a road 5-20 m ahead, and points
+// 30-3000 m away seen only monocularly, along nearly parallel rays, each starting 10% off in depth
+// (as a far point triangulated from little parallax is). Their depth is all but unobservable: in
+// world coordinates the damped steps slide them by kilometres, often behind a camera, and the
+// solve runs out of iterations rejecting steps. In inverse depth it converges before its
+// iteration caps, to the noise level and to the minimum a solve started from the truth reaches.
+TEST(LocalBundleAdjustment, FarMonocularPointsConvergeWithoutSlidingAlongTheirRays) {
+  BundleAdjustmentProblem truth;
+  truth.camera = TestCamera();
+  truth.baseline_m = 0.54;
+  const double bf = truth.camera.fx * truth.baseline_m;
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> unit(0, 1);
+  std::normal_distribution<double> noise(0, 1);
+  const int num_keyframes = 12;
+  for (int k = 0; k < num_keyframes; ++k) {
+    Eigen::Isometry3d T_world_cam = Eigen::Isometry3d::Identity();
+    T_world_cam.translation() = Eigen::Vector3d(0.02 * std::sin(0.5 * k), 0, 2.5 * k);
+    truth.poses.push_back({T_world_cam.inverse(), k < 2});
+  }
+  std::vector<bool> far;
+  for (int j = 0; j < 600; ++j) {
+    const bool is_far = j % 3 != 0;
+    const double z = is_far ? 30 * std::pow(100.0, unit(rng)) : 5 + 2.5 * num_keyframes * unit(rng) + 15 * unit(rng);
+    const double x = (unit(rng) - 0.5) * (is_far ? 0.9 * z : 8.0), y = is_far ? -(0.1 + 0.3 * unit(rng)) * z : 1.6;
+    truth.points.emplace_back(x, y, z);
+    far.push_back(is_far);
+  }
+  double sum2 = 0;
+  int count = 0;
+  for (uint32_t j = 0; j < truth.points.size(); ++j) {
+    for (uint32_t k = 0; k < truth.poses.size(); ++k) {
+      const Eigen::Vector3d xc = truth.poses[k].T_cam_world * truth.points[j];
+      if (xc.z() < 3) continue;
+      const Eigen::Vector2d px(truth.camera.fx * xc.x() / xc.z() + truth.camera.cx,
+                               truth.camera.fy * xc.y() / xc.z() + truth.camera.cy);
+      if (px.x() < 0 || px.y() < 0 || px.x() >= truth.camera.width || px.y() >= truth.camera.height) continue;
+      BundleAdjustmentObservation o;
+      o.pose_index = k;
+      o.point_index = j;
+      o.uv = px + Eigen::Vector2d(noise(rng), noise(rng));
+      if (!far[j] && xc.z() < 20) o.right_u = px.x() - bf / xc.z() + noise(rng);
+      truth.observations.push_back(o);
+      sum2 += o.right_u >= 0 ? 3 : 2;
+      count += o.right_u >= 0 ? 3 : 2;
+    }
+  }
+  const double noise_rmse = std::sqrt(sum2 / count);
+  BundleAdjustmentProblem problem = truth;
+  for (size_t j = 0; j < problem.points.size(); ++j) {
+    const Eigen::Vector3d c = CameraCentre(truth.poses[0].T_cam_world);
+    problem.points[j] = c + (far[j] ? (unit(rng) < 0.5 ? 1.1 : 0.9) : 1.0) * (truth.points[j] - c);
+  }
+  for (size_t k = 2; k < problem.poses.size(); ++k) {
+    Eigen::Isometry3d T_world_cam = problem.poses[k].T_cam_world.inverse();
+    T_world_cam.translation() += 0.05 * RandomUnit(rng);
+    problem.poses[k].T_cam_world = T_world_cam.inverse();
+  }
+  const BundleAdjustmentProblem start = problem;
+  // World coordinates, for the record: the same window runs to its iteration caps.
+  BundleAdjustmentProblem world = start;
+  const BundleAdjustmentResult rw = LocalBundleAdjustment(world, BundleAdjustmentOptions{});
+  std::printf("  world coordinates: %d iterations\n", rw.iterations);
+  // The far points have no stereo observation, so both inverse-depth settings cover them.
+  for (int inverse_depth : {1, 2}) {
+    SCOPED_TRACE("inverse_depth_points " + std::to_string(inverse_depth));
+    BundleAdjustmentOptions options;
+    options.inverse_depth_points = inverse_depth;
+    problem = start;
+    const BundleAdjustmentResult r = LocalBundleAdjustment(problem, options);
+    ASSERT_TRUE(r.success);
+    std::printf("  %d iterations (caps %d + %d), rmse %.3f -> %.3f px, %d outliers\n", r.iterations,
+                options.first_pass_iterations, options.second_pass_iterations, r.initial_rmse_px, r.final_rmse_px,
+                r.num_outliers);
+    EXPECT_LT(r.iterations, options.first_pass_iterations + options.second_pass_iterations);
+    EXPECT_LT(r.final_rmse_px, 1.05 * noise_rmse);
+    // The minimum the data holds, reached from the truth itself: the perturbed start gets there.
+    BundleAdjustmentProblem from_truth = truth;
+    ASSERT_TRUE(LocalBundleAdjustment(from_truth, options).success);
+    double max_apart = 0;
+    for (size_t k = 0; k < problem.poses.size(); ++k)
+      max_apart =
+          std::max(max_apart,
+                   (CameraCentre(problem.poses[k].T_cam_world) - CameraCentre(from_truth.poses[k].T_cam_world)).norm());
+    std::printf("  camera centres %.2f mm from the minimum reached from the truth\n", 1e3 * max_apart);
+    EXPECT_LT(max_apart, 1e-3);
+    // The chi-square gate passes 95% of true observations.
+    EXPECT_LT(r.num_outliers, static_cast<int>(0.06 * problem.observations.size()));
   }
 }
 
