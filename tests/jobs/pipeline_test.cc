@@ -326,8 +326,13 @@ TEST(FramePipeline, BackgroundJobsRunInPostOrderAlongsideFrames) {
   FramePipeline<Item> pipeline;
   auto mapping = pipeline.add_background_stage<size_t>("mapping", [&](size_t& job) {
     if (job == 0) {
+      // Holds the background node until frames have advanced past it, for up to 5 s: frames
+      // that cannot run beside a job time out here, and a machine loaded by other work still
+      // gives them the time they need.
       const size_t before = tracked.load();
-      std::this_thread::sleep_for(150ms);
+      const auto deadline = std::chrono::steady_clock::now() + 5s;
+      while (tracked.load() - before <= 10 && std::chrono::steady_clock::now() < deadline)
+        std::this_thread::sleep_for(1ms);
       progress_during_sleep.store(tracked.load() - before);
     } else {
       std::this_thread::sleep_for(std::chrono::microseconds(Mix(job) % 500));
