@@ -126,16 +126,16 @@ bool SolvePassCeres(const BundleAdjustmentProblem& input, const BundleAdjustment
   // Points in inverse depth where options.inverse_depth_points asks, anchored as flatslam's
   // solver anchors them: in the first camera, in observation order, that sees the point in front.
   std::vector<uint8_t> measured_depth(points->size(), 0);
-  for (size_t i = 0; i < input.observations.size(); ++i)
-    if (active[i] && input.observations[i].right_u >= 0) measured_depth[input.observations[i].point_index] = 1;
+  if (options.inverse_depth_points == 1)
+    for (size_t i = 0; i < input.observations.size(); ++i)
+      if (active[i] && input.observations[i].right_u >= 0) measured_depth[input.observations[i].point_index] = 1;
   std::vector<Eigen::Vector3d> theta = *points;
   std::vector<std::optional<detail::InverseDepthAnchor>> anchors(points->size());
   std::vector<uint8_t> anchored(points->size(), 0);
   for (size_t i = 0; i < input.observations.size(); ++i) {
     const BundleAdjustmentObservation& obs = input.observations[i];
     if (!active[i] || anchored[obs.point_index]) continue;
-    if (options.inverse_depth_points == 0 || (options.inverse_depth_points == 1 && measured_depth[obs.point_index]))
-      continue;
+    if (!detail::InInverseDepth(options.inverse_depth_points, measured_depth[obs.point_index])) continue;
     const Eigen::Isometry3d& T = (*isometries)[obs.pose_index];
     const Eigen::Vector3d& X = (*points)[obs.point_index];
     if ((T * X).z() <= detail::kMinHomogeneousDepth) continue;

@@ -277,7 +277,7 @@ class Solver {
   bool Run(std::vector<PoseState>* poses, std::vector<Eigen::Vector3d>* points, int iterations, int* iterations_done,
            bool* stopped) {
     if (w_.obs.empty()) return true;
-    ToInverseDepth(*poses, *points);
+    ToParameters(*poses, *points);
     std::vector<Eigen::Vector3d>& theta = w_.theta;
     double cost = 0;
     if (!Cost(*poses, theta, &cost)) return false;
@@ -331,7 +331,7 @@ class Solver {
         break;
       }
     }
-    FromInverseDepth(points);
+    FromParameters(points);
     return true;
   }
 
@@ -341,7 +341,7 @@ class Solver {
   // anchored in the first camera that sees it in front as the pass begins. Every active
   // observation does when a factorizing pass begins; the iterative one may start with points
   // behind all their cameras, which keep their place and count as outliers.
-  void ToInverseDepth(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
+  void ToParameters(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& points) {
     const size_t n = w_.points.size();
     w_.theta.resize(n);
     w_.anchors.resize(n);
@@ -350,11 +350,11 @@ class Solver {
     for (size_t j = 0; j < n; ++j) {
       const Eigen::Vector3d& X = points[w_.points[j]];
       bool measured_depth = false;
-      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a)
-        measured_depth = measured_depth || in_.observations[w_.obs[a]].right_u >= 0;
-      if (options_.inverse_depth_points == 0 || (options_.inverse_depth_points == 1 && measured_depth)) {
+      if (options_.inverse_depth_points == 1)
+        for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a)
+          measured_depth = measured_depth || in_.observations[w_.obs[a]].right_u >= 0;
+      if (!InInverseDepth(options_.inverse_depth_points, measured_depth)) {
         w_.euclidean[j] = 1;
-        w_.anchors[j] = {Eigen::Matrix3d::Identity(), Eigen::Vector3d::Zero()};
         w_.theta[j] = X;
         continue;
       }
@@ -373,7 +373,7 @@ class Solver {
   }
 
   // Back to world points; one the pass moved to or beyond infinity keeps the position it came with.
-  void FromInverseDepth(std::vector<Eigen::Vector3d>* points) const {
+  void FromParameters(std::vector<Eigen::Vector3d>* points) const {
     for (size_t j = 0; j < w_.points.size(); ++j) {
       if (w_.euclidean[j])
         (*points)[w_.points[j]] = w_.theta[j];
@@ -382,9 +382,11 @@ class Solver {
     }
   }
 
-  // rho of point j's parameters (1 for a point in world coordinates).
-  [[nodiscard]] double InverseDepthOf(size_t j, const Eigen::Vector3d& theta) const {
-    return w_.euclidean[j] ? 1.0 : theta.z();
+  // Point j's homogeneous world point q and its rho from its parameters (a world point: q = X,
+  // rho = 1).
+  [[nodiscard]] Eigen::Vector3d Homogeneous(size_t j, const Eigen::Vector3d& theta, double* rho) const {
+    *rho = w_.euclidean[j] ? 1.0 : theta.z();
+    return w_.euclidean[j] ? theta : w_.anchors[j].Homogeneous(theta);
   }
 
   // Point j's reprojection in pose; false where it is behind the camera (or unanchored).
@@ -408,7 +410,8 @@ class Solver {
   bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta, double* cost) const {
     double sum = 0;
     for (size_t j = 0; j < w_.points.size(); ++j) {
-      const Eigen::Vector3d q = w_.anchors[j].Homogeneous(theta[j]);
+      double inv_depth = 0;
+      const Eigen::Vector3d q = Homogeneous(j, theta[j], &inv_depth);
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
         const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
         Eigen::Vector3d h;
@@ -416,11 +419,11 @@ class Solver {
         bool in_front = true;
         if (o.right_u >= 0) {
           Eigen::Vector3d r;
-          in_front = Residual<3>(poses[o.pose_index], j, q, InverseDepthOf(j, theta[j]), o, &h, &r, nullptr);
+          in_front = Residual<3>(poses[o.pose_index], j, q, inv_depth, o, &h, &r, nullptr);
           s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_stereo;
         } else {
           Eigen::Vector2d r;
-          in_front = Residual<2>(poses[o.pose_index], j, q, InverseDepthOf(j, theta[j]), o, &h, &r, nullptr);
+          in_front = Residual<2>(poses[o.pose_index], j, q, inv_depth, o, &h, &r, nullptr);
           s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_mono;
         }
         if (!in_front && !iterative_) return false;
@@ -435,13 +438,12 @@ class Solver {
 
   // Accumulates one observation's normal-equation blocks.
   template <int N>
-  void Accumulate(const PoseState& pose, size_t j, const Eigen::Vector3d& q, const Eigen::Vector3d& theta,
-                  const InverseDepthAnchor& anchor, const BundleAdjustmentObservation& o, int free, Eigen::Matrix3d* V,
-                  Eigen::Vector3d* bl, uint32_t a, Mat6* U, Vec6* b) {
+  void Accumulate(const PoseState& pose, size_t j, const Eigen::Vector3d& q, double inv_depth,
+                  const BundleAdjustmentObservation& o, int free, Eigen::Matrix3d* V, Eigen::Vector3d* bl, uint32_t a,
+                  Mat6* U, Vec6* b) {
     Eigen::Vector3d h;
     Eigen::Matrix<double, N, 1> r;
     Eigen::Matrix<double, N, 3> J;
-    const double inv_depth = InverseDepthOf(j, theta);
     if (!Residual<N>(pose, j, q, inv_depth, o, &h, &r, &J)) {
       w_.W[a].setZero();
       return;
@@ -451,7 +453,7 @@ class Solver {
     const double w = weight * o.inv_sigma2;
     Eigen::Matrix<double, N, 3> Jl;
     Eigen::Matrix<double, N, 6> Jp;
-    PointJacobians<N>(J, h, inv_depth, bf_, pose.R, pose.t, w_.euclidean[j] ? nullptr : &anchor,
+    PointJacobians<N>(J, h, inv_depth, bf_, pose.R, pose.t, w_.euclidean[j] ? nullptr : &w_.anchors[j],
                       free < 0 ? nullptr : &Jp, &Jl);
     *V += w * Jl.transpose() * Jl;
     *bl += w * Jl.transpose() * r;
@@ -500,15 +502,15 @@ class Solver {
     for (size_t j = j0; j < j1; ++j) {
       Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
       Eigen::Vector3d bl = Eigen::Vector3d::Zero();
-      const Eigen::Vector3d q = w_.anchors[j].Homogeneous(theta[j]);
-      const InverseDepthAnchor& anchor = w_.anchors[j];
+      double inv_depth = 0;
+      const Eigen::Vector3d q = Homogeneous(j, theta[j], &inv_depth);
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
         const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
         const int free = w_.free_id[o.pose_index];
         if (o.right_u >= 0)
-          Accumulate<3>(poses[o.pose_index], j, q, theta[j], anchor, o, free, &V, &bl, a, U, b);
+          Accumulate<3>(poses[o.pose_index], j, q, inv_depth, o, free, &V, &bl, a, U, b);
         else
-          Accumulate<2>(poses[o.pose_index], j, q, theta[j], anchor, o, free, &V, &bl, a, U, b);
+          Accumulate<2>(poses[o.pose_index], j, q, inv_depth, o, free, &V, &bl, a, U, b);
       }
       w_.V[j] = V;
       w_.b_point[j] = bl;

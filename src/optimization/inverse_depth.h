@@ -39,6 +39,12 @@ struct InverseDepthAnchor {
   [[nodiscard]] Eigen::Vector3d Homogeneous(const Eigen::Vector3d& theta) const { return map * theta + offset; }
 };
 
+// Whether BundleAdjustmentOptions::inverse_depth_points (0 none, 1 points without a stereo or
+// depth observation, 2 all) puts a point in inverse depth.
+inline bool InInverseDepth(int inverse_depth_points, bool measured_depth) {
+  return inverse_depth_points == 2 || (inverse_depth_points == 1 && !measured_depth);
+}
+
 // theta of world point X in the anchor's camera (R, t); X must be in front of it.
 inline Eigen::Vector3d ToInverseDepth(const Eigen::Matrix3d& R, const Eigen::Vector3d& t, const Eigen::Vector3d& X) {
   const Eigen::Vector3d x = R * X + t;

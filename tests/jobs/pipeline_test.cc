@@ -321,7 +321,7 @@ TEST(FramePipeline, BackgroundJobsRunInPostOrderAlongsideFrames) {
   if (!HasTwoThreads()) GTEST_SKIP() << "needs at least two hardware threads";
   constexpr size_t kItems = 400;
   std::atomic<size_t> tracked{0};
-  std::atomic<size_t> progress_during_sleep{0};
+  std::atomic<size_t> progress_during_job{0};
   std::vector<size_t> done;  // written only by the serial background node
   FramePipeline<Item> pipeline;
   auto mapping = pipeline.add_background_stage<size_t>("mapping", [&](size_t& job) {
@@ -333,7 +333,7 @@ TEST(FramePipeline, BackgroundJobsRunInPostOrderAlongsideFrames) {
       const auto deadline = std::chrono::steady_clock::now() + 5s;
       while (tracked.load() - before <= 10 && std::chrono::steady_clock::now() < deadline)
         std::this_thread::sleep_for(1ms);
-      progress_during_sleep.store(tracked.load() - before);
+      progress_during_job.store(tracked.load() - before);
     } else {
       std::this_thread::sleep_for(std::chrono::microseconds(Mix(job) % 500));
     }
@@ -349,7 +349,7 @@ TEST(FramePipeline, BackgroundJobsRunInPostOrderAlongsideFrames) {
   EXPECT_EQ(stats.background_jobs, kItems / 10);
   ASSERT_EQ(done.size(), kItems / 10) << "run() returned before the background queue drained";
   for (size_t i = 0; i < done.size(); ++i) EXPECT_EQ(done[i], 10 * i);
-  EXPECT_GT(progress_during_sleep.load(), 10u) << "frames did not advance while a background job ran";
+  EXPECT_GT(progress_during_job.load(), 10u) << "frames did not advance while a background job ran";
   EXPECT_EQ(mapping.depth(), 0u);
 }
 
