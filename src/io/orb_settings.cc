@@ -89,6 +89,21 @@ bool IsRotation(const Eigen::Matrix3d& r) {
   return (r * r.transpose()).isApprox(Eigen::Matrix3d::Identity(), 1e-4) && r.determinant() > 0;
 }
 
+// What OpenCV's YAML parser found wrong, with the line: its parse errors carry
+// "FILE(LINE): REASON" where an exception's function name goes, and the parser's function name
+// as the error text ("skipSpaces").
+std::string ParseProblem(const cv::Exception& e) {
+  const std::string& where = e.func;
+  const size_t open = where.rfind('(', where.find("): "));
+  const size_t close = where.find("): ");
+  if (open != std::string::npos && close != std::string::npos && open < close) {
+    const std::string line = where.substr(open + 1, close - open - 1);
+    if (!line.empty() && std::all_of(line.begin(), line.end(), [](char c) { return c >= '0' && c <= '9'; }))
+      return "line " + line + ": " + where.substr(close + 3);
+  }
+  return e.err.empty() ? e.what() : e.err;
+}
+
 // The keys of one settings file with checked, typed access; errors name the file and the key.
 class SettingsFile {
  public:
@@ -103,7 +118,7 @@ class SettingsFile {
     try {
       storage_.open(path.string(), cv::FileStorage::READ);
     } catch (const cv::Exception& e) {
-      Fail("cannot parse settings file ", path.string(), ": ", e.err);
+      Fail("cannot parse settings file ", path.string(), ": ", ParseProblem(e));
     }
     FLATSLAM_CHECK(storage_.isOpened(), "cannot open settings file ", path.string());
     const cv::FileNode root = storage_.root();

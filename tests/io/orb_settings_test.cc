@@ -448,6 +448,13 @@ Camera1.overlappingBegin: 0
                       {"not found", "/nonexistent/settings.yaml"});
   ExpectErrorMentions([] { (void)ReadOrbSettings(WriteFile("broken.yaml", "%YAML:1.0\nCamera.fx: [1\n")); },
                       {"broken.yaml"});
+  // A tab after a value (YAML allows none outside comments) is named with its line.
+  ExpectErrorMentions(
+      [] {
+        (void)ReadOrbSettings(
+            WriteFile("tab.yaml", "%YAML:1.0\n# a comment with a tab\t\nCamera.fx: 500.0\nCamera.fy: 500.0\t\n"));
+      },
+      {"tab.yaml", "line 4", "Tabs"});
   ExpectErrorMentions(
       [] { (void)ReadOrbSettings(WriteFile("rgb.yaml", std::string(kOrbSlam2KittiStereo) + "Camera.RGB: 2\n")); },
       {"'Camera.RGB'"});
