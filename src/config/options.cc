@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <vector>
 
 #include "config/context.h"
 #include "core/error.h"
@@ -109,6 +110,19 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
     note("min_parallax_deg", text);
   }
   return o;
+}
+
+double SystemContext::CloseDepth(std::span<const float> depth) const {
+  const double fixed = CloseDepth();
+  if (monocular()) return fixed;
+  thread_local std::vector<float> measured;
+  measured.clear();
+  for (float d : depth)
+    if (d > 0) measured.push_back(d);
+  if (measured.size() <= kNearestCloseKeypoints) return fixed;
+  // Keypoints nearer than the returned depth are close: the kNearestCloseKeypoints nearest at least.
+  std::nth_element(measured.begin(), measured.begin() + kNearestCloseKeypoints, measured.end());
+  return std::max<double>(fixed, measured[kNearestCloseKeypoints]);
 }
 
 SystemContext::SystemContext(const Calibration& calibration_in, const SlamOptions& resolved,

@@ -127,7 +127,8 @@ KeyFrameHandle InsertKeyFrame(Map& map, LocalMappingState& state, const SystemCo
     if (std::any_of(obs.begin(), obs.end(), [&](const Observation& o) { return o.keyframe == h; })) continue;
     map.AddObservation(p, h, i);
   }
-  // New points from stereo/RGB-D depth: all close ones, and at least the 100 nearest.
+  // New points from stereo/RGB-D depth: all close ones, and at least the nearest
+  // kNearestCloseKeypoints.
   std::vector<uint32_t> by_depth;
   for (uint32_t i = 0; i < frame.size(); ++i)
     if (frame.keypoints.depth[i] > 0) by_depth.push_back(i);
@@ -136,7 +137,7 @@ KeyFrameHandle InsertKeyFrame(Map& map, LocalMappingState& state, const SystemCo
   const double close = all_depth_points ? 1e30 : context.CloseDepth();
   int considered = 0;
   for (uint32_t i : by_depth) {
-    if (frame.keypoints.depth[i] > close && considered > 100) break;
+    if (frame.keypoints.depth[i] > close && considered > static_cast<int>(kNearestCloseKeypoints)) break;
     ++considered;
     if (!frame.points[i].is_null()) continue;
     const PointHandle p = map.AddPoint(

@@ -319,7 +319,7 @@ struct Tracking {
       const MapPoint* point = map.points().try_get(p);
       if (point && static_cast<int>(point->observations.size()) >= min_observations) ++reference_points;
     }
-    const double close = context.CloseDepth();
+    const double close = context.CloseDepth(frame.keypoints.depth);
     int tracked_close = 0, untracked_close = 0;
     for (size_t i = 0; i < frame.size(); ++i) {
       const float d = frame.keypoints.depth[i];

@@ -91,6 +91,19 @@ TEST(SceneAccuracy, HighwayStereoWithNoisyImagesKeepsItsSpeedFromTheFirstFrame) 
   }
 }
 
+// A stereo rig with half the motorway's baseline (0.25 m): 35 baselines are 8.75 m, nearer than
+// 70 keypoints of a frame, and keyframes came only from the share of tracked points, 17 m apart;
+// the map held almost only points 100 m and more away (10 s: 11 keyframes, 0.73% of the path,
+// scale 1.025). The keyframe rule now counts at least a frame's 100 nearest keypoints as close.
+// Bar: the motorway's.
+TEST(SceneAccuracy, HighwayStereoWithAShortBaseline) {
+  const Outcome o = RunWithDefaults("synth:highway:duration=10,baseline=0.25");
+  EXPECT_EQ(o.first_tracked, 0u);
+  EXPECT_EQ(o.lost_after, 0u);
+  EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
+  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
+}
+
 // Every frame tracked from the first on, and the SE(3) ATE under `fraction` of the path.
 void ExpectEveryFrameWithin(const Outcome& o, double fraction) {
   EXPECT_EQ(o.first_tracked, 0u);

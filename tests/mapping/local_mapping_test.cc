@@ -80,6 +80,23 @@ TEST(LocalMapping, AKeyFrameGetsItsCloseDepthPointsAndAtLeastTheHundredNearest) 
   }
 }
 
+// A frame's close depth: the rig's (35 baselines) where at least 100 keypoints lie nearer, else
+// as far as its 100 nearest, which the keyframe rule then counts as close.
+TEST(LocalMapping, AFramesCloseDepthReachesItsHundredNearestKeypoints) {
+  const SystemContext context = MakeContext(Sensor::kRgbd);
+  std::vector<float> depth(200);
+  for (size_t i = 0; i < 200; ++i) depth[i] = 0.5f + 0.05f * static_cast<float>(199 - i);  // 46 under 2.8 m
+  depth[7] = -1;                                                                             // not measured
+  // The nearest 100 measured lie at 0.5-5.45 m; the 101st, at 5.5 m, bounds them.
+  EXPECT_NEAR(context.CloseDepth(depth), 5.5, 1e-6);
+  for (float& d : depth) d *= 0.25f;  // 184 under 2.8 m
+  EXPECT_DOUBLE_EQ(context.CloseDepth(depth), context.CloseDepth());
+  std::vector<float> few(depth.begin(), depth.begin() + 100);  // 100 measured or fewer: the rig's
+  for (float& d : few) d = 9.0f;
+  EXPECT_DOUBLE_EQ(context.CloseDepth(few), context.CloseDepth());
+  EXPECT_EQ(MakeContext(Sensor::kMonocular).CloseDepth(depth), 0.0);
+}
+
 TEST(LocalMapping, CullsKeyFramesWhosePointsOthersSeeAndKeepsTheProtectedOnes) {
   const SystemContext context = MakeContext(Sensor::kMonocular);
   Map map;
