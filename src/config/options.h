@@ -38,7 +38,8 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "RGB-D depth becomes a stereo measurement with this baseline (metres)")                                           \
   X(double, close_depth_baselines, 35, close_depth_baselines > 0,                                                     \
     "\"close\" points (reliable stereo depth) are nearer than this x baseline: created from one frame, counted "      \
-    "for keyframe decisions and culling; ORB-SLAM2 uses 35 for KITTI and EuRoC, 40 for TUM")                          \
+    "for keyframe decisions and culling; ORB-SLAM2 uses 35 for KITTI and EuRoC, 40 for TUM. New points and the "      \
+    "keyframe rule take at least a frame's 100 nearest keypoints as close (SystemContext::CloseDepth)")               \
   X(double, far_stereo_baselines, kFarStereoBaselines, far_stereo_baselines >= 0,                                     \
     "stereo keypoints deeper than this x baseline count as monocular observations in pose optimization and "          \
     "bundle adjustment (0: never): their disparity is a few pixels, where a tenth of a pixel of rectification "       \
