@@ -115,10 +115,7 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
 double SystemContext::CloseDepth(std::span<const float> depth) const {
   const double fixed = CloseDepth();
   if (monocular()) return fixed;
-  thread_local std::vector<float> measured;
-  measured.clear();
-  for (float d : depth)
-    if (d > 0) measured.push_back(d);
+  std::vector<float>& measured = MeasuredDepths(depth);
   if (measured.size() <= kNearestCloseKeypoints) return fixed;
   // Keypoints nearer than the returned depth are close: the kNearestCloseKeypoints nearest at least.
   std::nth_element(measured.begin(), measured.begin() + kNearestCloseKeypoints, measured.end());

@@ -5,6 +5,7 @@
 
 #include <limits>
 #include <span>
+#include <vector>
 
 #include <Eigen/Core>
 
@@ -15,6 +16,10 @@ namespace flatslam {
 
 // ORB-SLAM2's close-depth threshold for KITTI and EuRoC, in baselines: the default stereo cut.
 inline constexpr double kFarStereoBaselines = 35;
+
+// The measured (> 0) values of a frame's keypoint depths, in a buffer of the calling thread that
+// the next call reuses.
+[[nodiscard]] std::vector<float>& MeasuredDepths(std::span<const float> depth);
 
 // How stereo observations enter optimization. A stereo keypoint deeper than FarDepth() counts
 // as monocular: its disparity is a few pixels, where a tenth of a pixel of rectification error is

@@ -605,12 +605,17 @@ StereoDepthRule StereoDepthRule::ForRig(bool stereo, double baseline_m, double f
   return rule;
 }
 
-double StereoDepthRule::FarDepth(std::span<const float> depth) const {
-  if (!(fixed_far_m < std::numeric_limits<double>::infinity())) return fixed_far_m;
+std::vector<float>& MeasuredDepths(std::span<const float> depth) {
   thread_local std::vector<float> measured;
   measured.clear();
   for (float d : depth)
     if (d > 0) measured.push_back(d);
+  return measured;
+}
+
+double StereoDepthRule::FarDepth(std::span<const float> depth) const {
+  if (!(fixed_far_m < std::numeric_limits<double>::infinity())) return fixed_far_m;
+  std::vector<float>& measured = MeasuredDepths(depth);
   if (measured.empty()) return fixed_far_m;
   std::nth_element(measured.begin(), measured.begin() + measured.size() / 2, measured.end());
   return std::max<double>(fixed_far_m, measured[measured.size() / 2]);

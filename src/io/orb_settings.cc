@@ -94,9 +94,9 @@ bool IsRotation(const Eigen::Matrix3d& r) {
 // as the error text ("skipSpaces").
 std::string ParseProblem(const cv::Exception& e) {
   const std::string& where = e.func;
-  const size_t open = where.rfind('(', where.find("): "));
   const size_t close = where.find("): ");
-  if (open != std::string::npos && close != std::string::npos && open < close) {
+  const size_t open = close == std::string::npos ? std::string::npos : where.rfind('(', close);
+  if (open != std::string::npos) {
     const std::string line = where.substr(open + 1, close - open - 1);
     if (!line.empty() && std::all_of(line.begin(), line.end(), [](char c) { return c >= '0' && c <= '9'; }))
       return "line " + line + ": " + where.substr(close + 3);
