@@ -41,6 +41,18 @@ runs=(
   "synth:room 320x240|synth:room:width=320,height=240,fx=260${synth_duration}|rgbd|0 lost, ATE < 1% of path"
   "synth:handheld 10 Hz|synth:handheld:fps=10${synth_duration}|stereo|0 lost, ATE < 1% of path"
   "synth:handheld 10 Hz|synth:handheld:fps=10${synth_duration}|rgbd|0 lost, ATE < 1% of path"
+  # Other datasets' cameras on these scenes: EuRoC's (752x480, fx 458, 0.11 m, 20 Hz), TUM RGB-D's
+  # (640x480, fx 525, Kinect-class depth), KITTI's (1241x376, fx 718, 0.54 m, 10 Hz), and stereo
+  # rigs short for the motorway.
+  "synth:handheld EuRoC camera|synth:handheld:width=752,height=480,fx=458,baseline=0.11,fps=20${synth_duration}|stereo|0 lost, ATE < 1% of path"
+  "synth:handheld EuRoC camera|synth:handheld:width=752,height=480,fx=458,fps=20${synth_duration}|mono|< 1% lost"
+  "synth:handheld TUM camera SL|synth:handheld:fx=525,structured_light=1${synth_duration}|rgbd|0 lost, ATE < 1% of path"
+  "synth:handheld TUM camera|synth:handheld:fx=525${synth_duration}|mono|< 1% lost"
+  "synth:street KITTI camera|synth:street:width=1241,height=376,fx=718,baseline=0.54,fps=10${synth_duration}|stereo|ATE < 1% of path"
+  "synth:street KITTI camera|synth:street:width=1241,height=376,fx=718,fps=10${synth_duration}|mono|Sim(3) ATE < 1% of path"
+  "synth:highway 0.25 m rig|synth:highway:baseline=0.25${synth_duration}|stereo|ATE < 0.5% of path, scale within 1%"
+  "synth:highway EuRoC camera|synth:highway:width=752,height=480,fx=458,baseline=0.11${synth_duration}|stereo|no bar: its scale is the weakest case"
+  "synth:highway EuRoC camera|synth:highway:width=752,height=480,fx=458${synth_duration}|mono|no bar: varies with the seed"
   # SL: RGB-D depth as a structured-light (Kinect-class) sensor reads it: quantized, shadowed, fattened, 1 px off.
   "synth:room SL depth|synth:room:structured_light=1${synth_duration}|rgbd|0 lost, ATE < 1% of path"
   "synth:handheld SL depth|synth:handheld:structured_light=1${synth_duration}|rgbd|0 lost, ATE < 1% of path"

@@ -134,7 +134,7 @@ SystemContext::SystemContext(const Calibration& calibration_in, const SlamOption
   map_scales.scale_factor = geometry.pyramid.scale_factor;
   map_scales.levels = geometry.pyramid.levels;
   stereo_depth = StereoDepthRule::ForRig(calibration.sensor == Sensor::kStereo, calibration.baseline_m,
-                                         options.far_stereo_baselines);
+                                         options.far_stereo_baselines, options.far_stereo_level_px);
 }
 
 }  // namespace flatslam

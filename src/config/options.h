@@ -47,6 +47,10 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "still give rotation, and depth once triangulated over keyframes. 35 is ORB-SLAM2's close-depth threshold for "   \
     "KITTI and EuRoC. A frame whose median measured depth lies beyond it keeps stereo up to that median (the scale "  \
     "needs them)")                                                                                                    \
+  X(double, far_stereo_level_px, kFarStereoLevelPixels, far_stereo_level_px >= 0,                                     \
+    "stereo keypoints whose disparity is under this many pixels of their pyramid level count as monocular "           \
+    "observations too (0: never): there the sub-pixel step of stereo matching pulls the disparity towards zero, "     \
+    "depths long (a rig short for its scene: EuRoC's camera on a motorway came out 4% long with them)")               \
   X(int, min_init_points, 150, min_init_points > 0, "keypoints with depth needed to start a map (stereo/RGB-D)")      \
   X(int, min_init_matches, 100, min_init_matches > 0, "monocular: matches between the two initial frames")            \
   X(float, init_search_px, 100, init_search_px > 0,                                                                   \

@@ -599,9 +599,11 @@ std::optional<TwoViewResult> InitializeTwoView(const std::vector<Eigen::Vector2d
   return result;
 }
 
-StereoDepthRule StereoDepthRule::ForRig(bool stereo, double baseline_m, double far_stereo_baselines) {
+StereoDepthRule StereoDepthRule::ForRig(bool stereo, double baseline_m, double far_stereo_baselines,
+                                        double far_stereo_level_px) {
   StereoDepthRule rule;
   if (stereo && far_stereo_baselines > 0 && baseline_m > 0) rule.fixed_far_m = far_stereo_baselines * baseline_m;
+  if (stereo) rule.min_level_px = std::max(0.0, far_stereo_level_px);
   return rule;
 }
 

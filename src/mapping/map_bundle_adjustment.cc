@@ -53,9 +53,9 @@ void BuildMapBundleAdjustment(const Map& map, const CameraGeometry& geometry, co
       obs.pose_index = index;
       obs.point_index = static_cast<uint32_t>(j);
       obs.uv = kf.uv[o.keypoint].cast<double>();
-      obs.right_u = geometry.bf > 0
-                        ? StereoDepthRule::RightU(kf.right_u[o.keypoint], kf.depth[o.keypoint], far_depth[index])
-                        : -1.0;
+      obs.right_u = geometry.bf > 0 ? stereo.RightU(kf.uv[o.keypoint].x(), kf.right_u[o.keypoint], kf.depth[o.keypoint],
+                                                    far_depth[index], geometry.pyramid.scale[kf.octave[o.keypoint]])
+                                    : -1.0;
       obs.inv_sigma2 = geometry.pyramid.inv_sigma2[kf.octave[o.keypoint]];
       problem.observations.push_back(obs);
     }

@@ -398,7 +398,9 @@ int OptimizeFramePose(const Map& map, const SystemContext& context, TrackedFrame
     PoseObservation o;
     o.X_world = point->position;
     o.uv = frame.keypoints.uv[i].cast<double>();
-    o.right_u = StereoDepthRule::RightU(frame.keypoints.right_u[i], frame.keypoints.depth[i], far_depth);
+    o.right_u = context.stereo_depth.RightU(frame.keypoints.uv[i].x(), frame.keypoints.right_u[i],
+                                            frame.keypoints.depth[i], far_depth,
+                                            geometry.pyramid.scale[frame.keypoints.octave[i]]);
     o.inv_sigma2 = geometry.pyramid.inv_sigma2[frame.keypoints.octave[i]];
     observations.push_back(o);
     index.push_back(i);

@@ -95,13 +95,19 @@ TEST(SceneAccuracy, HighwayStereoWithNoisyImagesKeepsItsSpeedFromTheFirstFrame) 
 // 70 keypoints of a frame, and keyframes came only from the share of tracked points, 17 m apart;
 // the map held almost only points 100 m and more away (10 s: 11 keyframes, 0.73% of the path,
 // scale 1.025). The keyframe rule now counts at least a frame's 100 nearest keypoints as close.
-// Bar: the motorway's.
+// With 0.12 m most of the motorway's matched disparities lie under a pixel of their pyramid level,
+// where the sub-pixel step pulls them towards zero; with them in optimization the trajectory came
+// out 1.1% long (10 s: 0.7769 m, scale 1.0109). They count as monocular now (far_stereo_level_px):
+// 0.2621 m, 1.0035. Bar: the motorway's.
 TEST(SceneAccuracy, HighwayStereoWithAShortBaseline) {
-  const Outcome o = RunWithDefaults("synth:highway:duration=10,baseline=0.25");
-  EXPECT_EQ(o.first_tracked, 0u);
-  EXPECT_EQ(o.lost_after, 0u);
-  EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
-  EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
+  for (const char* spec : {"synth:highway:duration=10,baseline=0.25", "synth:highway:duration=10,baseline=0.12"}) {
+    SCOPED_TRACE(spec);
+    const Outcome o = RunWithDefaults(spec);
+    EXPECT_EQ(o.first_tracked, 0u);
+    EXPECT_EQ(o.lost_after, 0u);
+    EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
+    EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
+  }
 }
 
 // Every frame tracked from the first on, and the SE(3) ATE under `fraction` of the path.

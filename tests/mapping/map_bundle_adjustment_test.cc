@@ -61,8 +61,26 @@ TEST(StereoDepthRule, CutsStereoBeyondTheFixedDepthOrTheMedian) {
   const std::vector<float> far = {30, 40, 50, -1, 60, 70};  // most texture far: the median wins
   EXPECT_DOUBLE_EQ(rule.FarDepth(far), 50);
   EXPECT_DOUBLE_EQ(rule.FarDepth({}), 17.5);
-  EXPECT_EQ(StereoDepthRule::RightU(100.f, 20.f, 17.5), -1);
-  EXPECT_EQ(StereoDepthRule::RightU(100.f, 10.f, 17.5), 100);
+  EXPECT_EQ(rule.RightU(300.f, 100.f, 20.f, 17.5, 1.0), -1);
+  EXPECT_EQ(rule.RightU(300.f, 100.f, 10.f, 17.5, 1.0), 100);
+  EXPECT_EQ(rule.RightU(300.f, -1.f, 10.f, 17.5, 1.0), -1);  // no match
+}
+
+// Under one pixel of its level, a matched disparity is pulled towards zero by the sub-pixel step:
+// such an observation is monocular on a stereo rig, whatever its depth; RGB-D depth is no match.
+TEST(StereoDepthRule, CutsStereoUnderAPixelOfTheKeypointsLevel) {
+  const StereoDepthRule rule = StereoDepthRule::ForRig(true, 0.11, 35);
+  EXPECT_DOUBLE_EQ(rule.min_level_px, kFarStereoLevelPixels);
+  const double far = rule.FarDepth(std::vector<float>{90, 100, 110});  // the median, 100 m
+  EXPECT_EQ(rule.RightU(300.f, 299.2f, 60.f, far, 1.0), -1);       // 0.8 px on level 0
+  EXPECT_EQ(rule.RightU(300.f, 298.8f, 40.f, far, 1.0), 298.8f);   // 1.2 px on level 0
+  EXPECT_EQ(rule.RightU(300.f, 298.8f, 40.f, far, 1.44), -1);      // 1.2 px on level 2 (1.2^2)
+  EXPECT_EQ(rule.RightU(300.f, 298.2f, 27.f, far, 1.44), 298.2f);  // 1.8 px on level 2
+  const StereoDepthRule off = StereoDepthRule::ForRig(true, 0.11, 35, 0);
+  EXPECT_EQ(off.RightU(300.f, 299.9f, 500.f, 1000, 1.44), 299.9f);
+  const StereoDepthRule rgbd = StereoDepthRule::ForRig(false, 0.08, 35);
+  EXPECT_EQ(rgbd.min_level_px, 0);
+  EXPECT_EQ(rgbd.RightU(300.f, 299.9f, 300.f, rgbd.FarDepth(std::vector<float>{1, 2}), 1.44), 299.9f);
 }
 
 TEST(MapBundleAdjustment, FreeKeyframesTheirPointsAndEveryOtherObserverFixed) {
