@@ -174,6 +174,7 @@ int RunServerLive(const std::vector<std::string>& argv) {
   // Live merges leave the other cores to the receive loop (and, on one machine, to the agents).
   MapMergeOptions live_options = merge_options;
   live_options.bundle_adjustment.num_threads = 1;
+  live_options.bundle_adjustment.schur_lm_threads = 1;
   // A global bundle adjustment after a loop in the merged map costs time in proportion to the
   // whole map, on the merge thread beside the agents; the final merge, from the agents' maps, runs it.
   live_options.adjust_after_loops = false;

@@ -2,7 +2,9 @@
 // pass, chi-square outlier removal, then a refining pass, each a Levenberg-Marquardt solve with
 // the points eliminated (Schur complement). Two solvers: flatslam's own (the default: structure
 // built once per pass, no per-iteration allocation) and Ceres (the reference it is tested against).
-// Concurrency: stateless; one call owns its problem; Ceres threads only if num_threads > 1.
+// Concurrency: stateless; one call owns its problem. flatslam's solver runs its passes over the
+// points on schur_lm_threads TBB workers, with the same bits on any number; Ceres threads only if
+// num_threads > 1 (and its result may then vary from run to run).
 #pragma once
 
 #include <cmath>
@@ -69,7 +71,10 @@ struct BundleAdjustmentOptions {
     "schur_lm hands problems with more free poses than this to Ceres, whose sparse Schur runs on CHOLMOD's "          \
     "supernodal factorization (Eigen's simplicial LDLT took 60% of a 1,125-keyframe merge weld); local BA "           \
     "windows stay well below it")                                                                                     \
-  X(int, num_threads, 1, num_threads >= 1, "Ceres threads; 1 keeps the call single-threaded")
+  X(int, num_threads, 1, num_threads >= 1, "Ceres threads; 1 keeps the call single-threaded")                       \
+  X(int, schur_lm_threads, 0, schur_lm_threads >= 0,                                                                  \
+    "threads of flatslam's own solver (schur_lm), which gives the same bits on any number: 0 = those of the calling " \
+    "task arena (every core, unless the caller limits it), 1 = the calling thread only")
 
   FLATSLAM_BUNDLE_ADJUSTMENT_OPTIONS(FLATSLAM_OPTION_FIELD)
   // Not settable by name.

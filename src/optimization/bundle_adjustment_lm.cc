@@ -5,10 +5,12 @@
 // variant replaces the factorization by preconditioned conjugate gradients on the same system,
 // kept implicit: only its diagonal blocks are formed, and each product passes over the
 // observations' pose-point blocks, so memory follows the observations, not the pairs of poses
-// that share points (a whole merged map has some 175,000 such pairs).
+// that share points (a whole merged map has some 175,000 such pairs). Passes over the points run
+// on TBB over fixed slices (see kSlices): a slice sums its points' terms into blocks of its own.
 #include "optimization/bundle_adjustment_lm.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 #include <optional>
@@ -18,6 +20,7 @@
 #include <immintrin.h>
 #endif
 
+#include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 #include <Eigen/Cholesky>
@@ -37,9 +40,11 @@ namespace {
 
 constexpr double kMinDiagonal = 1e-6;  // lower clamp of the LM scaling diagonal (as Ceres)
 constexpr double kMaxDiagonal = 1e32;
-// Conjugate gradients split their passes over the points into this many fixed slices, whatever
-// the number of threads: the sums they make in slice order do not depend on it.
+// Linearization and elimination split their passes over the points into this many fixed slices,
+// whatever the number of threads: the sums they make in slice order do not depend on it.
 constexpr size_t kSlices = 8;
+// Points per task of the passes over points that sum nothing across points.
+constexpr size_t kPointGrain = 64;
 
 using Mat6 = Eigen::Matrix<double, 6, 6>;
 using Mat63 = Eigen::Matrix<double, 6, 3>;
@@ -185,8 +190,17 @@ struct SchurWorkspace {
   std::vector<InverseDepthAnchor> anchors;
   std::vector<uint8_t> unanchored;                        // behind every camera that observes it: it stays where it is
   std::vector<uint8_t> euclidean;                         // adjusted in world coordinates (theta = X, rho = 1)
-  std::vector<Mat63, Eigen::aligned_allocator<Mat63>> Y;  // one point's W V^-1, by free observation
-  std::vector<uint32_t> point_free_obs;                   // and those observations
+  std::vector<uint32_t> pair_start;  // by point: its first entry of pair_blocks
+  std::vector<double> obs_rho;       // cost, by observation (summed in observation order)
+  // Elimination, by slice: the reduced camera system's blocks and right-hand side less the slice's
+  // points' terms, and one point's W V^-1 and free observations.
+  struct Slice {
+    std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks;
+    std::vector<Vec6, Eigen::aligned_allocator<Vec6>> g;
+    std::vector<Mat63, Eigen::aligned_allocator<Mat63>> Y;
+    std::vector<uint32_t> free_obs;
+  };
+  std::vector<Slice> slices;
 };
 
 namespace {
@@ -202,7 +216,9 @@ class Solver {
         iterative_(options.linear_solver == BundleAdjustmentOptions::LinearSolver::kIterativeSchur),
         bf_(input.camera.fx * input.baseline_m),
         w_(*w) {
-    if (iterative_ && options.num_threads > 1) arena_.emplace(options.num_threads);
+    // 0: the calling arena's threads (its limits hold); n > 1: an arena of its own.
+    parallel_ = options.schur_lm_threads != 1;
+    if (options.schur_lm_threads > 1) arena_.emplace(options.schur_lm_threads);
     w_.free_poses.clear();
     w_.points.clear();
     w_.block_rows.clear();
@@ -252,7 +268,9 @@ class Solver {
     };
     for (uint32_t f = 0; f < nf; ++f) block(f, f);
     // Conjugate gradients keep the off-diagonal blocks implicit (see ConjugateGradients).
+    w_.pair_start.assign(w_.points.size() + 1, 0);
     for (size_t j = 0; j < (iterative_ ? 0 : w_.points.size()); ++j) {
+      w_.pair_start[j] = static_cast<uint32_t>(w_.pair_blocks.size());
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
         const int fa = w_.free_id[input.observations[w_.obs[a]].pose_index];
         if (fa < 0) continue;
@@ -263,6 +281,7 @@ class Solver {
         }
       }
     }
+    if (!iterative_) w_.pair_start[w_.points.size()] = static_cast<uint32_t>(w_.pair_blocks.size());
     w_.blocks.resize(w_.block_rows.size());
     w_.W.resize(w_.obs.size());
     w_.V.resize(w_.points.size());
@@ -407,31 +426,39 @@ class Solver {
   // gate does, as the outlier it will be classified. A whole merged map starts far from its
   // minimum; its full steps put a few weakly constrained points behind a camera, and rejecting
   // each such step would stall the adjustment on them while every other point waits.
-  bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta, double* cost) const {
-    double sum = 0;
-    for (size_t j = 0; j < w_.points.size(); ++j) {
-      double inv_depth = 0;
-      const Eigen::Vector3d q = Homogeneous(j, theta[j], &inv_depth);
-      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
-        const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
-        Eigen::Vector3d h;
-        double s = 0;
-        bool in_front = true;
-        if (o.right_u >= 0) {
-          Eigen::Vector3d r;
-          in_front = Residual<3>(poses[o.pose_index], j, q, inv_depth, o, &h, &r, nullptr);
-          s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_stereo;
-        } else {
-          Eigen::Vector2d r;
-          in_front = Residual<2>(poses[o.pose_index], j, q, inv_depth, o, &h, &r, nullptr);
-          s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_mono;
+  bool Cost(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta, double* cost) {
+    std::atomic<bool> behind{false};
+    w_.obs_rho.resize(w_.obs.size());
+    ForRanges(w_.points.size(), [&](size_t j0, size_t j1) {
+      for (size_t j = j0; j < j1; ++j) {
+        double inv_depth = 0;
+        const Eigen::Vector3d q = Homogeneous(j, theta[j], &inv_depth);
+        for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+          const BundleAdjustmentObservation& o = in_.observations[w_.obs[a]];
+          Eigen::Vector3d h;
+          double s = 0;
+          bool in_front = true;
+          if (o.right_u >= 0) {
+            Eigen::Vector3d r;
+            in_front = Residual<3>(poses[o.pose_index], j, q, inv_depth, o, &h, &r, nullptr);
+            s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_stereo;
+          } else {
+            Eigen::Vector2d r;
+            in_front = Residual<2>(poses[o.pose_index], j, q, inv_depth, o, &h, &r, nullptr);
+            s = in_front ? r.squaredNorm() * o.inv_sigma2 : options_.chi2_mono;
+          }
+          if (!in_front && !iterative_) {
+            behind = true;
+            return;
+          }
+          double weight = 0;
+          Huber(s, Delta(o), robust_, &w_.obs_rho[a], &weight);
         }
-        if (!in_front && !iterative_) return false;
-        double rho = 0, weight = 0;
-        Huber(s, Delta(o), robust_, &rho, &weight);
-        sum += rho;
       }
-    }
+    });
+    if (behind) return false;
+    double sum = 0;
+    for (const double rho : w_.obs_rho) sum += rho;  // in observation order, as one pass sums
     *cost = 0.5 * sum;
     return std::isfinite(*cost);
   }
@@ -463,19 +490,10 @@ class Solver {
     w_.W[a].noalias() = w * Jp.transpose() * Jl;
   }
 
-  // Normal-equation blocks at the current estimate. Conjugate gradients linearize on num_threads
-  // over fixed slices of the points, each with its own pose blocks summed in slice order (the same
-  // bits on any number of threads); the factorizing solvers in one pass.
+  // Normal-equation blocks at the current estimate, over fixed slices of the points, each with its
+  // own pose blocks summed in slice order (the same bits on any number of threads).
   void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta) {
     const size_t nf = w_.free_poses.size();
-    if (!iterative_) {
-      for (size_t f = 0; f < nf; ++f) {
-        w_.U[f].setZero();
-        w_.b_pose[f].setZero();
-      }
-      LinearizePoints(poses, theta, 0, w_.points.size(), w_.U.data(), w_.b_pose.data());
-      return;
-    }
     w_.lin_U.resize(kSlices);
     w_.lin_b.resize(kSlices);
     const size_t num_points = w_.points.size();
@@ -520,35 +538,49 @@ class Solver {
   // Runs slice(c) for c in [0, kSlices): on the solver's arena when it has one, else in order.
   template <class Slice>
   void RunSlices(const Slice& slice) {
-    if (arena_) {
-      arena_->execute([&] { tbb::parallel_for(size_t{0}, kSlices, slice); });
-    } else {
+    if (parallel_)
+      Parallel([&] { tbb::parallel_for(size_t{0}, kSlices, slice); });
+    else
       for (size_t c = 0; c < kSlices; ++c) slice(c);
-    }
   }
 
-  // Damped Schur complement, its solution and the back-substitution; false if not positive definite.
-  bool Solve(double lambda) {
-    const size_t nf = w_.free_poses.size();
-    for (Mat6& b : w_.blocks) b.setZero();
-    std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = w_.g;
-    g.assign(w_.b_pose.begin(), w_.b_pose.end());
-    w_.U_damped.resize(nf);
-    for (size_t f = 0; f < nf; ++f) {
-      Mat6& damped = w_.U_damped[f];
-      damped = w_.U[f];
-      for (int d = 0; d < 6; ++d) damped(d, d) += lambda * std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal);
-      w_.blocks[f] = damped;
-    }
-    w_.V_inv.resize(w_.points.size());
+  // Runs body(j0, j1) over ranges covering the points [0, n): on the solver's threads when it has
+  // them, else as one range. Callers make each point's result independent of the others.
+  template <class Body>
+  void ForRanges(size_t n, const Body& body) {
+    if (parallel_ && n > kPointGrain)
+      Parallel([&] {
+        tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kPointGrain),
+                          [&](const tbb::blocked_range<size_t>& r) { body(r.begin(), r.end()); });
+      });
+    else if (n > 0)
+      body(0, n);
+  }
+
+  // Runs f, which starts parallel work, on the solver's arena or the caller's, isolated: a thread
+  // waiting for that work takes none of the arena's other tasks meanwhile (a tracking pipeline's
+  // next frame, say), which would hold up the solve.
+  template <class F>
+  void Parallel(const F& f) {
+    if (arena_)
+      arena_->execute([&] { tbb::this_task_arena::isolate(f); });
+    else
+      tbb::this_task_arena::isolate(f);
+  }
+
+  // Points [j0, j1): each one's damped inverse (V_inv), and its terms W V^-1 W' and W V^-1 b
+  // subtracted from the slice's blocks and right-hand side, each block's in the order the
+  // elimination visits them. False if a point's block is not positive definite.
+  bool EliminatePoints(double lambda, size_t j0, size_t j1, SchurWorkspace::Slice* slice) {
     static const auto subtract = [] {
 #if defined(__x86_64__)
       if (HasAvx2()) return &SubtractBlockProductAvx;
 #endif
       return &SubtractBlockProduct;
     }();
-    size_t pair = 0;
-    for (size_t j = 0; j < w_.points.size(); ++j) {
+    std::vector<Mat6, Eigen::aligned_allocator<Mat6>>& blocks = slice->blocks;
+    size_t pair = iterative_ ? 0 : w_.pair_start[j0];
+    for (size_t j = j0; j < j1; ++j) {
       Eigen::Matrix3d V = w_.V[j];
       for (int d = 0; d < 3; ++d) V(d, d) += lambda * std::clamp(w_.V[j](d, d), kMinDiagonal, kMaxDiagonal);
       const Eigen::LDLT<Eigen::Matrix3d> ldlt(V);
@@ -556,39 +588,73 @@ class Solver {
       w_.V_inv[j] = ldlt.solve(Eigen::Matrix3d::Identity());
       const Eigen::Vector3d Vb = w_.V_inv[j] * w_.b_point[j];
       // The point's observations in free poses, each with its W V^-1.
-      std::vector<uint32_t>& obs = w_.point_free_obs;
+      std::vector<uint32_t>& obs = slice->free_obs;
       obs.clear();
       for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a)
         if (w_.obs_free[a] >= 0) obs.push_back(a);
-      w_.Y.resize(std::max(w_.Y.size(), obs.size()));
+      slice->Y.resize(std::max(slice->Y.size(), obs.size()));
       for (size_t m = 0; m < obs.size(); ++m) {
         const Mat63& Wa = w_.W[obs[m]];
-        w_.Y[m].noalias() = Wa * w_.V_inv[j];
-        g[w_.obs_free[obs[m]]].noalias() -= Wa * Vb;
+        slice->Y[m].noalias() = Wa * w_.V_inv[j];
+        slice->g[w_.obs_free[obs[m]]].noalias() -= Wa * Vb;
       }
-      // Every pair of them, in observation order; each block sees its terms in the order the
-      // elimination visits them.
+      // Every pair of them, in observation order.
       for (size_t m = 0; m < obs.size(); ++m) {
         const int fa = w_.obs_free[obs[m]];
-        const Mat63& Y = w_.Y[m];
-        subtract(w_.blocks[fa].data(), Y.data(), w_.W[obs[m]].data());
+        const Mat63& Y = slice->Y[m];
+        subtract(blocks[fa].data(), Y.data(), w_.W[obs[m]].data());
         for (size_t l = m + 1; l < obs.size(); ++l) {
           const int fb = w_.obs_free[obs[l]];
           const Mat63& Wb = w_.W[obs[l]];
           if (fb == fa) {  // two observations in one keyframe: both cross terms on its diagonal
-            w_.blocks[fa].noalias() -= Y * Wb.transpose() + Wb * Y.transpose();
+            blocks[fa].noalias() -= Y * Wb.transpose() + Wb * Y.transpose();
             continue;
           }
           if (iterative_) continue;
           // The block is stored once, as (min, max).
           if (fa < fb)
-            subtract(w_.blocks[w_.pair_blocks[pair]].data(), Y.data(), Wb.data());
+            subtract(blocks[w_.pair_blocks[pair]].data(), Y.data(), Wb.data());
           else
-            subtract(w_.blocks[w_.pair_blocks[pair]].data(), Wb.data(), Y.data());
+            subtract(blocks[w_.pair_blocks[pair]].data(), Wb.data(), Y.data());
           ++pair;
         }
       }
     }
+    return true;
+  }
+
+  // Damped Schur complement, its solution and the back-substitution; false if not positive definite.
+  // Each fixed slice of the points subtracts its terms from zeroed blocks of its own; the blocks
+  // are then the damped pose blocks plus the slices' sums in slice order.
+  bool Solve(double lambda) {
+    const size_t nf = w_.free_poses.size();
+    const size_t num_blocks = w_.blocks.size();
+    w_.U_damped.resize(nf);
+    for (size_t f = 0; f < nf; ++f) {
+      Mat6& damped = w_.U_damped[f];
+      damped = w_.U[f];
+      for (int d = 0; d < 6; ++d) damped(d, d) += lambda * std::clamp(w_.U[f](d, d), kMinDiagonal, kMaxDiagonal);
+    }
+    w_.V_inv.resize(w_.points.size());
+    w_.slices.resize(kSlices);
+    std::atomic<bool> indefinite{false};
+    const size_t num_points = w_.points.size();
+    RunSlices([&](size_t c) {
+      SchurWorkspace::Slice& slice = w_.slices[c];
+      slice.blocks.assign(num_blocks, Mat6::Zero());
+      slice.g.assign(nf, Vec6::Zero());
+      if (!EliminatePoints(lambda, num_points * c / kSlices, num_points * (c + 1) / kSlices, &slice))
+        indefinite = true;
+    });
+    if (indefinite) return false;
+    std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = w_.g;
+    g.assign(w_.b_pose.begin(), w_.b_pose.end());
+    for (size_t k = 0; k < num_blocks; ++k) {
+      w_.blocks[k] = k < nf ? w_.U_damped[k] : Mat6::Zero();
+      for (size_t c = 0; c < kSlices; ++c) w_.blocks[k] += w_.slices[c].blocks[k];
+    }
+    for (size_t f = 0; f < nf; ++f)
+      for (size_t c = 0; c < kSlices; ++c) g[f] += w_.slices[c].g[f];
     if (nf > 0 && iterative_) {
       if (!ConjugateGradients()) return false;
     } else if (nf > 0) {
@@ -623,14 +689,16 @@ class Solver {
       if (!x.allFinite()) return false;
       for (size_t f = 0; f < nf; ++f) w_.delta_pose[f] = x.segment<6>(6 * f);
     }
-    for (size_t j = 0; j < w_.points.size(); ++j) {
-      Eigen::Vector3d b = w_.b_point[j];
-      for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
-        const int fa = w_.free_id[in_.observations[w_.obs[a]].pose_index];
-        if (fa >= 0) b.noalias() -= w_.W[a].transpose() * w_.delta_pose[fa];
+    ForRanges(w_.points.size(), [&](size_t j0, size_t j1) {
+      for (size_t j = j0; j < j1; ++j) {
+        Eigen::Vector3d b = w_.b_point[j];
+        for (uint32_t a = w_.obs_start[j]; a < w_.obs_start[j + 1]; ++a) {
+          const int fa = w_.obs_free[a];
+          if (fa >= 0) b.noalias() -= w_.W[a].transpose() * w_.delta_pose[fa];
+        }
+        w_.delta_point[j] = w_.V_inv[j] * b;
       }
-      w_.delta_point[j] = w_.V_inv[j] * b;
-    }
+    });
     gradient_dot_delta_ = 0;
     damping_term_ = 0;
     for (size_t f = 0; f < nf; ++f) {
@@ -733,6 +801,7 @@ class Solver {
   const double bf_;
   SchurWorkspace& w_;
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Upper> sparse_;
+  bool parallel_ = false;
   std::optional<tbb::task_arena> arena_;
   bool sparse_analysed_ = false;
   double gradient_dot_delta_ = 0, damping_term_ = 0;

@@ -1,8 +1,8 @@
 // Internal to bundle_adjustment.cc: the hand-written Levenberg-Marquardt solver on the reduced
 // camera system (see BundleAdjustmentOptions::Solver::kSchurLm).
-// Concurrency: stateless; one call owns its buffers and runs on the calling thread, except the
-// iterative Schur variant's products, which run on options.num_threads TBB workers (the result
-// does not depend on their number).
+// Concurrency: stateless; one call owns its buffers. Its passes over the points (linearization,
+// cost, elimination, back-substitution) run on options.schur_lm_threads TBB workers, split into
+// fixed slices whose sums are made in slice order: the same bits on any number of threads.
 #pragma once
 
 #include <cstdint>

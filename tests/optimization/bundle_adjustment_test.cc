@@ -8,9 +8,11 @@
 #include <cstring>
 #include <set>
 #include <string>
+#include <tuple>
 #include <utility>
 
 #include <gtest/gtest.h>
+#include <tbb/parallel_for.h>
 
 #include "core/cpu_features.h"
 #include "core/error.h"
@@ -209,8 +211,9 @@ TEST(LocalBundleAdjustment, IterativeSchurReachesTheFactorizationsMinimum) {
     options.linear_solver = BundleAdjustmentOptions::LinearSolver::kSparseSchur;
     const BundleAdjustmentResult rd = LocalBundleAdjustment(direct, options);
     options.linear_solver = BundleAdjustmentOptions::LinearSolver::kIterativeSchur;
+    options.schur_lm_threads = 1;
     const BundleAdjustmentResult ri = LocalBundleAdjustment(iterative, options);
-    options.num_threads = 3;
+    options.schur_lm_threads = 3;
     const BundleAdjustmentResult rt = LocalBundleAdjustment(threaded, options);
     ASSERT_TRUE(rd.success && ri.success && rt.success);
     // The same outliers, but on at most one point: with a robust cost a point whose observations
@@ -239,6 +242,46 @@ TEST(LocalBundleAdjustment, IterativeSchurReachesTheFactorizationsMinimum) {
     EXPECT_LT(iterative_error, 1.1 * direct_error + 1e-4);
     EXPECT_EQ(ri.outlier, rt.outlier);
     EXPECT_EQ(iterative.points, threaded.points);
+  }
+}
+
+// flatslam's solver splits its passes over points into fixed slices: one thread, three, or those of
+// the calling arena give the same bits, dense and sparse, mono and stereo, with outliers and with
+// points in inverse depth. The threaded solves run inside a parallel loop of the caller's, as
+// local mapping's run inside the tracking pipeline.
+TEST(LocalBundleAdjustment, FactorizingSolversGiveTheSameBitsOnAnyNumberOfThreads) {
+  using LinearSolver = BundleAdjustmentOptions::LinearSolver;
+  for (const auto& [stereo, linear_solver, inverse_depth] :
+       {std::tuple{false, LinearSolver::kDenseSchur, 0}, {true, LinearSolver::kDenseSchur, 1},
+        {false, LinearSolver::kSparseSchur, 2}, {true, LinearSolver::kSparseSchur, 0}}) {
+    SCOPED_TRACE(std::string(stereo ? "stereo" : "mono") + ", inverse_depth_points " + std::to_string(inverse_depth));
+    const BaScene scene = MakeScene(12, 1200, 0.05, stereo, stereo ? 71 : 70);
+    const BundleAdjustmentProblem start = Perturbed(scene.truth, 15);
+    BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
+    options.linear_solver = linear_solver;
+    options.inverse_depth_points = inverse_depth;
+    options.schur_lm_threads = 1;
+    BundleAdjustmentProblem one = start;
+    const BundleAdjustmentResult r1 = LocalBundleAdjustment(one, options);
+    ASSERT_TRUE(r1.success);
+    EXPECT_LT(r1.final_rmse_px, 1.05 * scene.noise_rmse_px);
+    for (const int threads : {3, 0}) {
+      SCOPED_TRACE("schur_lm_threads " + std::to_string(threads));
+      options.schur_lm_threads = threads;
+      // Four solves side by side, each on its own copy.
+      std::vector<BundleAdjustmentProblem> problems(4, start);
+      std::vector<BundleAdjustmentResult> results(problems.size());
+      tbb::parallel_for(size_t{0}, problems.size(),
+                        [&](size_t i) { results[i] = LocalBundleAdjustment(problems[i], options); });
+      for (size_t i = 0; i < problems.size(); ++i) {
+        ASSERT_TRUE(results[i].success);
+        EXPECT_EQ(results[i].iterations, r1.iterations);
+        EXPECT_EQ(results[i].outlier, r1.outlier);
+        EXPECT_EQ(problems[i].points, one.points);
+        for (size_t k = 0; k < one.poses.size(); ++k)
+          EXPECT_TRUE(problems[i].poses[k].T_cam_world.matrix() == one.poses[k].T_cam_world.matrix()) << "pose " << k;
+      }
+    }
   }
 }
 
