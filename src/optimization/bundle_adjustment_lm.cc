@@ -15,6 +15,7 @@
 #include <limits>
 #include <optional>
 #include <unordered_map>
+#include <utility>
 
 #if defined(__x86_64__)
 #include <immintrin.h>
@@ -181,8 +182,6 @@ struct SchurWorkspace {
   // Conjugate gradients' products: one partial product per fixed slice of the points, summed in
   // slice order, so the result does not depend on how many threads ran the slices.
   std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> cg_partial;
-  std::vector<std::vector<Mat6, Eigen::aligned_allocator<Mat6>>> lin_U;  // linearization's, by slice
-  std::vector<std::vector<Vec6, Eigen::aligned_allocator<Vec6>>> lin_b;
   std::vector<PoseState> state, trial_poses;
   // Points by solver id (optimization/inverse_depth.h): parameters (inverse depth or world
   // coordinates), trial parameters, anchors.
@@ -192,9 +191,13 @@ struct SchurWorkspace {
   std::vector<uint8_t> euclidean;                         // adjusted in world coordinates (theta = X, rho = 1)
   std::vector<uint32_t> pair_start;  // by point: its first entry of pair_blocks
   std::vector<double> obs_rho;       // cost, by observation (summed in observation order)
-  // Elimination, by slice: the reduced camera system's blocks and right-hand side less the slice's
-  // points' terms, and one point's W V^-1 and free observations.
+  // By fixed slice of the points: the sums of its points' terms, added up in slice order.
   struct Slice {
+    // Linearization: the pose blocks U and b.
+    std::vector<Mat6, Eigen::aligned_allocator<Mat6>> U;
+    std::vector<Vec6, Eigen::aligned_allocator<Vec6>> b;
+    // Elimination: what its points take from the reduced camera system's blocks and right-hand
+    // side, and one point's W V^-1 and free observations.
     std::vector<Mat6, Eigen::aligned_allocator<Mat6>> blocks;
     std::vector<Vec6, Eigen::aligned_allocator<Vec6>> g;
     std::vector<Mat63, Eigen::aligned_allocator<Mat63>> Y;
@@ -494,22 +497,20 @@ class Solver {
   // own pose blocks summed in slice order (the same bits on any number of threads).
   void Linearize(const std::vector<PoseState>& poses, const std::vector<Eigen::Vector3d>& theta) {
     const size_t nf = w_.free_poses.size();
-    w_.lin_U.resize(kSlices);
-    w_.lin_b.resize(kSlices);
-    const size_t num_points = w_.points.size();
-    auto slice = [&](size_t c) {
-      w_.lin_U[c].assign(nf, Mat6::Zero());
-      w_.lin_b[c].assign(nf, Vec6::Zero());
-      LinearizePoints(poses, theta, num_points * c / kSlices, num_points * (c + 1) / kSlices, w_.lin_U[c].data(),
-                      w_.lin_b[c].data());
-    };
-    RunSlices(slice);
+    w_.slices.resize(kSlices);
+    RunSlices([&](size_t c) {
+      SchurWorkspace::Slice& slice = w_.slices[c];
+      slice.U.assign(nf, Mat6::Zero());
+      slice.b.assign(nf, Vec6::Zero());
+      const auto [j0, j1] = SlicePoints(c);
+      LinearizePoints(poses, theta, j0, j1, slice.U.data(), slice.b.data());
+    });
     for (size_t f = 0; f < nf; ++f) {
-      w_.U[f] = w_.lin_U[0][f];
-      w_.b_pose[f] = w_.lin_b[0][f];
+      w_.U[f] = w_.slices[0].U[f];
+      w_.b_pose[f] = w_.slices[0].b[f];
       for (size_t c = 1; c < kSlices; ++c) {
-        w_.U[f] += w_.lin_U[c][f];
-        w_.b_pose[f] += w_.lin_b[c][f];
+        w_.U[f] += w_.slices[c].U[f];
+        w_.b_pose[f] += w_.slices[c].b[f];
       }
     }
   }
@@ -533,6 +534,12 @@ class Solver {
       w_.V[j] = V;
       w_.b_point[j] = bl;
     }
+  }
+
+  // The points [j0, j1) of fixed slice c.
+  [[nodiscard]] std::pair<size_t, size_t> SlicePoints(size_t c) const {
+    const size_t n = w_.points.size();
+    return {n * c / kSlices, n * (c + 1) / kSlices};
   }
 
   // Runs slice(c) for c in [0, kSlices): on the solver's arena when it has one, else in order.
@@ -638,13 +645,12 @@ class Solver {
     w_.V_inv.resize(w_.points.size());
     w_.slices.resize(kSlices);
     std::atomic<bool> indefinite{false};
-    const size_t num_points = w_.points.size();
     RunSlices([&](size_t c) {
       SchurWorkspace::Slice& slice = w_.slices[c];
       slice.blocks.assign(num_blocks, Mat6::Zero());
       slice.g.assign(nf, Vec6::Zero());
-      if (!EliminatePoints(lambda, num_points * c / kSlices, num_points * (c + 1) / kSlices, &slice))
-        indefinite = true;
+      const auto [j0, j1] = SlicePoints(c);
+      if (!EliminatePoints(lambda, j0, j1, &slice)) indefinite = true;
     });
     if (indefinite) return false;
     std::vector<Vec6, Eigen::aligned_allocator<Vec6>>& g = w_.g;
@@ -728,7 +734,6 @@ class Solver {
       if (llt.info() != Eigen::Success) return false;
       w_.block_inv[f] = llt.solve(Mat6::Identity());
     }
-    const size_t num_points = w_.points.size();
     w_.cg_partial.resize(kSlices);
     for (auto& partial : w_.cg_partial) partial.resize(nf);
     auto& r = w_.cg_r;
@@ -758,8 +763,9 @@ class Solver {
     auto slice = [&](size_t c) {
       auto& partial = w_.cg_partial[c];
       for (Vec6& v : partial) v.setZero();
+      const auto [j0, j1] = SlicePoints(c);
       product(w_.obs_start.data(), w_.obs_free.data(), w_.W.data()->data(), w_.V_inv.data(), p.data()->data(),
-              partial.data()->data(), num_points * c / kSlices, num_points * (c + 1) / kSlices);
+              partial.data()->data(), j0, j1);
     };
     for (int step = 0; step < kIterativeSchurMaxSteps && rhs_norm2 > 0; ++step) {
       RunSlices(slice);
