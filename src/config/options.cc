@@ -109,6 +109,12 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
                     kDepthParallaxDeg);
     note("min_parallax_deg", text);
   }
+  if (o.thin_keyframe_parallax_deg == 0) {
+    o.thin_keyframe_parallax_deg = mono ? std::min(kDepthParallaxDeg, o.min_parallax_deg) : o.min_parallax_deg;
+    note("thin_keyframe_parallax_deg",
+         mono ? "monocular: ORB-SLAM2's floor, 1.146 degrees, for keyframes that would hold too few points to track"
+              : "with depth: min_parallax_deg (off): points under it take the measured depth");
+  }
   return o;
 }
 

@@ -102,6 +102,10 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "(depth within about 4% at a pixel of noise; on KITTI 07 it also keeps out cars driving ahead, whose features "   \
     "look like points at infinity), 1.146 deg (ORB-SLAM2's cos 0.9998) with depth, where close points come from "     \
     "the stereo or depth measurement")                                                                                \
+  X(double, thin_keyframe_parallax_deg, 0, thin_keyframe_parallax_deg >= 0 && thin_keyframe_parallax_deg < 90,          \
+    "monocular: a keyframe that would hold fewer points than keyframe_fading_inliers (where tracking counts as "     \
+    "fading) also takes new points whose rays diverge by at least this angle, under min_parallax_deg, widest first, " \
+    "up to that count; 0 = by sensor: ORB-SLAM2's 1.146 deg monocular, off with depth (min_parallax_deg)")           \
   X(size_t, max_local_map_keyframes, 80, max_local_map_keyframes > 0, "keyframes whose points are tracked")           \
   X(size_t, max_local_ba_keyframes, 20, max_local_ba_keyframes > 0,                                                   \
     "free keyframes of local BA: the new one and its strongest covisible; bounds a keyframe's cost where far points " \

@@ -188,6 +188,42 @@ bool PrepareKeyFrame(Map& map, LocalMappingState& state, const SystemContext& co
   return true;
 }
 
+namespace {
+
+// A monocular keyframe whose points (those it tracks and its new ones over min_parallax_deg) are
+// fewer than keyframe_fading_inliers, the count under which tracking counts as fading, also takes
+// the candidates between thin_keyframe_parallax_deg and that floor, widest rays first, one per
+// keypoint, until it holds that many. A fast turn into an unmapped view leaves each keyframe with
+// fewer points than the one before, and the narrow rays are all it can place before the view is
+// gone; where keyframes hold more, the floor alone decides. Deterministic: the candidates come in
+// the neighbours' order and the sort is stable.
+void AddNarrowPointsToAThinKeyFrame(const KeyFrame& a, const SystemContext& context,
+                                    const std::vector<std::vector<std::pair<NewPoint, double>>>& narrow,
+                                    std::vector<NewPoint>* out) {
+  const size_t target = static_cast<size_t>(std::max(0, context.options.keyframe_fading_inliers));
+  std::vector<uint8_t> held(a.size(), 0);
+  size_t holds = 0;
+  auto hold = [&](uint32_t i) {
+    if (held[i]) return false;
+    held[i] = 1;
+    ++holds;
+    return true;
+  };
+  for (uint32_t i = 0; i < a.size(); ++i)
+    if (!a.points[i].is_null()) hold(i);
+  for (const NewPoint& c : *out) hold(c.i1);
+  if (holds >= target) return;
+  std::vector<std::pair<NewPoint, double>> all;
+  for (const std::vector<std::pair<NewPoint, double>>& n : narrow) all.insert(all.end(), n.begin(), n.end());
+  std::stable_sort(all.begin(), all.end(), [](const auto& x, const auto& y) { return x.second > y.second; });
+  for (const auto& [c, parallax_deg] : all) {
+    if (holds >= target) break;
+    if (hold(c.i1)) out->push_back(c);
+  }
+}
+
+}  // namespace
+
 std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const SystemContext& context,
                                     std::pair<double, double> depth_range) {
   const CameraGeometry& geometry = context.geometry;
@@ -197,10 +233,13 @@ std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const System
   tri.max_reprojection_error_px = 2.0;
   tri.min_parallax_deg = 0.0;
   const double max_ray_cos = std::cos(context.options.min_parallax_deg * M_PI / 180.0);
+  const double thin_parallax_deg = context.options.thin_keyframe_parallax_deg;
+  const bool thin_floor = thin_parallax_deg > 0 && thin_parallax_deg < context.options.min_parallax_deg;
   const KeyFrame& a = snapshot[0];
   // Each neighbour is matched on its own (a task per neighbour, the keyframes are copies); the
   // candidates are joined in the neighbours' order, as one loop over them would list them.
   std::vector<std::vector<NewPoint>> found(state.neighbours.size());
+  std::vector<std::vector<std::pair<NewPoint, double>>> narrow(state.neighbours.size());  // with their parallax
   tbb::parallel_for(size_t{0}, state.neighbours.size(), [&](size_t k) {
     std::vector<NewPoint>& out = found[k];
     const KeyFrame& b = snapshot[k + 1];
@@ -217,8 +256,12 @@ std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const System
       // motion, enter the map from their disparity.
       const double ray_cos = std::cos(t.parallax_deg * M_PI / 180.0);
       const bool depth_a = a.depth[i1] > 0, depth_b = b.depth[i2] > 0;
+      bool is_narrow = false;
       if (t.ok() && ray_cos < max_ray_cos) {
         X = t.X_world;
+      } else if (thin_floor && t.ok() && !depth_a && !depth_b && t.parallax_deg >= thin_parallax_deg) {
+        X = t.X_world;  // kept aside: taken only if the keyframe holds too few points without it
+        is_narrow = true;
       } else if (depth_a && (!depth_b || a.depth[i1] <= b.depth[i2])) {
         X = Unproject(geometry.camera, a.T_cam_world, a.uv[i1], a.depth[i1]);
       } else if (depth_b) {
@@ -242,11 +285,15 @@ std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const System
         return e2 * geometry.pyramid.inv_sigma2[kf.octave[i]] < gate;
       };
       if (!agrees(a, i1) || !agrees(b, i2)) continue;
-      out.push_back({state.neighbours[k], i1, i2, X});
+      if (is_narrow)
+        narrow[k].push_back({{state.neighbours[k], i1, i2, X}, t.parallax_deg});
+      else
+        out.push_back({state.neighbours[k], i1, i2, X});
     }
   });
   std::vector<NewPoint> out;
   for (const std::vector<NewPoint>& f : found) out.insert(out.end(), f.begin(), f.end());
+  if (thin_floor) AddNarrowPointsToAThinKeyFrame(a, context, narrow, &out);
   return out;
 }
 

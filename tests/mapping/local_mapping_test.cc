@@ -1,8 +1,9 @@
 // Local mapping's steps on small hand-built maps: sightings, keyframe insertion with depth
-// points, keyframe culling.
+// points, monocular triangulation's parallax floors, keyframe culling.
 #include "mapping/local_mapping.h"
 
 #include <algorithm>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -95,6 +96,105 @@ TEST(LocalMapping, AFramesCloseDepthReachesItsHundredNearestKeypoints) {
   for (float& d : few) d = 9.0f;
   EXPECT_DOUBLE_EQ(context.CloseDepth(few), context.CloseDepth());
   EXPECT_EQ(MakeContext(Sensor::kMonocular).CloseDepth(depth), 0.0);
+}
+
+// Two monocular keyframes 1 m apart seeing 40 points 10 m away (rays 5.7 degrees apart), 120 at
+// 38 m (1.5 degrees: under the 2-degree floor, over the thin keyframe's 1.146) and 20 at 150 m
+// (0.4 degrees). Keypoints are the exact projections with a descriptor of their own.
+struct TwoMonocularKeyFrames {
+  Map map;
+  LocalMappingState state;
+  std::vector<double> depth_of;  // per keypoint of the new keyframe
+};
+
+TwoMonocularKeyFrames MakeTwoMonocularKeyFrames(const SystemContext& context, size_t already_tracked) {
+  TwoMonocularKeyFrames out;
+  const PinholeCamera& camera = context.geometry.camera;
+  std::vector<double> depths;
+  for (int i = 0; i < 40; ++i) depths.push_back(10);
+  for (int i = 0; i < 120; ++i) depths.push_back(38);
+  for (int i = 0; i < 20; ++i) depths.push_back(150);
+  const size_t n = depths.size() + already_tracked;
+  KeyFrame a, b;
+  a.resize(n);
+  b.resize(n);
+  b.T_cam_world.translation() = Eigen::Vector3d(-1, 0, 0);  // camera centre at x = +1 m
+  for (size_t i = 0; i < n; ++i) {
+    // A keypoint every 25 px from (40, 40) in the first keyframe; the tracked extras (already
+    // carrying a point) lie at 10 m too.
+    const double u = 40 + 25.0 * static_cast<double>(i % 22), v = 40 + 25.0 * static_cast<double>(i / 22);
+    const double z = i < depths.size() ? depths[i] : 10.0;
+    const Eigen::Vector3d X((u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z);
+    const Eigen::Vector3d Xb = b.T_cam_world * X;
+    a.uv.mutable_data()[i] = Eigen::Vector2f(static_cast<float>(u), static_cast<float>(v));
+    b.uv.mutable_data()[i] = Eigen::Vector2f(static_cast<float>(camera.fx * Xb.x() / Xb.z() + camera.cx),
+                                             static_cast<float>(camera.fy * Xb.y() / Xb.z() + camera.cy));
+    uint64_t h = 0x9e3779b97f4a7c15ull * (i + 1);
+    Descriptor d{};
+    for (uint64_t& word : d) {
+      h ^= h >> 31;
+      h *= 0xbf58476d1ce4e5b9ull;
+      word = h;
+    }
+    a.descriptor.mutable_data()[i] = d;
+    b.descriptor.mutable_data()[i] = d;
+    out.depth_of.push_back(z);
+  }
+  const KeyFrameHandle kb = out.map.AddKeyFrame(std::move(b));
+  const KeyFrameHandle ka = out.map.AddKeyFrame(std::move(a));
+  for (size_t i = depths.size(); i < n; ++i) {
+    const PointHandle p = out.map.AddPoint(Eigen::Vector3d::Zero(), ka);
+    out.map.AddObservation(p, ka, static_cast<uint32_t>(i));
+    out.map.AddObservation(p, kb, static_cast<uint32_t>(i));
+  }
+  out.state.neighbours = {kb};
+  out.state.snapshot = {out.map.keyframe(ka), out.map.keyframe(kb)};
+  return out;
+}
+
+// Monocular new points need 2 degrees between their rays; a keyframe that would hold fewer points
+// than tracking needs not to fade (keyframe_fading_inliers, 100) also takes those between 1.146
+// and 2 degrees, widest first, up to that count, and never the 0.4-degree ones.
+TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysUpToTheFadingCount) {
+  const SystemContext context = MakeContext(Sensor::kMonocular);
+  ASSERT_EQ(context.options.min_parallax_deg, 2.0);
+  ASSERT_NEAR(context.options.thin_keyframe_parallax_deg, 1.146, 1e-12);
+  ASSERT_EQ(context.options.keyframe_fading_inliers, 100);
+  auto count_at = [](const TwoMonocularKeyFrames& k, const std::vector<NewPoint>& found, double depth) {
+    return std::count_if(found.begin(), found.end(), [&](const NewPoint& c) { return k.depth_of[c.i1] == depth; });
+  };
+  {
+    // Nothing tracked: the 40 wide points and 60 of the narrow ones.
+    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, 0);
+    const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
+    EXPECT_EQ(count_at(k, found, 10), 40);
+    EXPECT_EQ(count_at(k, found, 38), 60);
+    EXPECT_EQ(count_at(k, found, 150), 0);
+    for (const NewPoint& c : found) EXPECT_NEAR(c.X_world.z(), k.depth_of[c.i1], 1e-3 * k.depth_of[c.i1]);
+  }
+  {
+    // 50 tracked and 40 wide make 90: 10 narrow ones.
+    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, 50);
+    const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
+    EXPECT_EQ(count_at(k, found, 10), 40);
+    EXPECT_EQ(count_at(k, found, 38), 10);
+  }
+  {
+    // 60 tracked and 40 wide hold enough: the floor alone decides.
+    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, 60);
+    const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
+    EXPECT_EQ(count_at(k, found, 10), 40);
+    EXPECT_EQ(count_at(k, found, 38), 0);
+  }
+  {
+    // Switched off (the thin floor at the floor): the wide ones alone.
+    SystemContext off = context;
+    off.options.thin_keyframe_parallax_deg = off.options.min_parallax_deg;
+    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(off, 0);
+    const std::vector<NewPoint> found = FindNewPoints(k.state, off, {1.0, 400.0});
+    EXPECT_EQ(count_at(k, found, 10), 40);
+    EXPECT_EQ(count_at(k, found, 38), 0);
+  }
 }
 
 TEST(LocalMapping, CullsKeyFramesWhosePointsOthersSeeAndKeepsTheProtectedOnes) {
