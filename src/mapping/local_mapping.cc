@@ -75,6 +75,39 @@ void Fuse(Map& map, const SystemContext& context, KeyFrameHandle current) {
     if (map.points().contains(p)) map.UpdatePointStats(p, context.map_scales);
 }
 
+
+// A monocular keyframe whose points (those it tracks and its new ones over min_parallax_deg) are
+// fewer than keyframe_fading_inliers, the count under which tracking counts as fading, also takes
+// the candidates between thin_keyframe_parallax_deg and that floor, widest rays first, one per
+// keypoint, until it holds that many. A fast turn into an unmapped view leaves each keyframe with
+// fewer points than the one before, and the narrow rays are all it can place before the view is
+// gone; where keyframes hold more, the floor alone decides. Deterministic: the candidates come in
+// the neighbours' order and the sort is stable.
+void AddNarrowPointsToAThinKeyFrame(const KeyFrame& a, const SystemContext& context,
+                                    const std::vector<std::vector<std::pair<NewPoint, double>>>& narrow,
+                                    std::vector<NewPoint>* out) {
+  const size_t target = static_cast<size_t>(std::max(0, context.options.keyframe_fading_inliers));
+  std::vector<uint8_t> held(a.size(), 0);
+  size_t holds = 0;
+  auto hold = [&](uint32_t i) {
+    if (held[i]) return false;
+    held[i] = 1;
+    ++holds;
+    return true;
+  };
+  for (uint32_t i = 0; i < a.size(); ++i)
+    if (!a.points[i].is_null()) hold(i);
+  for (const NewPoint& c : *out) hold(c.i1);
+  if (holds >= target) return;
+  std::vector<std::pair<NewPoint, double>> all;
+  for (const std::vector<std::pair<NewPoint, double>>& n : narrow) all.insert(all.end(), n.begin(), n.end());
+  std::stable_sort(all.begin(), all.end(), [](const auto& x, const auto& y) { return x.second > y.second; });
+  for (const auto& [c, parallax_deg] : all) {
+    if (holds >= target) break;
+    if (hold(c.i1)) out->push_back(c);
+  }
+}
+
 }  // namespace
 
 bool FollowToLiveKeyFrame(const Map& map, const CulledKeyFrames& culled, KeyFrameHandle* ref,
@@ -187,42 +220,6 @@ bool PrepareKeyFrame(Map& map, LocalMappingState& state, const SystemContext& co
   for (size_t k = 0; k < state.neighbours.size(); ++k) state.snapshot[k + 1] = map.keyframe(state.neighbours[k]);
   return true;
 }
-
-namespace {
-
-// A monocular keyframe whose points (those it tracks and its new ones over min_parallax_deg) are
-// fewer than keyframe_fading_inliers, the count under which tracking counts as fading, also takes
-// the candidates between thin_keyframe_parallax_deg and that floor, widest rays first, one per
-// keypoint, until it holds that many. A fast turn into an unmapped view leaves each keyframe with
-// fewer points than the one before, and the narrow rays are all it can place before the view is
-// gone; where keyframes hold more, the floor alone decides. Deterministic: the candidates come in
-// the neighbours' order and the sort is stable.
-void AddNarrowPointsToAThinKeyFrame(const KeyFrame& a, const SystemContext& context,
-                                    const std::vector<std::vector<std::pair<NewPoint, double>>>& narrow,
-                                    std::vector<NewPoint>* out) {
-  const size_t target = static_cast<size_t>(std::max(0, context.options.keyframe_fading_inliers));
-  std::vector<uint8_t> held(a.size(), 0);
-  size_t holds = 0;
-  auto hold = [&](uint32_t i) {
-    if (held[i]) return false;
-    held[i] = 1;
-    ++holds;
-    return true;
-  };
-  for (uint32_t i = 0; i < a.size(); ++i)
-    if (!a.points[i].is_null()) hold(i);
-  for (const NewPoint& c : *out) hold(c.i1);
-  if (holds >= target) return;
-  std::vector<std::pair<NewPoint, double>> all;
-  for (const std::vector<std::pair<NewPoint, double>>& n : narrow) all.insert(all.end(), n.begin(), n.end());
-  std::stable_sort(all.begin(), all.end(), [](const auto& x, const auto& y) { return x.second > y.second; });
-  for (const auto& [c, parallax_deg] : all) {
-    if (holds >= target) break;
-    if (hold(c.i1)) out->push_back(c);
-  }
-}
-
-}  // namespace
 
 std::vector<NewPoint> FindNewPoints(const LocalMappingState& state, const SystemContext& context,
                                     std::pair<double, double> depth_range) {
