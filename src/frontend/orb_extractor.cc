@@ -394,6 +394,27 @@ std::vector<uint16_t> GaussianTaps(int size, double sigma) {
   return taps;
 }
 
+// Sub-pixel position of each corner: per axis, the vertex of the parabola through the FAST scores
+// at -1, 0, +1 pixels. A corner is a 3x3 maximum of the score, so the vertex lies within half a
+// pixel; it stays 0 where the score is flat. Integer positions quantize a keypoint to +-0.5 level
+// pixels (0.29 px RMS), which on a coarse level or a small image is most of the measurement noise.
+void SubpixelOffsets(const cv::Mat& img, const std::vector<Candidate>& corners, Eigen::Vector2f* offsets) {
+  const ptrdiff_t step = static_cast<ptrdiff_t>(img.step1());
+  ptrdiff_t circle[16];
+  for (int k = 0; k < 16; ++k) circle[k] = kCircle[k][1] * step + kCircle[k][0];
+  const auto vertex = [](int minus, int centre, int plus) {
+    const int curvature = minus + plus - 2 * centre;
+    if (curvature >= 0) return 0.f;
+    return std::clamp(0.5f * static_cast<float>(minus - plus) / static_cast<float>(curvature), -0.5f, 0.5f);
+  };
+  for (size_t i = 0; i < corners.size(); ++i) {
+    const uint8_t* p = img.ptr<uint8_t>(corners[i].y) + corners[i].x;
+    const int c = corners[i].score;
+    offsets[i] = {vertex(FastScoreAt(p - 1, circle), c, FastScoreAt(p + 1, circle)),
+                  vertex(FastScoreAt(p - step, circle), c, FastScoreAt(p + step, circle))};
+  }
+}
+
 // Per-level scratch, owned by one work item.
 }  // namespace
 
@@ -726,6 +747,7 @@ void DescribeCorners(bool avx2, const cv::Mat& img, const cv::Mat& blurred, cons
 // What one level produces.
 struct LevelResult {
   std::vector<Candidate> corners;  // all FAST candidates, then the kept ones
+  std::vector<Eigen::Vector2f> offset;  // sub-pixel offset of each kept corner (level pixels)
   std::vector<float> angle;
   std::vector<Descriptor> descriptor;
 };
@@ -976,6 +998,8 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
       }
       DescribeCorners(avx2, img, blurred, r.corners, orientation_weights_.data(), pattern, r.angle.data(),
                       r.descriptor.data());
+      r.offset.assign(r.corners.size(), Eigen::Vector2f::Zero());
+      if (options_.subpixel) SubpixelOffsets(img, r.corners, r.offset.data());
     }
   });
 
@@ -988,7 +1012,7 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
   for (int l = 0; l < levels; ++l) {
     const LevelResult& r = results[l];
     for (size_t i = 0; i < r.corners.size(); ++i, ++k) {
-      out->uv[k] = pyramid->FromLevel(Eigen::Vector2f(r.corners[i].x, r.corners[i].y), l);
+      out->uv[k] = pyramid->FromLevel(Eigen::Vector2f(r.corners[i].x, r.corners[i].y) + r.offset[i], l);
       out->angle[k] = r.angle[i];
       out->octave[k] = static_cast<uint8_t>(l);
       out->response[k] = r.corners[i].score;

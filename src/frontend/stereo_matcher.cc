@@ -218,7 +218,11 @@ StereoStats MatchStereo(const Keypoints& right, const ImagePyramid& left_pyramid
       if (delta < -1.0 || delta > 1.0) continue;
 
       const float xr = static_cast<float>(xr0 + best_offset + delta);
-      const float ur = right_pyramid.FromLevel(Eigen::Vector2f(xr, static_cast<float>(yl)), level).x();
+      // The SAD found the left patch centred on the pixel xl; the keypoint lies (sub-pixel) off it
+      // by as much in both images.
+      const float patch_ul = left_pyramid.FromLevel(Eigen::Vector2f(static_cast<float>(xl), pl.y()), level).x();
+      const float ur =
+          right_pyramid.FromLevel(Eigen::Vector2f(xr, static_cast<float>(yl)), level).x() + (ul - patch_ul);
       // The rig's own offset comes off: where an exact rig would have shown the point.
       const float exact_ur = ur + static_cast<float>(options.disparity_offset_px);
       const float disparity = ul - exact_ur;
