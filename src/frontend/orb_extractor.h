@@ -59,9 +59,9 @@ inline constexpr int kOrientationRadius = 15;
   X(int, cell_size, 30, cell_size >= 8, "pixels (at each level) of a FAST grid cell, about")                   \
   X(int, edge_margin, 19, edge_margin >= kOrientationRadius + 1 && edge_margin <= 1000,                        \
     "pixels (at each level) kept free at the border, beyond the orientation disc's radius")                    \
-  X(bool, subpixel, true, true,                                                                                \
+  X(bool, subpixel, false, true,                                                                               \
     "keypoint positions refined to a fraction of a level pixel: the peak of a parabola through the FAST "      \
-    "scores of the corner and its neighbours, per axis")                                                        \
+    "scores of the corner and its neighbours, per axis (off: the corner's pixel; see docs/STATUS.md)")         \
   X(bool, budget_by_area, false, true,                                                                         \
     "false: level i gets a share of the budget proportional to 1/scale_factor^i (ORB-SLAM2's series, level 0 " \
     "gets 21.7% at 1.2 x 8); true: proportional to the level's area, 1/scale_factor^(2i) (32.3%)")             \

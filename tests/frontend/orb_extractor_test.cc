@@ -226,7 +226,7 @@ TEST(OrbExtractor, LevelBudgetsFollowTheGeometricSeries) {
 TEST(OrbExtractor, FillsTheBudgetOnKitti) {
   const cv::Mat img = KittiImage();
   ASSERT_EQ(img.size(), cv::Size(1226, 370));
-  const OrbExtractor orb = MakeExtractor(2000);
+  OrbExtractor orb = MakeExtractor(2000);
   Keypoints kps;
   ImagePyramid pyramid;
   orb.Extract(img, &kps, &pyramid);
@@ -252,12 +252,26 @@ TEST(OrbExtractor, FillsTheBudgetOnKitti) {
   std::printf("\n");
   for (int l = 0; l < 8; ++l) EXPECT_GT(per_level[l], 0) << "level " << l;
   EXPECT_GT(per_level[0], per_level[7]);
-  // Keypoint positions map back to integer pixels of their level.
+  // Keypoint positions map back to integer pixels of their level by default; refined
+  // (orb.subpixel), most lie off the corner's pixel, by at most half a pixel.
   for (size_t i = 0; i < kps.size(); i += 37) {
     const Eigen::Vector2f p = pyramid.ToLevel(kps.uv[i], kps.octave[i]);
     EXPECT_NEAR(p.x(), std::round(p.x()), 1e-3);
     EXPECT_NEAR(p.y(), std::round(p.y()), 1e-3);
   }
+  OrbOptions refined_options;
+  refined_options.features = 2000;
+  refined_options.subpixel = true;
+  orb = OrbExtractor(refined_options);
+  orb.Extract(img, &kps, &pyramid);
+  int off_pixel = 0;
+  for (size_t i = 0; i < kps.size(); ++i) {
+    const Eigen::Vector2f p = pyramid.ToLevel(kps.uv[i], kps.octave[i]);
+    EXPECT_LE(std::abs(p.x() - std::round(p.x())), 0.5f + 1e-3f);
+    EXPECT_LE(std::abs(p.y() - std::round(p.y())), 0.5f + 1e-3f);
+    off_pixel += (p - p.array().round().matrix()).norm() > 1e-3f;
+  }
+  EXPECT_GT(off_pixel, static_cast<int>(kps.size()) / 2);
 }
 
 TEST(OrbExtractor, AreaBudgetFavoursFineLevels) {
