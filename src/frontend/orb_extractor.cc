@@ -141,6 +141,11 @@ using Bytes32 = uint8_t __attribute__((vector_size(32)));
   return best;
 }
 
+// Pointer offsets of the radius-3 circle's 16 pixels in an image of row stride `step`.
+void CircleOffsets(ptrdiff_t step, ptrdiff_t* offsets) {
+  for (int k = 0; k < 16; ++k) offsets[k] = kCircle[k][1] * step + kCircle[k][0];
+}
+
 // Scalar version of the same score (narrow images).
 uint8_t FastScoreAt(const uint8_t* p, const ptrdiff_t* offsets) {
   const int c = p[0];
@@ -166,7 +171,7 @@ uint8_t FastScoreAt(const uint8_t* p, const ptrdiff_t* offsets) {
                                                   uint8_t* out, size_t out_step) {
   const ptrdiff_t step = static_cast<ptrdiff_t>(img.step1());
   ptrdiff_t offsets[16];
-  for (int k = 0; k < 16; ++k) offsets[k] = kCircle[k][1] * step + kCircle[k][0];
+  CircleOffsets(step, offsets);
   const Bytes32 floor32 = Bytes32{} + static_cast<uint8_t>(floor);
   const int count = x1 - x0;
   for (int y = y0; y < y1; ++y) {
@@ -401,7 +406,7 @@ std::vector<uint16_t> GaussianTaps(int size, double sigma) {
 void SubpixelOffsets(const cv::Mat& img, const std::vector<Candidate>& corners, Eigen::Vector2f* offsets) {
   const ptrdiff_t step = static_cast<ptrdiff_t>(img.step1());
   ptrdiff_t circle[16];
-  for (int k = 0; k < 16; ++k) circle[k] = kCircle[k][1] * step + kCircle[k][0];
+  CircleOffsets(step, circle);
   const auto vertex = [](int minus, int centre, int plus) {
     const int curvature = minus + plus - 2 * centre;
     if (curvature >= 0) return 0.f;
@@ -747,7 +752,7 @@ void DescribeCorners(bool avx2, const cv::Mat& img, const cv::Mat& blurred, cons
 // What one level produces.
 struct LevelResult {
   std::vector<Candidate> corners;  // all FAST candidates, then the kept ones
-  std::vector<Eigen::Vector2f> offset;  // sub-pixel offset of each kept corner (level pixels)
+  std::vector<Eigen::Vector2f> offset;  // sub-pixel offset of each kept corner (level pixels); empty: none
   std::vector<float> angle;
   std::vector<Descriptor> descriptor;
 };
@@ -998,8 +1003,10 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
       }
       DescribeCorners(avx2, img, blurred, r.corners, orientation_weights_.data(), pattern, r.angle.data(),
                       r.descriptor.data());
-      r.offset.assign(r.corners.size(), Eigen::Vector2f::Zero());
-      if (options_.subpixel) SubpixelOffsets(img, r.corners, r.offset.data());
+      if (options_.subpixel) {
+        r.offset.resize(r.corners.size());
+        SubpixelOffsets(img, r.corners, r.offset.data());
+      }
     }
   });
 
@@ -1012,7 +1019,8 @@ void OrbExtractor::Extract(const cv::Mat& gray, Keypoints* out, ImagePyramid* py
   for (int l = 0; l < levels; ++l) {
     const LevelResult& r = results[l];
     for (size_t i = 0; i < r.corners.size(); ++i, ++k) {
-      out->uv[k] = pyramid->FromLevel(Eigen::Vector2f(r.corners[i].x, r.corners[i].y) + r.offset[i], l);
+      const Eigen::Vector2f corner(r.corners[i].x, r.corners[i].y);
+      out->uv[k] = pyramid->FromLevel(r.offset.empty() ? corner : Eigen::Vector2f(corner + r.offset[i]), l);
       out->angle[k] = r.angle[i];
       out->octave[k] = static_cast<uint8_t>(l);
       out->response[k] = r.corners[i].score;
