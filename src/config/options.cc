@@ -48,6 +48,8 @@ int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz) {
   return static_cast<int>(std::clamp<long>(std::lround(best), kMinDerivedFeatures, kMaxDerivedFeatures));
 }
 
+double ThinKeyFrameParallaxDeg(const PinholeCamera& camera) { return 4.0 / camera.fx * 180.0 / M_PI; }
+
 int MonocularKeyFrameSpacing(double frame_rate_hz) {
   // A monocular keyframe waits 2 frames after the last (set at KITTI's 10 Hz, 0.2 s): keyframes
   // from consecutive frames add little parallax while forward motion thins the tracked points.
@@ -110,10 +112,28 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
     note("min_parallax_deg", text);
   }
   if (o.thin_keyframe_parallax_deg == 0) {
-    o.thin_keyframe_parallax_deg = mono ? std::min(kDepthParallaxDeg, o.min_parallax_deg) : o.min_parallax_deg;
-    note("thin_keyframe_parallax_deg",
-         mono ? "monocular: ORB-SLAM2's floor, 1.146 degrees, for keyframes that would hold too few points to track"
-              : "with depth: min_parallax_deg (off): points under it take the measured depth");
+    // The rays of a point whose depth comes out within about 25% at a pixel of keypoint noise:
+    // a ray is measured to 1 / fx rad, so 4 / fx rad of parallax. These points are taken only so
+    // that tracking keeps enough of them through a turn into an unmapped view, where the camera
+    // turns more than it moves; later keyframes widen their rays and local BA refines them.
+    o.thin_keyframe_parallax_deg =
+        mono ? std::min(ThinKeyFrameParallaxDeg(cam), o.min_parallax_deg) : o.min_parallax_deg;
+    if (mono)
+      std::snprintf(text, sizeof(text),
+                    "monocular: the angle of 4 pixels, 4 / fx = 4 / %.4g rad (depth within about 25%% at a pixel of "
+                    "noise), at most min_parallax_deg, for keyframes that would hold too few points to track",
+                    cam.fx);
+    else
+      std::snprintf(text, sizeof(text), "with depth: min_parallax_deg (off): points under it take the measured depth");
+    note("thin_keyframe_parallax_deg", text);
+  }
+  if (o.thin_keyframe_points == 0) {
+    // Through a fast turn the points a keyframe tracks halve within a few frames (the hand-held
+    // glance: 180 -> 77 in six frames, with a keyframe every second frame), so a keyframe waiting
+    // until it holds the fading count takes its narrow rays too late to be tracked.
+    o.thin_keyframe_points = 2 * o.keyframe_fading_inliers;
+    note("thin_keyframe_points",
+         "twice keyframe_fading_inliers: the points a keyframe tracks through a fast turn halve within a few frames");
   }
   return o;
 }

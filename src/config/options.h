@@ -103,9 +103,13 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "look like points at infinity), 1.146 deg (ORB-SLAM2's cos 0.9998) with depth, where close points come from "     \
     "the stereo or depth measurement")                                                                                \
   X(double, thin_keyframe_parallax_deg, 0, thin_keyframe_parallax_deg >= 0 && thin_keyframe_parallax_deg < 90,          \
-    "monocular: a keyframe that would hold fewer points than keyframe_fading_inliers (where tracking counts as "     \
-    "fading) also takes new points whose rays diverge by at least this angle, under min_parallax_deg, widest first, " \
-    "up to that count; 0 = by sensor: ORB-SLAM2's 1.146 deg monocular, off with depth (min_parallax_deg)")           \
+    "monocular: a keyframe that would hold fewer points than thin_keyframe_points also takes new points whose "     \
+    "rays diverge by at least this angle, under min_parallax_deg, widest first, up to that count; 0 = from the "     \
+    "camera: the angle of 4 pixels (4 / fx rad: depth within about 25% at a pixel of noise), at most "              \
+    "min_parallax_deg; off with depth (min_parallax_deg)")                                                           \
+  X(int, thin_keyframe_points, 0, thin_keyframe_points >= 0,                                                          \
+    "points (tracked and new) a monocular keyframe holds before it takes the narrow rays of "                       \
+    "thin_keyframe_parallax_deg; 0 = twice keyframe_fading_inliers")                                                 \
   X(size_t, max_local_map_keyframes, 80, max_local_map_keyframes > 0, "keyframes whose points are tracked")           \
   X(size_t, max_local_ba_keyframes, 20, max_local_ba_keyframes > 0,                                                   \
     "free keyframes of local BA: the new one and its strongest covisible; bounds a keyframe's cost where far points " \
@@ -213,6 +217,10 @@ inline constexpr double kMonocularParallaxDeg = 2.0, kDepthParallaxDeg = 1.146;
 // Features per image for a camera: 1.9 x sqrt(width x height), times sqrt(20 Hz / frame rate)
 // below 20 Hz, rounded to the 1-1.2-1.5-2-2.5-3-4-5-6-8 series and kept in [500, 8000].
 [[nodiscard]] int DerivedFeatureBudget(const PinholeCamera& camera, double frame_rate_hz);
+
+// Parallax of the narrow rays a thin monocular keyframe takes (thin_keyframe_parallax_deg = 0):
+// the angle of 4 pixels of the camera, 4 / fx rad, in degrees.
+[[nodiscard]] double ThinKeyFrameParallaxDeg(const PinholeCamera& camera);
 
 // Frames a monocular keyframe waits after the last: 2, or the number nearest to 0.2 s where that
 // is fewer (1 below 7.5 Hz); 2 when the frame rate is unknown (<= 0).

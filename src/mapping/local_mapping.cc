@@ -77,16 +77,16 @@ void Fuse(Map& map, const SystemContext& context, KeyFrameHandle current) {
 
 
 // A monocular keyframe whose points (those it tracks and its new ones over min_parallax_deg) are
-// fewer than keyframe_fading_inliers, the count under which tracking counts as fading, also takes
-// the candidates between thin_keyframe_parallax_deg and that floor, widest rays first, one per
-// keypoint, until it holds that many. A fast turn into an unmapped view leaves each keyframe with
+// fewer than thin_keyframe_points (twice the count under which tracking counts as fading) also
+// takes the candidates between thin_keyframe_parallax_deg and that floor, widest rays first, one
+// per keypoint, until it holds that many. A fast turn into an unmapped view leaves each keyframe with
 // fewer points than the one before, and the narrow rays are all it can place before the view is
 // gone; where keyframes hold more, the floor alone decides. Deterministic: the candidates come in
 // the neighbours' order and the sort is stable.
 void AddNarrowPointsToAThinKeyFrame(const KeyFrame& a, const SystemContext& context,
                                     const std::vector<std::vector<std::pair<NewPoint, double>>>& narrow,
                                     std::vector<NewPoint>* out) {
-  const size_t target = static_cast<size_t>(std::max(0, context.options.keyframe_fading_inliers));
+  const size_t target = static_cast<size_t>(std::max(0, context.options.thin_keyframe_points));
   std::vector<uint8_t> held(a.size(), 0);
   size_t holds = 0;
   auto hold = [&](uint32_t i) {

@@ -262,6 +262,37 @@ TEST(SlamOptions, MonocularKeyFrameSpacingFollowsTheFrameRate) {
             3);
 }
 
+// The narrow rays a thin monocular keyframe takes: down to the angle of 4 pixels, 4 / fx rad
+// (TUM-like fx 525: 0.4365 degrees, KITTI-like 718.9: 0.3188, EuRoC-like 458.6: 0.4998), never
+// over the monocular floor; until it holds twice the fading count (200). With depth the rule is
+// off (the floor itself); explicit values are kept.
+TEST(SlamOptions, ThinKeyFrameRaysFollowTheFocalLength) {
+  const SlamOptions defaults;
+  EXPECT_EQ(defaults.thin_keyframe_parallax_deg, 0);
+  EXPECT_EQ(defaults.thin_keyframe_points, 0);
+  const SlamOptions tum = ResolvedOptions(defaults, CameraOf(640, 480, 525, 30, Sensor::kMonocular));
+  const SlamOptions kitti = ResolvedOptions(defaults, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular));
+  const SlamOptions euroc = ResolvedOptions(defaults, CameraOf(752, 480, 458.6, 20, Sensor::kMonocular));
+  EXPECT_NEAR(tum.thin_keyframe_parallax_deg, 0.4365, 1e-4);
+  EXPECT_NEAR(kitti.thin_keyframe_parallax_deg, 0.3188, 1e-4);
+  EXPECT_NEAR(euroc.thin_keyframe_parallax_deg, 0.4998, 1e-4);
+  for (const SlamOptions* o : {&tum, &kitti, &euroc}) {
+    EXPECT_EQ(o->thin_keyframe_points, 200);
+    EXPECT_EQ(o->min_parallax_deg, 2.0);
+  }
+  // A camera so short-sighted that 4 pixels span more than the floor: the floor.
+  EXPECT_EQ(ResolvedOptions(defaults, CameraOf(160, 120, 100, 30, Sensor::kMonocular)).thin_keyframe_parallax_deg,
+            2.0);
+  const SlamOptions stereo = ResolvedOptions(defaults, CameraOf(752, 480, 458.6, 20, Sensor::kStereo, 0.11));
+  EXPECT_EQ(stereo.thin_keyframe_parallax_deg, stereo.min_parallax_deg);
+  SlamOptions explicit_thin;
+  explicit_thin.thin_keyframe_parallax_deg = 1.146;
+  explicit_thin.thin_keyframe_points = 100;
+  const SlamOptions kept = ResolvedOptions(explicit_thin, CameraOf(1241, 376, 718.9, 10, Sensor::kMonocular));
+  EXPECT_EQ(kept.thin_keyframe_parallax_deg, 1.146);
+  EXPECT_EQ(kept.thin_keyframe_points, 100);
+}
+
 // --list-options: each value chosen from the camera comes with its rule, and the whole listing
 // still reads back as a config file.
 TEST(SlamOptions, DerivedValuesAreExplained) {

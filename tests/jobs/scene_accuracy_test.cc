@@ -135,16 +135,22 @@ TEST(SceneAccuracy, HandheldMonocular) {
   EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);  // shape, after the arbitrary scale
 }
 
-// The hand-held camera's first glance into an unmapped part of the office, 5 s in: its keyframes
-// added 20-60 points each with rays over 2 degrees apart while the points a frame tracked fell
-// from about 200 to under 50 in eight frames, and 14 frames were lost (seed 2). Keyframes that would hold fewer points than tracking
-// needs not to fade now also take narrower rays (thin_keyframe_parallax_deg). Bar: the monocular
-// hand-held one, with nothing lost.
+// The hand-held camera's first glance into an unmapped part of the office, 5 s in: the camera
+// turns more than it moves, so keyframes two frames apart have rays under a degree apart, and
+// the points a frame tracked fell from about 200 to under 50 in eight frames. With keyframes
+// taking narrow rays only once they held fewer than the fading count (100), down to 1.146
+// degrees, 14-15 frames were lost at 5 of 6 image noise seeds (10 s runs), a new map segment
+// after. Keyframes holding fewer than twice that count now take rays down to the angle of 4
+// pixels (thin_keyframe_points, thin_keyframe_parallax_deg). Bar: the monocular hand-held one,
+// with nothing lost, at each of four noise seeds.
 TEST(SceneAccuracy, HandheldMonocularKeepsTrackingThroughAGlanceIntoTheUnmapped) {
-  const Outcome o = RunWithDefaults("synth:handheld:duration=20", Sensor::kMonocular, 2);
-  EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
-  EXPECT_EQ(o.lost_after, 0u);
-  EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);
+  for (int seed = 1; seed <= 4; ++seed) {
+    SCOPED_TRACE(seed);
+    const Outcome o = RunWithDefaults("synth:handheld:duration=10,seed=" + std::to_string(seed), Sensor::kMonocular);
+    EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
+    EXPECT_EQ(o.lost_after, 0u);
+    EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);
+  }
 }
 
 // Moving objects covering up to 30% of the view: each sensor keeps tracking and stays within the

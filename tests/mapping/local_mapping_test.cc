@@ -99,8 +99,8 @@ TEST(LocalMapping, AFramesCloseDepthReachesItsHundredNearestKeypoints) {
 }
 
 // Two monocular keyframes 1 m apart seeing 40 points 10 m away (rays 5.7 degrees apart), 120 at
-// 38 m (1.5 degrees: under the 2-degree floor, over the thin keyframe's 1.146) and 20 at 150 m
-// (0.4 degrees). Keypoints are the exact projections with a descriptor of their own.
+// 38 m (1.5 degrees: under the 2-degree floor, over the thin keyframe's 0.458) and 20 at 150 m
+// (0.38 degrees). Keypoints are the exact projections with a descriptor of their own.
 struct TwoMonocularKeyFrames {
   Map map;
   LocalMappingState state;
@@ -153,38 +153,36 @@ TwoMonocularKeyFrames MakeTwoMonocularKeyFrames(const SystemContext& context, si
 }
 
 // Monocular new points need 2 degrees between their rays; a keyframe that would hold fewer points
-// than tracking needs not to fade (keyframe_fading_inliers, 100) also takes those between 1.146
-// and 2 degrees, widest first, up to that count, and never the 0.4-degree ones.
-TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysUpToTheFadingCount) {
+// than thin_keyframe_points (twice the fading count, 200) also takes those down to the angle of 4
+// pixels (4 / 500 rad, 0.458 degrees), widest first, up to that count: the 1.5-degree ones, never
+// the 0.38-degree ones.
+TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysUpToTwiceTheFadingCount) {
   const SystemContext context = MakeContext(Sensor::kMonocular);
   ASSERT_EQ(context.options.min_parallax_deg, 2.0);
-  ASSERT_NEAR(context.options.thin_keyframe_parallax_deg, 1.146, 1e-12);
+  ASSERT_NEAR(context.options.thin_keyframe_parallax_deg, 4.0 / 500 * 180 / M_PI, 1e-12);
   ASSERT_EQ(context.options.keyframe_fading_inliers, 100);
+  ASSERT_EQ(context.options.thin_keyframe_points, 200);
   auto count_at = [](const TwoMonocularKeyFrames& k, const std::vector<NewPoint>& found, double depth) {
     return std::count_if(found.begin(), found.end(), [&](const NewPoint& c) { return k.depth_of[c.i1] == depth; });
   };
-  {
-    // Nothing tracked: the 40 wide points and 60 of the narrow ones.
-    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, 0);
+  // Tracked points, and the narrow ones then taken: the 40 wide ones always.
+  for (const auto& [tracked, narrow] : {std::pair{0, 120}, std::pair{50, 110}, std::pair{100, 60}, std::pair{160, 0}}) {
+    SCOPED_TRACE(tracked);
+    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, tracked);
     const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
     EXPECT_EQ(count_at(k, found, 10), 40);
-    EXPECT_EQ(count_at(k, found, 38), 60);
+    EXPECT_EQ(count_at(k, found, 38), narrow);
     EXPECT_EQ(count_at(k, found, 150), 0);
     for (const NewPoint& c : found) EXPECT_NEAR(c.X_world.z(), k.depth_of[c.i1], 1e-3 * k.depth_of[c.i1]);
   }
   {
-    // 50 tracked and 40 wide make 90: 10 narrow ones.
-    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, 50);
-    const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
-    EXPECT_EQ(count_at(k, found, 10), 40);
-    EXPECT_EQ(count_at(k, found, 38), 10);
-  }
-  {
-    // 60 tracked and 40 wide hold enough: the floor alone decides.
-    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, 60);
-    const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
-    EXPECT_EQ(count_at(k, found, 10), 40);
-    EXPECT_EQ(count_at(k, found, 38), 0);
+    // A floor under the 0.38-degree rays takes them too, after the wider ones.
+    SystemContext low = context;
+    low.options.thin_keyframe_parallax_deg = 0.2;
+    const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(low, 0);
+    const std::vector<NewPoint> found = FindNewPoints(k.state, low, {1.0, 400.0});
+    EXPECT_EQ(count_at(k, found, 38), 120);
+    EXPECT_EQ(count_at(k, found, 150), 20);
   }
   {
     // Switched off (the thin floor at the floor): the wide ones alone.
