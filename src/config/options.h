@@ -104,7 +104,8 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
     "the stereo or depth measurement")                                                                                \
   X(double, thin_keyframe_parallax_deg, 0, thin_keyframe_parallax_deg >= 0 && thin_keyframe_parallax_deg < 90,          \
     "monocular: a keyframe that would hold fewer points than thin_keyframe_points also takes new points whose "     \
-    "rays diverge by at least this angle, under min_parallax_deg, widest first, up to that count; 0 = from the "     \
+    "rays diverge by at least this angle, under min_parallax_deg, in the cells of an 8 x 8 grid over its image "     \
+    "where it holds no point, widest first, up to that count; 0 = from the "                                        \
     "camera: the angle of 4 pixels (4 / fx rad: depth within about 25% at a pixel of noise), at most "              \
     "min_parallax_deg; off with depth (min_parallax_deg)")                                                           \
   X(int, thin_keyframe_points, 0, thin_keyframe_points >= 0,                                                          \

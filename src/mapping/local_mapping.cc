@@ -1,6 +1,7 @@
 #include "mapping/local_mapping.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <unordered_set>
 
@@ -76,13 +77,19 @@ void Fuse(Map& map, const SystemContext& context, KeyFrameHandle current) {
 }
 
 
+// Cells per image axis of the grid over which a thin keyframe looks for the parts it does not cover.
+constexpr int kThinKeyFrameGrid = 8;
+
 // A monocular keyframe whose points (those it tracks and its new ones over min_parallax_deg) are
 // fewer than thin_keyframe_points (twice the count under which tracking counts as fading) also
-// takes the candidates between thin_keyframe_parallax_deg and that floor, widest rays first, one
-// per keypoint, until it holds that many. A fast turn into an unmapped view leaves each keyframe with
-// fewer points than the one before, and the narrow rays are all it can place before the view is
-// gone; where keyframes hold more, the floor alone decides. Deterministic: the candidates come in
-// the neighbours' order and the sort is stable.
+// takes the candidates between thin_keyframe_parallax_deg and that floor in the parts of its image
+// where it holds no point, widest rays first, one per keypoint, until it holds that many. A fast
+// turn into an unmapped view leaves the side it turns to empty, and the narrow rays are all a
+// keyframe can place there before the view is gone; where points already lie, the floor alone
+// decides, so a keyframe with its points spread over the view takes few narrow ones. The parts
+// are the cells of a kThinKeyFrameGrid x kThinKeyFrameGrid grid over the image: 200 points make 3
+// a cell on average, so an empty cell is a part of the view the map does not cover, not a gap
+// between points. Deterministic: the candidates come in the neighbours' order, the sort is stable.
 void AddNarrowPointsToAThinKeyFrame(const KeyFrame& a, const SystemContext& context,
                                     const std::vector<std::vector<std::pair<NewPoint, double>>>& narrow,
                                     std::vector<NewPoint>* out) {
@@ -102,9 +109,18 @@ void AddNarrowPointsToAThinKeyFrame(const KeyFrame& a, const SystemContext& cont
   std::vector<std::pair<NewPoint, double>> all;
   for (const std::vector<std::pair<NewPoint, double>>& n : narrow) all.insert(all.end(), n.begin(), n.end());
   std::stable_sort(all.begin(), all.end(), [](const auto& x, const auto& y) { return x.second > y.second; });
+  const PinholeCamera& camera = context.geometry.camera;
+  auto cell = [&](uint32_t i) {
+    const int x = static_cast<int>(a.uv[i].x() * kThinKeyFrameGrid / camera.width);
+    const int y = static_cast<int>(a.uv[i].y() * kThinKeyFrameGrid / camera.height);
+    return std::clamp(y, 0, kThinKeyFrameGrid - 1) * kThinKeyFrameGrid + std::clamp(x, 0, kThinKeyFrameGrid - 1);
+  };
+  std::array<uint8_t, kThinKeyFrameGrid * kThinKeyFrameGrid> covered{};
+  for (uint32_t i = 0; i < a.size(); ++i)
+    if (held[i]) covered[cell(i)] = 1;
   for (const auto& [c, parallax_deg] : all) {
     if (holds >= target) break;
-    if (hold(c.i1)) out->push_back(c);
+    if (!covered[cell(c.i1)] && hold(c.i1)) out->push_back(c);
   }
 }
 

@@ -154,9 +154,10 @@ TwoMonocularKeyFrames MakeTwoMonocularKeyFrames(const SystemContext& context, si
 
 // Monocular new points need 2 degrees between their rays; a keyframe that would hold fewer points
 // than thin_keyframe_points (twice the fading count, 200) also takes those down to the angle of 4
-// pixels (4 / 500 rad, 0.458 degrees), widest first, up to that count: the 1.5-degree ones, never
-// the 0.38-degree ones.
-TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysUpToTwiceTheFadingCount) {
+// pixels (4 / 500 rad, 0.458 degrees), widest first, up to that count, in the cells of an 8 x 8
+// grid (80 x 60 px) where it holds no point: 84 of the 120 1.5-degree ones (36 share a cell with
+// the 40 wide ones, the tracked ones lie below them), never the 0.38-degree ones.
+TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysWhereItHoldsNoPoint) {
   const SystemContext context = MakeContext(Sensor::kMonocular);
   ASSERT_EQ(context.options.min_parallax_deg, 2.0);
   ASSERT_NEAR(context.options.thin_keyframe_parallax_deg, 4.0 / 500 * 180 / M_PI, 1e-12);
@@ -166,7 +167,7 @@ TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysUpToTwiceTheFadingCoun
     return std::count_if(found.begin(), found.end(), [&](const NewPoint& c) { return k.depth_of[c.i1] == depth; });
   };
   // Tracked points, and the narrow ones then taken: the 40 wide ones always.
-  for (const auto& [tracked, narrow] : {std::pair{0, 120}, std::pair{50, 110}, std::pair{100, 60}, std::pair{160, 0}}) {
+  for (const auto& [tracked, narrow] : {std::pair{0, 84}, std::pair{50, 84}, std::pair{100, 60}, std::pair{160, 0}}) {
     SCOPED_TRACE(tracked);
     const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(context, tracked);
     const std::vector<NewPoint> found = FindNewPoints(k.state, context, {1.0, 400.0});
@@ -176,12 +177,12 @@ TEST(LocalMapping, AThinMonocularKeyFrameTakesNarrowerRaysUpToTwiceTheFadingCoun
     for (const NewPoint& c : found) EXPECT_NEAR(c.X_world.z(), k.depth_of[c.i1], 1e-3 * k.depth_of[c.i1]);
   }
   {
-    // A floor under the 0.38-degree rays takes them too, after the wider ones.
+    // A floor under the 0.38-degree rays takes them too (their cells hold no point).
     SystemContext low = context;
     low.options.thin_keyframe_parallax_deg = 0.2;
     const TwoMonocularKeyFrames k = MakeTwoMonocularKeyFrames(low, 0);
     const std::vector<NewPoint> found = FindNewPoints(k.state, low, {1.0, 400.0});
-    EXPECT_EQ(count_at(k, found, 38), 120);
+    EXPECT_EQ(count_at(k, found, 38), 84);
     EXPECT_EQ(count_at(k, found, 150), 20);
   }
   {
