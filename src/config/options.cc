@@ -116,16 +116,17 @@ SlamOptions ResolvedOptions(const SlamOptions& options, const Calibration& calib
     // a ray is measured to 1 / fx rad, so 4 / fx rad of parallax. These points are taken only so
     // that tracking keeps enough of them through a turn into an unmapped view, where the camera
     // turns more than it moves; later keyframes widen their rays and local BA refines them.
-    o.thin_keyframe_parallax_deg =
-        mono ? std::min(ThinKeyFrameParallaxDeg(cam), o.min_parallax_deg) : o.min_parallax_deg;
-    if (mono)
+    if (mono) {
+      o.thin_keyframe_parallax_deg = std::min(ThinKeyFrameParallaxDeg(cam), o.min_parallax_deg);
       std::snprintf(text, sizeof(text),
                     "monocular: the angle of 4 pixels, 4 / fx = 4 / %.4g rad (depth within about 25%% at a pixel of "
                     "noise), at most min_parallax_deg, for keyframes that would hold too few points to track",
                     cam.fx);
-    else
-      std::snprintf(text, sizeof(text), "with depth: min_parallax_deg (off): points under it take the measured depth");
-    note("thin_keyframe_parallax_deg", text);
+      note("thin_keyframe_parallax_deg", text);
+    } else {
+      o.thin_keyframe_parallax_deg = o.min_parallax_deg;
+      note("thin_keyframe_parallax_deg", "with depth: min_parallax_deg (off): points under it take the measured depth");
+    }
   }
   if (o.thin_keyframe_points == 0) {
     // Through a fast turn the points a keyframe tracks halve within a few frames (the hand-held
