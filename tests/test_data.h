@@ -3,6 +3,8 @@
 
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <string>
 #include <system_error>
 #include <vector>
@@ -37,6 +39,12 @@ inline std::filesystem::path FreshTempDir(const std::string& name) {
   std::filesystem::create_directories(dir);
   made.push_back(dir);
   return dir;
+}
+
+// Whole file as bytes (empty when it cannot be read).
+inline std::string ReadBytes(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
 }
 
 }  // namespace flatslam::testing

@@ -19,6 +19,7 @@ namespace flatslam {
 namespace {
 
 using testing::Contains;
+using testing::NumberAfter;
 using testing::RunApp;
 using Result = testing::CliResult;
 
@@ -87,12 +88,6 @@ TEST(FlatslamCli, EvalReproducesPublishedAte) {
 // Several estimates in one frame under one alignment (the agents of a merged map): the same
 // estimate twice scores as it does alone; a copy moved 1 m in the shared frame cannot be aligned
 // with it by one transform, and each one's error shows it.
-// The number after `key` in a run's summary (NaN when absent).
-double NumberAfter(const std::string& output, const std::string& key) {
-  const size_t at = output.find(key);
-  return at == std::string::npos ? std::nan("") : std::stod(output.substr(at + key.size()));
-}
-
 // A stereo run measures its rig against the map: a rig that adds -0.2 px to every disparity
 // (synthetic rig_error) is reported with the setting that takes it off; with that setting the map
 // measures about nothing left and the trajectory is better.

@@ -25,6 +25,7 @@ namespace fs = std::filesystem;
 using testing::Contains;
 using testing::RunApp;
 using Result = testing::CliResult;
+using testing::NumberAfter;
 using testing::ReadBytes;
 
 void WriteText(const fs::path& path, const std::string& text) {
@@ -131,12 +132,6 @@ TEST_F(MapCli, ExportWritesPlyAndTumTrajectory) {
   EXPECT_EQ(binary.size() - data_at, vertices * 12);
 }
 
-// The number after `key` in text (the first occurrence), or -1.
-long long NumberAfter(const std::string& text, const std::string& key) {
-  const size_t at = text.find(key);
-  return at == std::string::npos ? -1 : std::stoll(text.substr(at + key.size()));
-}
-
 TEST_F(MapCli, ExportWritesAColmapModelThatColmapReadsWithTheMapsCounts) {
   const fs::path model = dir_ / "colmap" / "room";  // created by the export
   Result r = RunApp("map export " + (dir_ / "room.fsmap").string() + " --colmap " + model.string());
@@ -144,9 +139,9 @@ TEST_F(MapCli, ExportWritesAColmapModelThatColmapReadsWithTheMapsCounts) {
   const std::string wrote = r.output;
   EXPECT_TRUE(Contains(wrote, "wrote " + model.string() + ": map 0, ")) << wrote;
   for (const char* file : {"cameras.txt", "images.txt", "points3D.txt"}) EXPECT_TRUE(fs::exists(model / file)) << file;
-  const long long images = NumberAfter(wrote, "map 0, "), points = NumberAfter(wrote, "images, ");
-  const long long observations = NumberAfter(wrote, "points, ");
-  const long long unobserved = Contains(wrote, "without observations") ? NumberAfter(wrote, "px (") : 0;
+  const double images = NumberAfter(wrote, "map 0, "), points = NumberAfter(wrote, "images, ");
+  const double observations = NumberAfter(wrote, "points, ");
+  const double unobserved = Contains(wrote, "without observations") ? NumberAfter(wrote, "px (") : 0;
 
   // The same numbers as the snapshot: keyframes, observations, and map points with observations.
   r = RunApp("map info " + (dir_ / "room.fsmap").string());

@@ -662,7 +662,7 @@ TEST(OrbExtractor, MatchesAcrossFramesWithKnownMotion) {
 }
 
 // Regenerates kLearnedPattern in src/frontend/orb_extractor.cc: prints the table (a minute).
-// Run: test_systems_orb_extractor_test --gtest_also_run_disabled_tests --gtest_filter=*LearnPattern
+// Run: build/tests/test_frontend --gtest_also_run_disabled_tests --gtest_filter=*LearnPattern
 // Training keypoints (every third) from KITTI 06 left frames 0, 5, .., 50 and EuRoC V1_01 cam0 and
 // cam1; the pool is GaussianBriefPairs(kLearnedPatternPoolSeed, kLearnedPatternPoolSize). As ORB's
 // rBRIEF: order the pool by |mean - 1/2| of the steered test, keep a test when its correlation

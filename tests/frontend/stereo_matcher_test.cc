@@ -19,7 +19,7 @@
 namespace flatslam {
 namespace {
 
-OrbExtractor MakeExtractor(int features) {
+OrbExtractor MakeStereoExtractor(int features) {
   OrbOptions options;
   options.features = features;
   return OrbExtractor(options);
@@ -60,7 +60,7 @@ TEST(MatchStereo, DepthsAgreeWithTheRendererOnSyntheticFrames) {
   options.sensor = Sensor::kStereo;
   SyntheticScene scene(MakeScene("room"), options);
   const Calibration& calib = scene.calibration();
-  const OrbExtractor orb = MakeExtractor(1000);
+  const OrbExtractor orb = MakeStereoExtractor(1000);
   int total = 0, matched = 0, within_3pct = 0, within_half_px = 0;
   for (size_t i : {5u, 60u, 150u, 300u}) {
     const Frame frame = scene.Render(i);
@@ -101,7 +101,7 @@ TEST(MatchStereo, DeterministicAcrossThreadCounts) {
   SyntheticOptions options;
   SyntheticScene scene(MakeScene("room"), options);
   const Frame frame = scene.Render(20);
-  const OrbExtractor orb = MakeExtractor(1000);
+  const OrbExtractor orb = MakeStereoExtractor(1000);
   StereoFrame a = ExtractPair(orb, frame.left, frame.right);
   StereoFrame b = a;
   tbb::task_arena(1).execute([&] {
@@ -118,7 +118,7 @@ TEST(MatchStereo, DeterministicAcrossThreadCounts) {
 
 TEST(MatchStereo, VectorAndBaselineKernelsAgree) {
   const auto dir = testing::DatasetsDir() / "kitti/sequences/06";
-  const OrbExtractor orb = MakeExtractor(2000);
+  const OrbExtractor orb = MakeStereoExtractor(2000);
   const StereoFrame pair =
       ExtractPair(orb, ReadGrayImage(dir / "image_0/000010.png"), ReadGrayImage(dir / "image_1/000010.png"));
   for (int w : {3, 5, 7}) {
@@ -141,7 +141,7 @@ TEST(MatchStereo, RespectsMinimumDepth) {
   SyntheticOptions options;
   SyntheticScene scene(MakeScene("room"), options);
   const Frame frame = scene.Render(60);
-  const OrbExtractor orb = MakeExtractor(1000);
+  const OrbExtractor orb = MakeStereoExtractor(1000);
   StereoFrame f = ExtractPair(orb, frame.left, frame.right);
   StereoOptions o;
   o.min_depth_m = 3.0;
@@ -165,7 +165,7 @@ TEST(MatchStereo, ADisparityOffsetTakesARigErrorOff) {
   SyntheticScene scene(MakeScene("room"), options);
   const Calibration& calib = scene.calibration();
   const double bf = calib.camera.fx * calib.baseline_m;
-  const OrbExtractor orb = MakeExtractor(1000);
+  const OrbExtractor orb = MakeStereoExtractor(1000);
   cv::Mat gray, exact_depth;
   const double t = scene.timestamp_ns(60) * 1e-9;
   scene.RenderView(scene.PoseAt(t), t, 0, &gray, &exact_depth);
@@ -200,7 +200,7 @@ TEST(MatchStereo, ADisparityOffsetTakesARigErrorOff) {
 }
 
 TEST(MatchStereo, RejectsBadInput) {
-  const OrbExtractor orb = MakeExtractor(300);
+  const OrbExtractor orb = MakeStereoExtractor(300);
   cv::Mat img(120, 160, CV_8UC1);
   cv::randu(img, 0, 255);
   cv::Mat other(100, 160, CV_8UC1);
@@ -222,7 +222,7 @@ TEST(MatchStereo, RejectsBadInput) {
 TEST(MatchStereo, PlausibleDepthsOnKitti06) {
   const auto dir = testing::DatasetsDir() / "kitti/sequences/06";
   const double fx = 707.0912, cy = 183.1104, baseline = 0.537;
-  const OrbExtractor orb = MakeExtractor(2000);
+  const OrbExtractor orb = MakeStereoExtractor(2000);
   for (const char* name : {"000000.png", "000025.png", "000050.png"}) {
     StereoFrame f = ExtractPair(orb, ReadGrayImage(dir / "image_0" / name), ReadGrayImage(dir / "image_1" / name));
     const StereoStats stats =
@@ -283,7 +283,7 @@ TEST(DepthFromImage, MatchesTheRenderedDepth) {
   const Frame frame = scene.Render(30);
   ASSERT_EQ(frame.depth.type(), CV_32FC1);
   Keypoints kps;
-  MakeExtractor(1000).Extract(frame.left, &kps);
+  MakeStereoExtractor(1000).Extract(frame.left, &kps);
   const double fx = scene.calibration().camera.fx, b = 0.08;
   const int n = DepthFromImage(frame.depth, fx, b, &kps);
   EXPECT_GT(n, 0.9 * kps.size());

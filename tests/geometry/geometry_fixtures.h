@@ -1,4 +1,5 @@
-// Shared pieces of the estimator tests: a test camera, pose construction, random directions.
+// Shared pieces of the estimator tests: a test camera, pose construction, random directions,
+// rotation errors.
 #pragma once
 
 #include <random>
@@ -36,6 +37,11 @@ inline Eigen::Isometry3d Pose(const Eigen::Matrix3d& R, const Eigen::Vector3d& t
 inline Eigen::Vector3d RandomUnit(std::mt19937_64& rng) {
   std::normal_distribution<double> n(0, 1);
   return Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+}
+
+// Angle of the rotation between two rotation matrices, in degrees.
+inline double RotationErrorDeg(const Eigen::Matrix3d& R_est, const Eigen::Matrix3d& R_true) {
+  return Eigen::AngleAxisd(R_est.transpose() * R_true).angle() / kDeg;
 }
 
 }  // namespace flatslam::testing

@@ -17,6 +17,7 @@ using testing::kDeg;
 using testing::kPi;
 using testing::Pose;
 using testing::RandomUnit;
+using testing::RotationErrorDeg;
 using testing::TestCamera;
 
 Eigen::Matrix3d Rot(double angle_rad, const Eigen::Vector3d& axis) {
@@ -29,10 +30,6 @@ Eigen::Vector2d Project(const PinholeCamera& c, const Eigen::Vector3d& x_cam) {
 
 bool InImage(const PinholeCamera& c, const Eigen::Vector2d& px) {
   return px.x() >= 0 && px.y() >= 0 && px.x() < c.width && px.y() < c.height;
-}
-
-double RotationErrorDeg(const Eigen::Matrix3d& R_est, const Eigen::Matrix3d& R_true) {
-  return Eigen::AngleAxisd(R_est.transpose() * R_true).angle() / kDeg;
 }
 
 double DirectionErrorDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {

@@ -13,14 +13,11 @@ namespace {
 
 using testing::kDeg;
 using testing::RandomUnit;
+using testing::RotationErrorDeg;
 using testing::TestCamera;
 
 Similarity3 MakeSim(double angle, const Eigen::Vector3d& axis, const Eigen::Vector3d& t, double s) {
   return {Eigen::AngleAxisd(angle, axis.normalized()).toRotationMatrix(), t, s};
-}
-
-double RotationErrorDeg(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b) {
-  return Eigen::AngleAxisd(a.transpose() * b).angle() / kDeg;
 }
 
 TEST(AlignPointsTest, RecoversSimilarityExactly) {

@@ -30,6 +30,13 @@ fs::path WriteFile(const std::string& name, const std::string& text) {
   return path;
 }
 
+// A settings file's text with lines appended.
+std::string Appended(const char* text, const char* lines) {
+  std::string out = text;
+  out.append(lines);
+  return out;
+}
+
 std::string Option(const OrbSettings& settings, const std::string& key) {
   for (const auto& [k, v] : settings.slam_options)
     if (k == key) return v;
@@ -374,29 +381,29 @@ Stereo.ThDepth: 40.0
 
 TEST(OrbSettings, UnknownKeyIsNamedWithTheFile) {
   const fs::path path =
-      WriteFile("unknown.yaml", std::string(kOrbSlam2KittiStereo) + "Camera.fxx: 1\nLoopClosing.on: 1\n");
+      WriteFile("unknown.yaml", Appended(kOrbSlam2KittiStereo, "Camera.fxx: 1\nLoopClosing.on: 1\n"));
   ExpectErrorMentions([&] { (void)ReadOrbSettings(path); },
                       {path.string(), "unknown keys", "'Camera.fxx'", "'LoopClosing.on'"});
 }
 
 TEST(OrbSettings, ContradictoryKeysAreNamed) {
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("fx.yaml", std::string(kOrbSlam2KittiStereo) + "Camera1.fx: 700.0\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("fx.yaml", Appended(kOrbSlam2KittiStereo, "Camera1.fx: 700.0\n"))); },
       {"'Camera.fx'", "'Camera1.fx'", "718.856", "700", "disagree"});
   // The same value under both names is fine.
   EXPECT_NO_THROW(
-      (void)ReadOrbSettings(WriteFile("fx_same.yaml", std::string(kOrbSlam2KittiStereo) + "Camera1.fx: 718.856\n")));
+      (void)ReadOrbSettings(WriteFile("fx_same.yaml", Appended(kOrbSlam2KittiStereo, "Camera1.fx: 718.856\n"))));
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("bf.yaml", std::string(kOrbSlam2KittiStereo) + "Stereo.b: 0.12\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("bf.yaml", Appended(kOrbSlam2KittiStereo, "Stereo.b: 0.12\n"))); },
       {"'Camera.bf / fx'", "'Stereo.b'", "disagree"});
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("th.yaml", std::string(kOrbSlam2KittiStereo) + "Stereo.ThDepth: 40\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("th.yaml", Appended(kOrbSlam2KittiStereo, "Stereo.ThDepth: 40\n"))); },
       {"'ThDepth'", "'Stereo.ThDepth'"});
   std::string left_p = kOrbSlam2EurocStereo;
   left_p.replace(left_p.find("Camera.cx: 367.4517211914062"), 28, "Camera.cx: 360.0");
   ExpectErrorMentions([&] { (void)ReadOrbSettings(WriteFile("leftp.yaml", left_p)); }, {"'Camera.cx'", "'LEFT.P'"});
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("dup.yaml", std::string(kOrbSlam2KittiStereo) + "ThDepth: 35\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("dup.yaml", Appended(kOrbSlam2KittiStereo, "ThDepth: 35\n"))); },
       {"'ThDepth'", "twice"});
 }
 
@@ -430,19 +437,19 @@ Camera1.overlappingBegin: 0
       },
       {"KannalaBrandt8", "fisheye", "not supported"});
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("k4.yaml", std::string(kOrbSlam2Mono) + "Camera.k4: 0.1\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("k4.yaml", Appended(kOrbSlam2Mono, "Camera.k4: 0.1\n"))); },
       {"'Camera.k4'", "fisheye"});
   ExpectErrorMentions(
       [] {
         (void)ReadOrbSettings(WriteFile(
-            "resize.yaml", std::string(kOrbSlam2KittiStereo) + "Camera.newWidth: 600\nCamera.newHeight: 188\n"));
+            "resize.yaml", Appended(kOrbSlam2KittiStereo, "Camera.newWidth: 600\nCamera.newHeight: 188\n")));
       },
       {"'Camera.newWidth'", "600x188", "resizing is not supported"});
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("scale.yaml", std::string(kOrbSlam2Mono) + "Camera.imageScale: 0.5\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("scale.yaml", Appended(kOrbSlam2Mono, "Camera.imageScale: 0.5\n"))); },
       {"'Camera.imageScale'", "resiz"});
   EXPECT_NO_THROW((void)ReadOrbSettings(
-      WriteFile("scale1.yaml", std::string(kOrbSlam2Mono) + "Camera.imageScale: 1\nCamera.bFishEye: 0\n")));
+      WriteFile("scale1.yaml", Appended(kOrbSlam2Mono, "Camera.imageScale: 1\nCamera.bFishEye: 0\n"))));
   ExpectErrorMentions([] { (void)ReadOrbSettings(WriteFile("header.yaml", "Camera.fx: 500\n")); }, {"%YAML:1.0"});
   ExpectErrorMentions([] { (void)ReadOrbSettings("/nonexistent/settings.yaml"); },
                       {"not found", "/nonexistent/settings.yaml"});
@@ -456,7 +463,7 @@ Camera1.overlappingBegin: 0
       },
       {"tab.yaml", "line 4", "Tabs"});
   ExpectErrorMentions(
-      [] { (void)ReadOrbSettings(WriteFile("rgb.yaml", std::string(kOrbSlam2KittiStereo) + "Camera.RGB: 2\n")); },
+      [] { (void)ReadOrbSettings(WriteFile("rgb.yaml", Appended(kOrbSlam2KittiStereo, "Camera.RGB: 2\n"))); },
       {"'Camera.RGB'"});
   std::string no_right = kOrbSlam2EurocStereo;
   no_right.erase(no_right.find("RIGHT.P:"));
@@ -469,7 +476,7 @@ Camera1.overlappingBegin: 0
       [] {
         (void)ReadOrbSettings(WriteFile(
             "camera2.yaml",
-            std::string(kOrbSlam2Mono) + "Camera2.fx: 500\nCamera2.fy: 500\nCamera2.cx: 300\nCamera2.cy: 200\n"));
+            Appended(kOrbSlam2Mono, "Camera2.fx: 500\nCamera2.fy: 500\nCamera2.cx: 300\nCamera2.cy: 200\n")));
       },
       {"'Stereo.T_c1_c2'"});
 }

@@ -356,7 +356,9 @@ TEST(SyntheticScene, ARigErrorAddsItsPixelsToEveryDisparity) {
     std::printf("rig_error %+.1f px: best shift %+.2f px (median warp error %.2f), exact rig's %.2f\n", rig_error,
                 best_du, best, warp_error(0));
     EXPECT_NEAR(best_du, -rig_error, 0.1);
-    if (rig_error != 0) EXPECT_GT(warp_error(0), best + 0.5) << "the exact rig's warp must be worse";
+    if (rig_error != 0) {
+      EXPECT_GT(warp_error(0), best + 0.5) << "the exact rig's warp must be worse";
+    }
   }
   std::string name;
   SyntheticOptions o;

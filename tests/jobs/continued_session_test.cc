@@ -9,24 +9,17 @@
 #include "jobs/slam_runner.h"
 #include "storage/snapshot.h"
 #include "place/vocabulary.h"
+#include "default_vocabulary.h"
 #include "test_data.h"
 #include "trajectory/metrics.h"
 
 namespace flatslam {
 namespace {
 
-const Vocabulary& DefaultVocabulary() {
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  return vocabulary;
-}
+using testing::DefaultVocabulary;
+using testing::OptionsWithDefaultVocabulary;
 
 constexpr const char* kScene = "synth:room:duration=40,width=480,height=360";
-
-SlamOptions Options() {
-  SlamOptions options;
-  options.vocabulary = &DefaultVocabulary();
-  return options;
-}
 
 double Ate(const Trajectory& gt, const Trajectory& estimate) {
   EvalOptions eval;
@@ -45,7 +38,7 @@ Trajectory Slice(const Trajectory& trajectory, int64_t first_t_ns, int64_t last_
 TEST(ContinuedSession, SectionsOf200FramesMatchTheUninterruptedRun) {
   const auto dataset = OpenDataset(kScene);
   const Trajectory gt = *dataset->ground_truth();
-  const SlamRunResult whole = RunSlam(*dataset, Options(), SlamRunOptions{});
+  const SlamRunResult whole = RunSlam(*dataset, OptionsWithDefaultVocabulary(), SlamRunOptions{});
   const double whole_ate = Ate(gt, whole.trajectory);
   SlamRunResult last;
 
@@ -73,7 +66,7 @@ TEST(ContinuedSession, SectionsOf200FramesMatchTheUninterruptedRun) {
       const SnapshotMapRef ref{0, &slam.map()};
       SaveMapSnapshot(path, {&ref, 1}, metadata);
     };
-    const SlamRunResult part = RunSlam(*dataset, Options(), run);
+    const SlamRunResult part = RunSlam(*dataset, OptionsWithDefaultVocabulary(), run);
     for (const FrameReport& r : part.reports) {
       lost += r.state != TrackingState::kOk;
       reinitialized += r.reinitialized;
@@ -118,11 +111,11 @@ TEST(ContinuedSession, LocalizationOnlyLeavesTheMapUnchanged) {
     const SnapshotMapRef ref{0, &slam.map()};
     before = SerializeMapSnapshot({&ref, 1}, metadata);
   };
-  (void)RunSlam(*dataset, Options(), first);
+  (void)RunSlam(*dataset, OptionsWithDefaultVocabulary(), first);
   LoadedSnapshot snapshot = LoadMapSnapshotFromBytes(before, "first session");
   Map map = std::move(snapshot.maps[0].map);
 
-  SlamOptions options = Options();
+  SlamOptions options = OptionsWithDefaultVocabulary();
   options.localization_only = true;
   SlamRunOptions run;
   run.first_frame = 100;  // a stretch the map covers

@@ -9,6 +9,7 @@
 
 #include "jobs/slam_runner.h"
 #include "place/vocabulary.h"
+#include "default_vocabulary.h"
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"
@@ -16,12 +17,9 @@
 namespace flatslam {
 namespace {
 
-const Vocabulary& DefaultVocabulary() {
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  return vocabulary;
-}
+using testing::DefaultVocabulary;
 
-struct Outcome {
+struct PlaceOutcome {
   SlamRunResult run;
   Trajectory gt;
   EvalResult se3, sim3;
@@ -30,13 +28,13 @@ struct Outcome {
   int false_loops = 0;
 };
 
-Outcome RunScenario(const std::string& spec, bool loop_closing, const SlamRunOptions& run = {}, int features = 1000) {
+PlaceOutcome RunScenario(const std::string& spec, bool loop_closing, const SlamRunOptions& run = {}, int features = 1000) {
   const auto dataset = OpenDataset(spec);
   SlamOptions options;
   options.orb.features = features;
   options.vocabulary = &DefaultVocabulary();
   options.loop_closing = loop_closing;
-  Outcome out;
+  PlaceOutcome out;
   out.run = RunSlam(*dataset, options, run);
   out.gt = *dataset->ground_truth();
   const testing::TrajectoryScore score = testing::ScoreTrajectory(out.gt, out.run.trajectory);
@@ -79,7 +77,7 @@ size_t FirstReturn(const Trajectory& gt, double radius) {
 }
 
 // The first revisit is closed, truly, within a few keyframes of the camera's return.
-void ExpectTimelyTrueLoop(const Outcome& on) {
+void ExpectTimelyTrueLoop(const PlaceOutcome& on) {
   ASSERT_FALSE(on.run.loop_closures.empty()) << "no loop detected";
   EXPECT_EQ(on.false_loops, 0);
   EXPECT_EQ(on.reinitialized, 0u);
@@ -100,8 +98,8 @@ void ExpectTimelyTrueLoop(const Outcome& on) {
 
 // Loop closing must remove at least two thirds of the drift of the same run without it.
 void ExpectLoopClosureHelps(const std::string& spec, double max_path_fraction, bool sim3) {
-  const Outcome off = RunScenario(spec, false);
-  const Outcome on = RunScenario(spec, true);
+  const PlaceOutcome off = RunScenario(spec, false);
+  const PlaceOutcome on = RunScenario(spec, true);
   ExpectTimelyTrueLoop(on);
   const double ate_off = sim3 ? off.sim3.ate_m.rmse : off.se3.ate_m.rmse;
   const double ate_on = sim3 ? on.sim3.ate_m.rmse : on.se3.ate_m.rmse;
@@ -119,7 +117,7 @@ TEST(LoopClosing, MonocularRoom) {
 }
 
 TEST(LoopClosing, RgbdRoom) {
-  const Outcome on = RunScenario("synth:room:duration=40,width=480,height=360,sensor=rgbd", true);
+  const PlaceOutcome on = RunScenario("synth:room:duration=40,width=480,height=360,sensor=rgbd", true);
   ExpectTimelyTrueLoop(on);
   EXPECT_LT(on.se3.ate_m.rmse, 0.005 * on.path_m);
 }
@@ -129,7 +127,7 @@ TEST(Relocalization, KidnappedStereoRoomResumesInTheSameMap) {
   // the first lap (a lap takes about 26 s), so it must relocalize rather than start anew.
   SlamRunOptions run;
   run.skip = {{600, 660}};
-  const Outcome o = RunScenario("synth:room:duration=40,width=480,height=360", false, run);
+  const PlaceOutcome o = RunScenario("synth:room:duration=40,width=480,height=360", false, run);
   EXPECT_EQ(o.reinitialized, 0u) << "a new map segment means relocalization failed";
   EXPECT_GE(o.relocalized, 1u);
   size_t first_ok_after = 0;

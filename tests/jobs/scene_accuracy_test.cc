@@ -19,7 +19,7 @@
 namespace flatslam {
 namespace {
 
-struct Outcome {
+struct SceneOutcome {
   SlamRunResult run;
   EvalResult se3, sim3;
   double path_m = 0;
@@ -28,7 +28,7 @@ struct Outcome {
   double rate_hz = 0;
 };
 
-Outcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = std::nullopt, uint64_t seed = 0) {
+SceneOutcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = std::nullopt, uint64_t seed = 0) {
   DatasetOptions dataset_options;
   dataset_options.sensor = sensor;
   const auto dataset = OpenDataset(spec, dataset_options);
@@ -36,7 +36,7 @@ Outcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = 
   SlamOptions options;  // everything left to the camera
   options.vocabulary = &vocabulary;
   if (seed != 0) options.seed = seed;
-  Outcome out;
+  SceneOutcome out;
   out.rate_hz = dataset->calibration().frame_rate_hz;
   out.run = RunSlam(*dataset, options, SlamRunOptions{});
   const testing::TrajectoryScore score = testing::ScoreTrajectory(*dataset->ground_truth(), out.run.trajectory);
@@ -58,7 +58,7 @@ Outcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sensor = 
 }
 
 // The motorway's stereo bars: nothing lost, ATE under 0.5% of the path, scale within 1%.
-void ExpectMotorwayBars(const Outcome& o) {
+void ExpectMotorwayBars(const SceneOutcome& o) {
   EXPECT_EQ(o.first_tracked, 0u);
   EXPECT_EQ(o.lost_after, 0u);
   EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
@@ -67,14 +67,14 @@ void ExpectMotorwayBars(const Outcome& o) {
 
 // Bar: stereo on the motorway, 60 s.
 TEST(SceneAccuracy, HighwayStereo) {
-  const Outcome o = RunWithDefaults("synth:highway");
+  const SceneOutcome o = RunWithDefaults("synth:highway");
   EXPECT_GT(o.path_m, 1200.0);
   ExpectMotorwayBars(o);
 }
 
 // Bar: monocular on the motorway initializes within one second and loses under 1% of frames.
 TEST(SceneAccuracy, HighwayMonocular) {
-  const Outcome o = RunWithDefaults("synth:highway", Sensor::kMonocular);
+  const SceneOutcome o = RunWithDefaults("synth:highway", Sensor::kMonocular);
   EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
   EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
   EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);  // shape, after the arbitrary scale
@@ -89,7 +89,7 @@ TEST(SceneAccuracy, HighwayStereoWithNoisyImagesKeepsItsSpeedFromTheFirstFrame) 
   for (const char* spec : {"synth:highway:duration=5.1,noise=6", "synth:highway:duration=5.1,noise=7",
                            "synth:highway:duration=5.1,noise=6,rig_error=-0.1"}) {
     SCOPED_TRACE(spec);
-    const Outcome o = RunWithDefaults(spec);
+    const SceneOutcome o = RunWithDefaults(spec);
     ExpectMotorwayBars(o);
   }
 }
@@ -105,13 +105,13 @@ TEST(SceneAccuracy, HighwayStereoWithNoisyImagesKeepsItsSpeedFromTheFirstFrame) 
 TEST(SceneAccuracy, HighwayStereoWithAShortBaseline) {
   for (const char* spec : {"synth:highway:duration=10,baseline=0.25", "synth:highway:duration=10,baseline=0.12"}) {
     SCOPED_TRACE(spec);
-    const Outcome o = RunWithDefaults(spec);
+    const SceneOutcome o = RunWithDefaults(spec);
     ExpectMotorwayBars(o);
   }
 }
 
 // Every frame tracked from the first on, and the SE(3) ATE under `fraction` of the path.
-void ExpectEveryFrameWithin(const Outcome& o, double fraction) {
+void ExpectEveryFrameWithin(const SceneOutcome& o, double fraction) {
   EXPECT_EQ(o.first_tracked, 0u);
   EXPECT_EQ(o.lost_after, 0u);
   EXPECT_LT(o.se3.ate_m.rmse, fraction * o.path_m);
@@ -129,7 +129,7 @@ TEST(SceneAccuracy, HandheldRgbd) {
 // Bar: monocular hand-held, 60 s: initializes within one second and loses under 1% of frames
 // (the fast glances into unmapped parts of the office are where a monocular map can lose itself).
 TEST(SceneAccuracy, HandheldMonocular) {
-  const Outcome o = RunWithDefaults("synth:handheld", Sensor::kMonocular);
+  const SceneOutcome o = RunWithDefaults("synth:handheld", Sensor::kMonocular);
   EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
   EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
   EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);  // shape, after the arbitrary scale
@@ -146,7 +146,7 @@ TEST(SceneAccuracy, HandheldMonocular) {
 TEST(SceneAccuracy, HandheldMonocularKeepsTrackingThroughAGlanceIntoTheUnmapped) {
   for (int seed = 1; seed <= 4; ++seed) {
     SCOPED_TRACE(seed);
-    const Outcome o = RunWithDefaults("synth:handheld:duration=10,seed=" + std::to_string(seed), Sensor::kMonocular);
+    const SceneOutcome o = RunWithDefaults("synth:handheld:duration=10,seed=" + std::to_string(seed), Sensor::kMonocular);
     EXPECT_LT(static_cast<double>(o.first_tracked), o.rate_hz);
     EXPECT_EQ(o.lost_after, 0u);
     EXPECT_LT(o.sim3.ate_m.rmse, 0.01 * o.path_m);
@@ -157,7 +157,7 @@ TEST(SceneAccuracy, HandheldMonocularKeepsTrackingThroughAGlanceIntoTheUnmapped)
 // accuracy bars of the static room (1% of path with depth, 2% monocular after Sim(3)).
 TEST(SceneAccuracy, DynamicRoomEverySensor) {
   for (const Sensor sensor : {Sensor::kStereo, Sensor::kRgbd, Sensor::kMonocular}) {
-    const Outcome o = RunWithDefaults("synth:room:dynamic=0.3,duration=30", sensor);
+    const SceneOutcome o = RunWithDefaults("synth:room:dynamic=0.3,duration=30", sensor);
     SCOPED_TRACE(SensorName(sensor));
     EXPECT_LT(static_cast<double>(o.lost_after), 0.01 * o.run.reports.size());
     if (sensor == Sensor::kMonocular) {
@@ -178,7 +178,7 @@ TEST(SceneAccuracy, DynamicRoomEverySensor) {
 TEST(SceneAccuracy, DepthCamerasMakeKeyFramesBeforeTrackingFades) {
   for (const char* spec : {"synth:room:width=320,height=240,fx=260,duration=30", "synth:handheld:fps=10"}) {
     SCOPED_TRACE(spec);
-    const Outcome o = RunWithDefaults(spec, Sensor::kRgbd);
+    const SceneOutcome o = RunWithDefaults(spec, Sensor::kRgbd);
     ExpectEveryFrameWithin(o, 0.01);
     EXPECT_EQ(
         std::count_if(o.run.reports.begin(), o.run.reports.end(), [](const FrameReport& r) { return r.reinitialized; }),
@@ -192,7 +192,7 @@ TEST(SceneAccuracy, DepthCamerasMakeKeyFramesBeforeTrackingFades) {
 // on exact depth) and the scale within 1% (1.0015). On the full scenes (bench/accuracy_table.sh):
 // room 0.0072 -> 0.0147 m, hand-held 0.0040 -> 0.0050 m, none lost.
 TEST(SceneAccuracy, RgbdTracksOnStructuredLightDepth) {
-  const Outcome o = RunWithDefaults("synth:handheld:structured_light=1,duration=20", Sensor::kRgbd);
+  const SceneOutcome o = RunWithDefaults("synth:handheld:structured_light=1,duration=20", Sensor::kRgbd);
   ExpectEveryFrameWithin(o, 0.001);
   EXPECT_NEAR(o.sim3.alignment.scale, 1.0, 0.01);
 }

@@ -9,11 +9,14 @@
 
 #include "core/error.h"
 #include "jobs/slam_runner.h"
+#include "default_vocabulary.h"
 #include "place/vocabulary.h"
 #include "trajectory_score.h"
 
 namespace flatslam {
 namespace {
+
+using testing::OptionsWithDefaultVocabulary;
 
 // A synthetic dataset whose listed frames cannot be read.
 class DamagedDataset final : public Dataset {
@@ -34,21 +37,14 @@ class DamagedDataset final : public Dataset {
   std::set<size_t> bad_;
 };
 
-const char* const kScene = "synth:room:duration=20,width=480,height=360";
-
-SlamOptions Options() {
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  SlamOptions options;
-  options.vocabulary = &vocabulary;
-  return options;
-}
+const char* const kRoom = "synth:room:duration=20,width=480,height=360";
 
 TEST(SessionRun, UnreadableFramesAreSkippedLikeDroppedFrames) {
-  const DamagedDataset dataset(OpenDataset(kScene), {10, 11, 40});
+  const DamagedDataset dataset(OpenDataset(kRoom), {10, 11, 40});
   SlamRunOptions run;
   std::vector<std::pair<size_t, std::string>> heard;
   run.on_skipped = [&](size_t index, const std::string& reason) { heard.emplace_back(index, reason); };
-  const SlamRunResult result = RunSlam(dataset, Options(), run);
+  const SlamRunResult result = RunSlam(dataset, OptionsWithDefaultVocabulary(), run);
   EXPECT_EQ(result.frames, dataset.size());
   EXPECT_EQ(result.frames_skipped, 3u);
   ASSERT_EQ(heard.size(), 3u);
@@ -65,11 +61,11 @@ TEST(SessionRun, UnreadableFramesAreSkippedLikeDroppedFrames) {
 }
 
 TEST(SessionRun, StrictRunStopsAtTheFirstUnreadableFrame) {
-  const DamagedDataset dataset(OpenDataset(kScene), {10});
+  const DamagedDataset dataset(OpenDataset(kRoom), {10});
   SlamRunOptions run;
   run.strict = true;
   try {
-    (void)RunSlam(dataset, Options(), run);
+    (void)RunSlam(dataset, OptionsWithDefaultVocabulary(), run);
     FAIL() << "expected an error";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("frame_10.png"), std::string::npos) << e.what();
@@ -79,11 +75,11 @@ TEST(SessionRun, StrictRunStopsAtTheFirstUnreadableFrame) {
 TEST(SessionRun, NoReadableFrameIsAnError) {
   std::set<size_t> all;
   for (size_t i = 0; i < 30; ++i) all.insert(i);
-  const DamagedDataset dataset(OpenDataset(kScene), all);
+  const DamagedDataset dataset(OpenDataset(kRoom), all);
   SlamRunOptions run;
   run.max_frames = 30;
   try {
-    (void)RunSlam(dataset, Options(), run);
+    (void)RunSlam(dataset, OptionsWithDefaultVocabulary(), run);
     FAIL() << "expected an error";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("none of the 30 frames"), std::string::npos) << e.what();
@@ -92,14 +88,14 @@ TEST(SessionRun, NoReadableFrameIsAnError) {
 }
 
 TEST(SessionRun, StopEndsTheRunWithResultsOverTheFramesTracked) {
-  const auto dataset = OpenDataset(kScene);
+  const auto dataset = OpenDataset(kRoom);
   std::atomic<bool> stop{false};
   SlamRunOptions run;
   run.stop = &stop;
   run.on_frame = [&](const FrameReport& r) {
     if (r.index == 50) stop = true;
   };
-  const SlamRunResult result = RunSlam(*dataset, Options(), run);
+  const SlamRunResult result = RunSlam(*dataset, OptionsWithDefaultVocabulary(), run);
   EXPECT_TRUE(result.interrupted);
   // Frames already read when the stop came are tracked; none after.
   EXPECT_GE(result.frames, 51u);
@@ -111,8 +107,8 @@ TEST(SessionRun, StopEndsTheRunWithResultsOverTheFramesTracked) {
 // Checkpoints every 50 ms: each holds a valid map and the frames it covers, and a continuation from
 // one (the checkpoint's map, trajectory and next frame) gives a trajectory of every frame.
 TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
-  const auto dataset = OpenDataset(kScene);
-  const SlamOptions options = Options();
+  const auto dataset = OpenDataset(kRoom);
+  const SlamOptions options = OptionsWithDefaultVocabulary();
   SlamRunOptions run;
   run.checkpoint_every_s = 0.05;
   // What each checkpoint would save: its map and its frames anchored in that map.
@@ -164,8 +160,8 @@ TEST(SessionRun, ACheckpointContinuesToTheTrajectoryOfEveryFrame) {
 // 10, one continuation ends at 1.53x the uninterrupted ATE, the others between 0.87x and 1.32x
 // (docs/STATUS.md, sessions).
 TEST(SessionRun, AContinuedSessionIsAsAccurateAsTheWholeRun) {
-  const auto dataset = OpenDataset(kScene);
-  const SlamOptions options = Options();
+  const auto dataset = OpenDataset(kRoom);
+  const SlamOptions options = OptionsWithDefaultVocabulary();
   SlamRunOptions all;
   all.deterministic = true;
   const SlamRunResult whole = RunSlam(*dataset, options, all);
@@ -208,7 +204,7 @@ TEST(SessionRun, AContinuedSessionIsAsAccurateAsTheWholeRun) {
 TEST(SessionRun, AResumedCheckpointRunsTheGlobalAdjustmentItCaughtRunning) {
   const auto dataset = OpenDataset("synth:room:duration=32,width=480,height=360");
   const size_t n = dataset->size(), k = 600;
-  SlamOptions options = Options();
+  SlamOptions options = OptionsWithDefaultVocabulary();
   options.global_bundle_adjustment = false;
   SlamRunOptions first;
   first.deterministic = true;

@@ -33,7 +33,7 @@
 namespace flatslam {
 namespace {
 
-struct Outcome {
+struct RunOutcome {
   SlamRunResult run;
   EvalResult se3;
   EvalResult sim3;
@@ -42,7 +42,7 @@ struct Outcome {
 };
 
 // features 0: the budget derived from the camera, as `flatslam run` does by default.
-Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 1000,
+RunOutcome RunAndScore(const std::string& spec, bool deterministic, int features = 1000,
                     std::optional<Sensor> sensor = std::nullopt) {
   DatasetOptions dataset_options;
   dataset_options.sensor = sensor;
@@ -53,7 +53,7 @@ Outcome RunAndScore(const std::string& spec, bool deterministic, int features = 
   options.vocabulary = &vocabulary;
   SlamRunOptions run;
   run.deterministic = deterministic;
-  Outcome out;
+  RunOutcome out;
   out.run = RunSlam(*dataset, options, run);
   const testing::TrajectoryScore score = testing::ScoreTrajectory(*dataset->ground_truth(), out.run.trajectory);
   out.se3 = score.se3;
@@ -75,7 +75,7 @@ size_t FirstTracked(const SlamRunResult& run) {
 }
 
 TEST(SlamRun, StereoRoomTracksEveryFrameBelowOnePercent) {
-  const Outcome o = RunAndScore("synth:room:duration=15,width=480,height=360", false);
+  const RunOutcome o = RunAndScore("synth:room:duration=15,width=480,height=360", false);
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size());
   EXPECT_EQ(o.lost, 0u);
   EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
@@ -84,14 +84,14 @@ TEST(SlamRun, StereoRoomTracksEveryFrameBelowOnePercent) {
 }
 
 TEST(SlamRun, RgbdRoomTracksEveryFrameBelowOnePercent) {
-  const Outcome o = RunAndScore("synth:room:duration=15,width=480,height=360,sensor=rgbd", false);
+  const RunOutcome o = RunAndScore("synth:room:duration=15,width=480,height=360,sensor=rgbd", false);
   EXPECT_EQ(o.lost, 0u);
   EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
 }
 
 TEST(SlamRun, DeterministicModeRepeatsExactly) {
-  const Outcome a = RunAndScore("synth:corridor:duration=4,width=480,height=360", true);
-  const Outcome b = RunAndScore("synth:corridor:duration=4,width=480,height=360", true);
+  const RunOutcome a = RunAndScore("synth:corridor:duration=4,width=480,height=360", true);
+  const RunOutcome b = RunAndScore("synth:corridor:duration=4,width=480,height=360", true);
   ASSERT_EQ(a.run.trajectory.size(), b.run.trajectory.size());
   for (size_t i = 0; i < a.run.trajectory.size(); ++i)
     ASSERT_TRUE(a.run.trajectory[i].T_world_cam.isApprox(b.run.trajectory[i].T_world_cam, 0.0)) << "frame " << i;
@@ -104,12 +104,12 @@ TEST(SlamRun, DeterministicModeRepeatsExactly) {
 // deterministic run exactly, on two threads and on one.
 TEST(SlamRun, WithoutLagADefaultRunRepeatsTheDeterministicRunOnAnyThreads) {
   const std::string spec = "synth:corridor:duration=4,width=480,height=360";
-  const Outcome reference = RunAndScore(spec, true);
-  const Outcome fast = RunAndScore(spec, false);
-  Outcome single;
+  const RunOutcome reference = RunAndScore(spec, true);
+  const RunOutcome fast = RunAndScore(spec, false);
+  RunOutcome single;
   tbb::task_arena one_thread(1);
   one_thread.execute([&] { single = RunAndScore(spec, false); });
-  for (const Outcome* o : std::initializer_list<const Outcome*>{&fast, &single}) {
+  for (const RunOutcome* o : std::initializer_list<const RunOutcome*>{&fast, &single}) {
     EXPECT_TRUE(o->run.loop_closures.empty());
     ASSERT_EQ(o->run.trajectory.size(), reference.run.trajectory.size());
     for (size_t i = 0; i < o->run.trajectory.size(); ++i)
@@ -123,7 +123,7 @@ TEST(SlamRun, WithoutLagADefaultRunRepeatsTheDeterministicRunOnAnyThreads) {
 // after a loop: the adjustment must take the map lock only after loop correction released it
 // (it once waited on itself forever). A lap of the room takes about 26 s.
 TEST(SlamRun, DeterministicRunClosesALoopAndFinishes) {
-  const Outcome o = RunAndScore("synth:room:duration=32,width=480,height=360,sensor=rgbd", true);
+  const RunOutcome o = RunAndScore("synth:room:duration=32,width=480,height=360,sensor=rgbd", true);
   EXPECT_GE(o.run.loop_closures.size(), 1u);
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size());
   EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m);
@@ -306,7 +306,7 @@ TEST(SlamSession, OnlyAMonocularMapMovesWithAScale) {
 TEST(SlamRun, ConcurrentSessionsMatchTheirSingleRuns) {
   const std::string specs[2] = {"synth:corridor:duration=4,width=480,height=360",
                                 "synth:room:duration=4,width=480,height=360,sensor=rgbd"};
-  Outcome alone[2], together[2];
+  RunOutcome alone[2], together[2];
   for (int k = 0; k < 2; ++k) alone[k] = RunAndScore(specs[k], true);
   std::thread other([&] { together[1] = RunAndScore(specs[1], true); });
   together[0] = RunAndScore(specs[0], true);
@@ -324,7 +324,7 @@ TEST(SlamRun, ConcurrentSessionsMatchTheirSingleRuns) {
 
 TEST(SlamRun, KittiStereoSnippet) {
   const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "06";
-  const Outcome o = RunAndScore(seq.string(), false, 0);
+  const RunOutcome o = RunAndScore(seq.string(), false, 0);
   EXPECT_EQ(o.lost, 0u);
   EXPECT_EQ(o.run.trajectory.size(), 51u);
   // Bar: ORB-SLAM2's 0.059 m after SE(3); scale within 1%.
@@ -368,7 +368,7 @@ std::filesystem::path KittiEveryNthFrame(const std::string& sequence, int stride
 // within 1%.
 TEST(SlamRun, KittiStereoAtTwiceAndThreeTimesTheSpeed) {
   for (int stride : {2, 3}) {
-    const Outcome o = RunAndScore(KittiEveryNthFrame("06", stride).string(), false, 0);
+    const RunOutcome o = RunAndScore(KittiEveryNthFrame("06", stride).string(), false, 0);
     EXPECT_EQ(o.lost, 0u) << "stride " << stride;
     EXPECT_EQ(o.run.trajectory.size(), static_cast<size_t>((51 + stride - 1) / stride)) << "stride " << stride;
     EXPECT_LT(o.se3.ate_m.rmse, 0.005 * o.path_m) << "stride " << stride;
@@ -422,7 +422,7 @@ TEST(SlamRun, DroppedFramesOnAFastCar) {
 // after initialization, Sim(3) ATE under 0.5% of the path (the synthetic highway's bar).
 TEST(SlamRun, KittiMonocularAtHalfTheFrameRate) {
   for (const char* sequence : {"07", "06"}) {
-    const Outcome o = RunAndScore(KittiEveryNthFrame(sequence, 2).string(), false, 0, Sensor::kMonocular);
+    const RunOutcome o = RunAndScore(KittiEveryNthFrame(sequence, 2).string(), false, 0, Sensor::kMonocular);
     const auto lost = std::count_if(o.run.reports.begin(), o.run.reports.end(),
                                     [](const FrameReport& r) { return r.state == TrackingState::kLost; });
     EXPECT_EQ(lost, 0) << sequence;
@@ -458,7 +458,7 @@ std::filesystem::path EurocEveryNthFrame(int stride) {
 // frame lost and ATE under 1% of the path, at every rate.
 TEST(SlamRun, EurocHandheldStereoAtAHalfAndAQuarterOfTheFrameRate) {
   for (int stride : {2, 4}) {
-    const Outcome o = RunAndScore(EurocEveryNthFrame(stride).string(), false, 0, Sensor::kStereo);
+    const RunOutcome o = RunAndScore(EurocEveryNthFrame(stride).string(), false, 0, Sensor::kStereo);
     EXPECT_EQ(o.lost, 0u) << "stride " << stride;
     EXPECT_EQ(o.run.trajectory.size(), static_cast<size_t>((150 + stride - 1) / stride)) << "stride " << stride;
     EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m) << "stride " << stride;
@@ -528,12 +528,12 @@ std::filesystem::path KittiResized(const std::string& sequence, double factor) {
 TEST(SlamRun, KittiAtThreeQuartersAndHalfTheResolution) {
   for (double factor : {0.75, 0.5}) {
     const std::string seq = KittiResized("06", factor).string();
-    const Outcome stereo = RunAndScore(seq, false, 0);
+    const RunOutcome stereo = RunAndScore(seq, false, 0);
     EXPECT_EQ(stereo.lost, 0u) << factor;
     EXPECT_LT(stereo.se3.ate_m.rmse, 0.005 * stereo.path_m) << factor;
     EXPECT_NEAR(stereo.sim3.alignment.scale, 1.0, 0.01) << factor;
     if (factor < 0.75) continue;
-    const Outcome mono = RunAndScore(seq, false, 0, Sensor::kMonocular);
+    const RunOutcome mono = RunAndScore(seq, false, 0, Sensor::kMonocular);
     const size_t first_tracked = FirstTracked(mono.run);
     EXPECT_LE(first_tracked, 5u) << factor;
     EXPECT_EQ(mono.run.trajectory.size(), mono.run.reports.size() - first_tracked) << factor;
@@ -618,13 +618,13 @@ std::filesystem::path KittiReversedOrMirrored(const std::string& sequence, bool 
 TEST(SlamRun, KittiDrivenBackwardAndInAMirror) {
   for (const auto& [reverse, mirror] : {std::pair{true, false}, std::pair{false, true}}) {
     const std::string what = std::string(reverse ? "reversed " : "") + (mirror ? "mirrored" : "");
-    const Outcome stereo = RunAndScore(KittiReversedOrMirrored("06", reverse, mirror).string(), false, 0);
+    const RunOutcome stereo = RunAndScore(KittiReversedOrMirrored("06", reverse, mirror).string(), false, 0);
     EXPECT_EQ(stereo.lost, 0u) << what;
     EXPECT_EQ(stereo.run.trajectory.size(), 51u) << what;
     EXPECT_LT(stereo.se3.ate_m.rmse, 0.059) << what;
     EXPECT_NEAR(stereo.sim3.alignment.scale, 1.0, 0.01) << what;
 
-    const Outcome mono =
+    const RunOutcome mono =
         RunAndScore(KittiReversedOrMirrored("07", reverse, mirror).string(), false, 0, Sensor::kMonocular);
     const size_t first_tracked = FirstTracked(mono.run);
     EXPECT_LE(first_tracked, 10u) << what;
@@ -635,7 +635,7 @@ TEST(SlamRun, KittiDrivenBackwardAndInAMirror) {
 
 TEST(SlamRun, KittiMonocularSnippet) {
   const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "07";
-  const Outcome o = RunAndScore(seq.string(), false, 0);
+  const RunOutcome o = RunAndScore(seq.string(), false, 0);
   const size_t first_tracked = FirstTracked(o.run);
   EXPECT_LE(first_tracked, 10u);                                             // ORB-SLAM2 initializes at frame 5
   EXPECT_EQ(o.run.trajectory.size(), o.run.reports.size() - first_tracked);  // nothing lost after that
@@ -684,7 +684,7 @@ TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
 // is 537 frames; over laps 3 and 4 the default options make 6 keyframes and the map ends 4 above
 // its size after lap 2 (with `revisit_radius` 0, ORB-SLAM2's rules alone: 26 made, +11).
 TEST(SlamRun, RevisitsKeepTheMapBounded) {
-  const Outcome o = RunAndScore("synth:room:duration=100,width=480,height=360", false);
+  const RunOutcome o = RunAndScore("synth:room:duration=100,width=480,height=360", false);
   ASSERT_EQ(o.run.reports.size(), 2000u);
   EXPECT_EQ(o.lost, 0u);
   EXPECT_LT(o.se3.ate_m.rmse, 0.01 * o.path_m);
@@ -699,7 +699,7 @@ TEST(SlamRun, RevisitsKeepTheMapBounded) {
 }
 
 TEST(SlamRun, MonocularRoomAfterSim3) {
-  const Outcome o = RunAndScore("synth:room:duration=20,width=480,height=360,sensor=mono", false);
+  const RunOutcome o = RunAndScore("synth:room:duration=20,width=480,height=360,sensor=mono", false);
   EXPECT_GT(o.run.trajectory.size(), 300u);
   EXPECT_LT(o.sim3.ate_m.rmse, 0.02 * o.path_m);
 }

@@ -41,7 +41,7 @@ struct BaScene {
 // Keyframes 0.3 m apart along a gently turning path, looking at points 3..8 m ahead; every
 // point that projects into a keyframe is observed there with 1 px noise times the octave scale.
 // The first and last keyframes are fixed, as the window's neighbours would be in local BA.
-BaScene MakeScene(int num_keyframes, int num_points, double outlier_fraction, bool stereo, uint64_t seed) {
+BaScene MakeBaScene(int num_keyframes, int num_points, double outlier_fraction, bool stereo, uint64_t seed) {
   BaScene s;
   BundleAdjustmentProblem& p = s.truth;
   p.camera = TestCamera();
@@ -117,7 +117,7 @@ BundleAdjustmentOptions WithSolver(Solver solver) {
 }
 
 void CheckRecovers(bool stereo, Solver solver) {
-  const BaScene scene = MakeScene(10, 1000, 0.05, stereo, stereo ? 31 : 30);
+  const BaScene scene = MakeBaScene(10, 1000, 0.05, stereo, stereo ? 31 : 30);
   BundleAdjustmentProblem problem = Perturbed(scene.truth, 8);
   const BundleAdjustmentProblem before = problem;
 
@@ -180,7 +180,7 @@ TEST(LocalBundleAdjustment, CeresStereoRecoversPosesAndFlagsOutliers) {
 
 TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
   for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
-    const BaScene scene = MakeScene(6, 300, 0.0, false, 40);
+    const BaScene scene = MakeBaScene(6, 300, 0.0, false, 40);
     BundleAdjustmentProblem dense = Perturbed(scene.truth, 9);
     BundleAdjustmentProblem sparse = dense;
     BundleAdjustmentOptions options = WithSolver(solver);
@@ -201,7 +201,7 @@ TEST(LocalBundleAdjustment, SparseAndDenseSchurAgree) {
 TEST(LocalBundleAdjustment, IterativeSchurReachesTheFactorizationsMinimum) {
   for (const auto& [stereo, inverse_depth] : {std::pair{false, 0}, {false, 2}, {true, 0}, {true, 1}, {true, 2}}) {
     SCOPED_TRACE("inverse_depth_points " + std::to_string(inverse_depth));
-    const BaScene scene = MakeScene(30, 1500, 0.05, stereo, stereo ? 61 : 60);
+    const BaScene scene = MakeBaScene(30, 1500, 0.05, stereo, stereo ? 61 : 60);
     BundleAdjustmentProblem direct = Perturbed(scene.truth, 14);
     BundleAdjustmentProblem iterative = direct, threaded = direct;
     BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
@@ -255,7 +255,7 @@ TEST(LocalBundleAdjustment, FactorizingSolversGiveTheSameBitsOnAnyNumberOfThread
        {std::tuple{false, LinearSolver::kDenseSchur, 0}, {true, LinearSolver::kDenseSchur, 1},
         {false, LinearSolver::kSparseSchur, 2}, {true, LinearSolver::kSparseSchur, 0}}) {
     SCOPED_TRACE(std::string(stereo ? "stereo" : "mono") + ", inverse_depth_points " + std::to_string(inverse_depth));
-    const BaScene scene = MakeScene(12, 1200, 0.05, stereo, stereo ? 71 : 70);
+    const BaScene scene = MakeBaScene(12, 1200, 0.05, stereo, stereo ? 71 : 70);
     const BundleAdjustmentProblem start = Perturbed(scene.truth, 15);
     BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
     options.linear_solver = linear_solver;
@@ -374,7 +374,7 @@ TEST(ReducedCameraSystem, BlockUpdateKernelsGiveTheWrittenOutProductsBits) {
 TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
   for (const auto& [stereo, inverse_depth] : {std::pair{false, 0}, {false, 2}, {true, 0}, {true, 1}, {true, 2}}) {
     SCOPED_TRACE("inverse_depth_points " + std::to_string(inverse_depth));
-    const BaScene scene = MakeScene(12, 1500, 0.05, stereo, stereo ? 51 : 50);
+    const BaScene scene = MakeBaScene(12, 1500, 0.05, stereo, stereo ? 51 : 50);
     BundleAdjustmentProblem fast = Perturbed(scene.truth, 12);
     BundleAdjustmentProblem reference = fast;
     BundleAdjustmentOptions options = WithSolver(Solver::kSchurLm);
@@ -423,7 +423,7 @@ TEST(LocalBundleAdjustment, SchurLmMatchesCeres) {
 TEST(LocalBundleAdjustment, StopEarlyEndsTheSolveAndKeepsItsProgress) {
   for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
     SCOPED_TRACE(solver == Solver::kCeres ? "Ceres" : "Schur LM");
-    const BaScene scene = MakeScene(8, 600, 0.5, false, 42);
+    const BaScene scene = MakeBaScene(8, 600, 0.5, false, 42);
     BundleAdjustmentProblem full = Perturbed(scene.truth, 11);
     BundleAdjustmentProblem stopped = full;
     const BundleAdjustmentResult rf = LocalBundleAdjustment(full, WithSolver(solver));
@@ -538,7 +538,7 @@ TEST(LocalBundleAdjustment, FarMonocularPointsConvergeWithoutSlidingAlongTheirRa
 TEST(LocalBundleAdjustment, NoiseFreeIsExact) {
   for (Solver solver : {Solver::kSchurLm, Solver::kCeres}) {
     SCOPED_TRACE(solver == Solver::kCeres ? "Ceres" : "Schur LM");
-    BaScene scene = MakeScene(5, 200, 0.0, true, 41);
+    BaScene scene = MakeBaScene(5, 200, 0.0, true, 41);
     // Re-project without noise.
     const BundleAdjustmentProblem& t = scene.truth;
     const double bf = t.camera.fx * t.baseline_m;
@@ -558,7 +558,7 @@ TEST(LocalBundleAdjustment, NoiseFreeIsExact) {
 }
 
 TEST(LocalBundleAdjustment, RejectsMisuse) {
-  BaScene scene = MakeScene(3, 20, 0.0, false, 42);
+  BaScene scene = MakeBaScene(3, 20, 0.0, false, 42);
   BundleAdjustmentProblem p = scene.truth;
   p.observations[0].point_index = 1000;
   EXPECT_THROW((void)LocalBundleAdjustment(p, BundleAdjustmentOptions{}), Error);

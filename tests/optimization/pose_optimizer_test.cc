@@ -37,7 +37,7 @@ struct PoseScene {
 
 // n observations of points 1.5..15 m in front of the camera; 1 px noise (scaled by octave);
 // a fraction displaced by 15..80 px. Stereo observations for points closer than 40 baselines.
-PoseScene MakeScene(int n, double outlier_fraction, bool stereo, uint64_t seed) {
+PoseScene MakePoseScene(int n, double outlier_fraction, bool stereo, uint64_t seed) {
   PoseScene s;
   std::mt19937_64 rng(seed);
   std::uniform_real_distribution<double> unit(0, 1);
@@ -71,7 +71,7 @@ PoseScene MakeScene(int n, double outlier_fraction, bool stereo, uint64_t seed) 
 }
 
 void CheckConverges(bool stereo) {
-  const PoseScene scene = MakeScene(200, 0.3, stereo, stereo ? 21 : 20);
+  const PoseScene scene = MakePoseScene(200, 0.3, stereo, stereo ? 21 : 20);
   std::mt19937_64 rng(5);
   const Eigen::Isometry3d T_init = Perturb(scene.T_cam_world_true, 0.10, 5.0, rng);
   const PoseOptimizationResult r =
@@ -124,7 +124,7 @@ TEST(OptimizePose, StereoConvergesAndFlagsOutliers) {
 }
 
 TEST(OptimizePose, NoiseFreeIsExact) {
-  PoseScene scene = MakeScene(60, 0.0, true, 3);
+  PoseScene scene = MakePoseScene(60, 0.0, true, 3);
   // Re-project without noise.
   const double bf = scene.camera.fx * scene.baseline_m;
   for (PoseObservation& obs : scene.observations) {
@@ -143,7 +143,7 @@ TEST(OptimizePose, NoiseFreeIsExact) {
 }
 
 TEST(OptimizePose, TooFewObservationsFailsAsValue) {
-  const PoseScene scene = MakeScene(2, 0.0, false, 4);
+  const PoseScene scene = MakePoseScene(2, 0.0, false, 4);
   const Eigen::Isometry3d T_init = scene.T_cam_world_true;
   const PoseOptimizationResult r =
       OptimizePose(scene.camera, scene.baseline_m, T_init, scene.observations, PoseOptimizerOptions{});
@@ -153,7 +153,7 @@ TEST(OptimizePose, TooFewObservationsFailsAsValue) {
 }
 
 TEST(OptimizePose, RejectsMisuse) {
-  PoseScene scene = MakeScene(10, 0.0, true, 5);
+  PoseScene scene = MakePoseScene(10, 0.0, true, 5);
   PoseOptimizerOptions bad;
   bad.rounds = 0;
   EXPECT_FALSE(bad.Check());

@@ -21,6 +21,8 @@
 namespace flatslam {
 namespace {
 
+using testing::ReadBytes;
+
 namespace fs = std::filesystem;
 
 constexpr const char* kChromium = "/usr/bin/chromium";
@@ -35,13 +37,6 @@ constexpr int kExpectedCharts = 7;
 fs::path TempDir() {
   static const fs::path dir = testing::FreshTempDir("html_report");
   return dir;
-}
-
-std::string ReadText(const fs::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
 }
 
 size_t Count(const std::string& text, const std::string& part) {
@@ -162,14 +157,14 @@ const fs::path& Report() {
 }
 
 TEST(HtmlReport, IsSelfContained) {
-  const std::string page = ReadText(Report());
+  const std::string page = ReadBytes(Report());
   ASSERT_FALSE(page.empty());
   // Nothing is loaded from elsewhere: no external script, style, image or frame.
   for (const char* load : {"src=\"http", "src='http", "href=\"http", "href='http", "url(http", "url(\"http", "@import",
                            "<script src", "<link"})
     EXPECT_EQ(page.find(load), std::string::npos) << load;
   // Chart.js itself is in the page (its licence header and code).
-  const std::string chart_js = ReadText("/usr/share/javascript/chart.js/chart.min.js");
+  const std::string chart_js = ReadBytes("/usr/share/javascript/chart.js/chart.min.js");
   ASSERT_GT(chart_js.size(), 1000u);
   EXPECT_NE(page.find(chart_js.substr(0, 1000)), std::string::npos);
   EXPECT_NE(page.find("Chart.js v3.9.1"), std::string::npos);
@@ -180,7 +175,7 @@ TEST(HtmlReport, IsSelfContained) {
 
 // Frames without a pose after the first count as lost, whatever state they were in.
 TEST(HtmlReport, CountsFramesWaitingForANewSegmentAsLost) {
-  const std::string page = ReadText(Report());
+  const std::string page = ReadBytes(Report());
   size_t lost = 0;
   for (size_t i = 1; i < 300; ++i) lost += i % 97 != 50 && (i % 131 == 7 || i % 131 == 9);
   EXPECT_NE(page.find("stats.csv: 300 frames, " + std::to_string(lost) + " lost, 3 skipped."), std::string::npos)
@@ -188,7 +183,7 @@ TEST(HtmlReport, CountsFramesWaitingForANewSegmentAsLost) {
 }
 
 TEST(HtmlReport, NamesEverySequenceAndEscapesText) {
-  const std::string page = ReadText(Report());
+  const std::string page = ReadBytes(Report());
   EXPECT_NE(page.find("loop &lt;&amp;&gt; mono"), std::string::npos);
   EXPECT_EQ(page.find("loop <&> mono"), std::string::npos);
   EXPECT_NE(page.find("<title>Batch &lt;test&gt; &amp; report</title>"), std::string::npos);
@@ -228,7 +223,7 @@ TEST(HtmlReport, ScriptEndInChartJsCannotEndItsElement) {
   ASSERT_EQ(::setenv("FLATSLAM_CHARTJS", fake.c_str(), 1), 0);
   WriteHtmlReport(html, "fake", {});
   ::unsetenv("FLATSLAM_CHARTJS");
-  const std::string page = ReadText(html);
+  const std::string page = ReadBytes(html);
   EXPECT_NE(page.find("var s = '<\\/SCRIPT><\\!-- x';"), std::string::npos);
   EXPECT_EQ(Count(page, "<script>"), Count(page, "</script>"));
   EXPECT_EQ(page.find("<!--"), std::string::npos);

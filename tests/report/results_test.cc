@@ -11,10 +11,7 @@
 namespace flatslam {
 namespace {
 
-std::string ReadText(const std::filesystem::path& path) {
-  std::ifstream in(path);
-  return std::string(std::istreambuf_iterator<char>(in), {});
-}
+using testing::ReadBytes;
 
 std::vector<SequenceResult> Rows() {
   SequenceResult a;
@@ -92,7 +89,7 @@ TEST(ResultsTable, SummaryAddsCountsAndTakesMediansOfKnownMetrics) {
 TEST(ResultsTable, JsonHasNumbersNullsAndEscapedText) {
   const auto dir = testing::FreshTempDir("results_json");
   WriteResultsJson(dir / "results.json", Rows());
-  const std::string json = ReadText(dir / "results.json");
+  const std::string json = ReadBytes(dir / "results.json");
   EXPECT_NE(json.find("\"ate_se3_m\": 0.0347"), std::string::npos) << json;
   EXPECT_NE(json.find("\"ate_se3_m\": null"), std::string::npos) << json;
   EXPECT_NE(json.find("\"frames\": 201"), std::string::npos) << json;

@@ -12,7 +12,7 @@
 namespace flatslam {
 namespace {
 
-std::string ErrorOf(std::span<const uint8_t> bytes) {
+std::string CorrectionErrorOf(std::span<const uint8_t> bytes) {
   try {
     (void)DecodeCorrectionMessage(bytes, "correction 4 for agent 2");
   } catch (const Error& e) {
@@ -57,28 +57,28 @@ TEST(CorrectionMessage, RoundTrips) {
 // naming the message, and so is every corrupt buffer; never a crash.
 TEST(CorrectionMessage, MalformedCorrectionsAreRefusedWithTheirName) {
   const std::vector<uint8_t> bytes = EncodeCorrectionMessage(Example());
-  EXPECT_NE(ErrorOf({}).find("correction 4 for agent 2: not a correction message"), std::string::npos);
+  EXPECT_NE(CorrectionErrorOf({}).find("correction 4 for agent 2: not a correction message"), std::string::npos);
   CorrectionMessage bad = Example();
   bad.rotation(0, 0) += 0.1;
-  EXPECT_NE(ErrorOf(EncodeCorrectionMessage(bad)).find("not a rotation"), std::string::npos);
+  EXPECT_NE(CorrectionErrorOf(EncodeCorrectionMessage(bad)).find("not a rotation"), std::string::npos);
   bad = Example();
   bad.rotation = -bad.rotation;  // a reflection
-  EXPECT_NE(ErrorOf(EncodeCorrectionMessage(bad)).find("not a rotation"), std::string::npos);
+  EXPECT_NE(CorrectionErrorOf(EncodeCorrectionMessage(bad)).find("not a rotation"), std::string::npos);
   bad = Example();
   bad.scale = 0;
-  EXPECT_NE(ErrorOf(EncodeCorrectionMessage(bad)).find("scale 0"), std::string::npos);
+  EXPECT_NE(CorrectionErrorOf(EncodeCorrectionMessage(bad)).find("scale 0"), std::string::npos);
   bad = Example();
   bad.translation.y() = std::nan("");
-  EXPECT_NE(ErrorOf(EncodeCorrectionMessage(bad)).find("translation is not finite"), std::string::npos);
+  EXPECT_NE(CorrectionErrorOf(EncodeCorrectionMessage(bad)).find("translation is not finite"), std::string::npos);
   for (size_t n = 0; n < bytes.size(); n += 7) {
-    EXPECT_NE(ErrorOf(std::span(bytes).first(n)).find("correction 4 for agent 2"), std::string::npos) << n;
+    EXPECT_NE(CorrectionErrorOf(std::span(bytes).first(n)).find("correction 4 for agent 2"), std::string::npos) << n;
   }
   std::mt19937_64 rng(3);
   size_t refused = 0;
   for (int trial = 0; trial < 300; ++trial) {
     std::vector<uint8_t> flipped = bytes;
     flipped[rng() % flipped.size()] ^= static_cast<uint8_t>(1 + rng() % 255);
-    const std::string error = ErrorOf(flipped);
+    const std::string error = CorrectionErrorOf(flipped);
     if (!error.empty()) {
       ++refused;
       EXPECT_NE(error.find("correction 4 for agent 2"), std::string::npos) << error;

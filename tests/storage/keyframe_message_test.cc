@@ -13,7 +13,7 @@
 namespace flatslam {
 namespace {
 
-std::string ErrorOf(std::span<const uint8_t> bytes) {
+std::string KeyFrameMessageErrorOf(std::span<const uint8_t> bytes) {
   try {
     (void)DecodeKeyFrameMessage(bytes, "message 7 from agent 3");
   } catch (const Error& e) {
@@ -112,13 +112,13 @@ TEST(KeyFrameMessage, MalformedMessagesAreRefusedWithTheirName) {
   const Map map = testing::RandomMap({});
   const std::vector<uint8_t> bytes =
       EncodeKeyFrameMessage(map, map.keyframes().handles()[2], 1, 1, testing::TestAgentCamera());
-  EXPECT_NE(ErrorOf({}).find("message 7 from agent 3: not a keyframe message"), std::string::npos);
+  EXPECT_NE(KeyFrameMessageErrorOf({}).find("message 7 from agent 3: not a keyframe message"), std::string::npos);
   std::vector<uint8_t> other = bytes;
   other[4] = 'X';  // another file identifier
-  EXPECT_NE(ErrorOf(other).find("not a keyframe message"), std::string::npos);
+  EXPECT_NE(KeyFrameMessageErrorOf(other).find("not a keyframe message"), std::string::npos);
   // Every truncation is refused (or, where only padding is cut, decodes whole).
   for (size_t n = 0; n < bytes.size(); n += 97) {
-    const std::string error = ErrorOf(std::span(bytes).first(n));
+    const std::string error = KeyFrameMessageErrorOf(std::span(bytes).first(n));
     EXPECT_NE(error.find("message 7 from agent 3"), std::string::npos) << n;
   }
   // Flipped bytes anywhere: never a crash; an error names the message.
@@ -127,7 +127,7 @@ TEST(KeyFrameMessage, MalformedMessagesAreRefusedWithTheirName) {
   for (int trial = 0; trial < 300; ++trial) {
     std::vector<uint8_t> bad = bytes;
     bad[rng() % bad.size()] ^= static_cast<uint8_t>(1 + rng() % 255);
-    const std::string error = ErrorOf(bad);
+    const std::string error = KeyFrameMessageErrorOf(bad);
     if (!error.empty()) {
       ++refused;
       EXPECT_NE(error.find("message 7 from agent 3"), std::string::npos) << error;
