@@ -12,6 +12,7 @@
 #include "io/dataset.h"
 #include "jobs/slam_runner.h"
 #include "place/vocabulary.h"
+#include "default_vocabulary.h"
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"
@@ -32,9 +33,7 @@ SceneOutcome RunWithDefaults(const std::string& spec, std::optional<Sensor> sens
   DatasetOptions dataset_options;
   dataset_options.sensor = sensor;
   const auto dataset = OpenDataset(spec, dataset_options);
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  SlamOptions options;  // everything left to the camera
-  options.vocabulary = &vocabulary;
+  SlamOptions options = testing::OptionsWithDefaultVocabulary();  // everything left to the camera
   if (seed != 0) options.seed = seed;
   SceneOutcome out;
   out.rate_hz = dataset->calibration().frame_rate_hz;

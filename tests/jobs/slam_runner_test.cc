@@ -25,6 +25,7 @@
 
 #include "core/error.h"
 #include "place/vocabulary.h"
+#include "default_vocabulary.h"
 #include "test_data.h"
 #include "trajectory_score.h"
 #include "trajectory/metrics.h"
@@ -47,10 +48,8 @@ RunOutcome RunAndScore(const std::string& spec, bool deterministic, int features
   DatasetOptions dataset_options;
   dataset_options.sensor = sensor;
   const auto dataset = OpenDataset(spec, dataset_options);
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  SlamOptions options;
+  SlamOptions options = testing::OptionsWithDefaultVocabulary();
   options.orb.features = features;
-  options.vocabulary = &vocabulary;
   SlamRunOptions run;
   run.deterministic = deterministic;
   RunOutcome out;
@@ -139,9 +138,7 @@ TEST(SlamRun, DeterministicRunClosesALoopAndFinishes) {
 // neither frame and are skipped).
 void MoveTheMapFrameMidRun(const std::string& spec, double scale, size_t at_keyframe, bool two_steps = false) {
   const auto dataset = OpenDataset(spec);
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  SlamOptions options;
-  options.vocabulary = &vocabulary;
+  SlamOptions options = testing::OptionsWithDefaultVocabulary();
   Eigen::Isometry3d T_new_old = Eigen::Isometry3d::Identity();
   T_new_old.linear() = Eigen::AngleAxisd(0.5, Eigen::Vector3d(0.2, 1, 0.1).normalized()).toRotationMatrix();
   T_new_old.translation() = Eigen::Vector3d(3, -1, 2);
@@ -384,9 +381,7 @@ TEST(SlamRun, KittiStereoAtTwiceAndThreeTimesTheSpeed) {
 // monocular with 7 frames dropped: Sim(3) 0.463 m before, 0.303 m now; bar 0.5% of the path (as
 // for half the frame rate), 0 lost.
 TEST(SlamRun, DroppedFramesOnAFastCar) {
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  SlamOptions options;
-  options.vocabulary = &vocabulary;
+  SlamOptions options = testing::OptionsWithDefaultVocabulary();
   struct Case {
     const char* sequence;
     Sensor sensor;
@@ -653,10 +648,9 @@ TEST(SlamRun, KittiMonocularSnippet) {
 TEST(SlamRun, KittiMonocularWithMappingBehindLosesNothing) {
   const auto seq = testing::DatasetsDir() / "kitti" / "sequences" / "07";
   const auto dataset = OpenDataset(seq.string());
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  SlamOptions options;
+  // The vocabulary: monocular triangulation matches under vocabulary nodes.
+  SlamOptions options = testing::OptionsWithDefaultVocabulary();
   options.orb.features = 2000;
-  options.vocabulary = &vocabulary;  // monocular triangulation matches under vocabulary nodes
   SlamRunOptions run;
   run.max_mapping_lag = 3;
   for (int attempt = 0; attempt < 3; ++attempt) {

@@ -19,16 +19,14 @@
 #include "storage/keyframe_message.h"
 #include "frontend/orb_extractor.h"
 #include "place/vocabulary.h"
+#include "default_vocabulary.h"
 #include "joint_ate.h"
 #include "trajectory/metrics.h"
 
 namespace flatslam {
 namespace {
 
-const Vocabulary& DefaultVocabulary() {
-  static const Vocabulary vocabulary = Vocabulary::Load(DefaultVocabularyPath());
-  return vocabulary;
-}
+using testing::DefaultVocabulary;
 
 struct AgentRun {
   Map map;
