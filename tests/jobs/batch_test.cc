@@ -4,7 +4,6 @@
 
 #include <gtest/gtest.h>
 
-#include <fstream>
 
 #include "jobs/sequence_run.h"
 #include "place/vocabulary.h"
@@ -13,10 +12,7 @@
 namespace flatslam {
 namespace {
 
-std::string ReadText(const std::filesystem::path& path) {
-  std::ifstream in(path);
-  return std::string(std::istreambuf_iterator<char>(in), {});
-}
+using testing::ReadBytes;
 
 SequenceSpec Spec(const std::string& name, const std::string& dataset) {
   SequenceSpec s;
@@ -80,9 +76,9 @@ TEST(Batch, EachSequenceGivesItsSingleRunAndAFailureStopsNoOther) {
     alone.out_dir = dir / "alone" / r.name;
     const SequenceResult single = RunSequence(specs[i], alone);
     ASSERT_EQ(single.status, "ok");
-    const std::string batch_poses = ReadText(dir / "batch" / r.name / "trajectory.tum");
+    const std::string batch_poses = ReadBytes(dir / "batch" / r.name / "trajectory.tum");
     EXPECT_FALSE(batch_poses.empty());
-    EXPECT_EQ(batch_poses, ReadText(alone.out_dir / "trajectory.tum")) << r.name;
+    EXPECT_EQ(batch_poses, ReadBytes(alone.out_dir / "trajectory.tum")) << r.name;
     EXPECT_EQ(single.ate_se3_m, r.ate_se3_m) << r.name;
     for (const char* file : {"stats.csv", "trajectory.kitti", "keyframes.tum", "groundtruth.tum", "results.csv"})
       EXPECT_TRUE(std::filesystem::exists(dir / "batch" / r.name / file)) << r.name << "/" << file;

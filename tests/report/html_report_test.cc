@@ -6,7 +6,6 @@
 #include <fstream>
 #include <random>
 #include <regex>
-#include <sstream>
 #include <string>
 
 #include <gtest/gtest.h>
