@@ -110,7 +110,10 @@ int Info(const std::string& file) {
   std::printf("maps          %zu\n", view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {
     std::string agents;
-    for (uint32_t a : view.agents(m)) agents += (agents.empty() ? "" : ",") + std::to_string(a);
+    for (uint32_t a : view.agents(m)) {
+      if (!agents.empty()) agents += ',';
+      agents += std::to_string(a);
+    }
     std::printf("map %-9u agents [%s], %zu keyframes, %zu map points, %zu observations, %zu keypoints\n",
                 view.map_id(m), agents.c_str(), view.keyframe_count(m), view.point_count(m), view.observation_count(m),
                 view.keypoint_count(m));
@@ -224,7 +227,10 @@ int Export(const std::string& file, const Args& args) {
     if (agent && all.empty()) {
       std::string present;
       for (size_t m = 0; m < view.map_count(); ++m)
-        for (uint32_t a : view.agents(m)) present += (present.empty() ? "" : ",") + std::to_string(a);
+        for (uint32_t a : view.agents(m)) {
+          if (!present.empty()) present += ',';
+          present += std::to_string(a);
+        }
       FLATSLAM_CHECK(false, file, " has no keyframes of agent ", *agent, " (its maps hold agents [", present, "])");
     }
     if (trajectory_format == "kitti") {

@@ -186,7 +186,8 @@ void ApplySlamOptionSources(SlamOptions* options, const OrbSettings* settings, S
       const size_t comma = std::min(settings_list.find(',', pos), settings_list.size());
       const std::string_view setting = std::string_view(settings_list).substr(pos, comma - pos);
       SetFromSetting(options, setting);
-      applied += (applied.empty() ? "" : ",") + std::string(setting);
+      if (!applied.empty()) applied += ',';
+      applied += setting;
       pos = comma + 1;
     }
   }
