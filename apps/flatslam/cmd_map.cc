@@ -17,6 +17,7 @@
 #include "args.h"
 #include "merge_and_save.h"
 #include "commands.h"
+#include "core/clock.h"
 #include "core/error.h"
 #include "storage/colmap_export.h"
 #include "storage/snapshot.h"
@@ -86,7 +87,7 @@ int Info(const std::string& file) {
   options.verify_content_hash = false;  // structure and indices only: milliseconds on any size
   const auto start = std::chrono::steady_clock::now();
   const MapSnapshotView view = MapSnapshotView::Open(file, options);
-  const double open_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  const double open_ms = MsSince(start);
   const Calibration calib = view.calibration();
   std::printf("file          %s\n", file.c_str());
   std::printf("size          %zu bytes (%.2f MiB), opened and verified in %.2f ms\n", view.file_size(),
@@ -355,7 +356,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   for (size_t i = 0; i < maps.size(); ++i)
     std::printf("input %-7zu %s: agents [%s], %zu keyframes, %zu map points\n", i, names[i].c_str(),
                 Agents(maps[i]).c_str(), maps[i].keyframes().size(), maps[i].points().size());
-  const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  const double load_ms = MsSince(start);
 
   const MergeTimes times = MergeAndSave(std::move(maps), vocabulary, metadata, options, out_path);
   std::printf("time          load %.0f ms, merge %.0f ms, save %.0f ms\n", load_ms, times.merge_ms, times.save_ms);

@@ -18,6 +18,7 @@
 
 #include "args.h"
 #include "commands.h"
+#include "core/clock.h"
 #include "live.h"
 #include "stop_signals.h"
 #include "core/atomic_write.h"
@@ -331,7 +332,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
         vocabulary_arg.empty() ? DefaultVocabularyPath() : std::filesystem::path(vocabulary_arg);
     const auto load_start = std::chrono::steady_clock::now();
     vocabulary = Vocabulary::Load(path);
-    vocabulary_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - load_start).count();
+    vocabulary_ms = MsSince(load_start);
     options.vocabulary = &vocabulary;
   }
   options.loop_closing = !args.has("no-loop-closing");
@@ -448,7 +449,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
       } catch (const Error& e) {
         save_error = e.what();
       }
-      save_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+      save_ms = MsSince(start);
     };
   }
   // A live agent's run id on the servers, new in every process (a restarted agent's keyframes and

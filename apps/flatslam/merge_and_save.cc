@@ -8,6 +8,7 @@
 #include <Eigen/Geometry>
 
 #include "config/options.h"
+#include "core/clock.h"
 #include "core/error.h"
 
 namespace flatslam::app {
@@ -34,8 +35,7 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
       MergeCamera::FromCalibration(metadata.calibration, metadata.scales, VirtualBaseline(metadata));
   const auto merge_start = std::chrono::steady_clock::now();
   MultiMapMerge merged = MergeAllMaps(std::move(maps), vocabulary, camera, options);
-  const double merge_ms =
-      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - merge_start).count();
+  const double merge_ms = MsSince(merge_start);
   auto list = [&](const std::vector<size_t>& members) {
     std::string s;
     for (size_t m : members) s += (s.empty() ? "" : "+") + std::to_string(m);
@@ -101,8 +101,7 @@ MergeTimes MergeAndSave(std::vector<Map> maps, const Vocabulary& vocabulary, con
   }
   const auto save_start = std::chrono::steady_clock::now();
   SaveMapSnapshot(out_path, refs, metadata);
-  const double save_ms =
-      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - save_start).count();
+  const double save_ms = MsSince(save_start);
   std::printf("wrote         %s: %zu map%s (%.2f MiB)\n", out_path.c_str(), refs.size(), refs.size() == 1 ? "" : "s",
               std::filesystem::file_size(out_path) / 1048576.0);
   return MergeTimes{merge_ms, save_ms, refs.size()};

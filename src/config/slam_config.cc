@@ -8,19 +8,13 @@
 #include <limits>
 
 #include "core/error.h"
+#include "core/text.h"
 #include "io/orb_settings.h"
 
 namespace flatslam {
 namespace {
 
 using BaSolver = BundleAdjustmentOptions::Solver;
-
-std::string_view Trim(std::string_view s) {
-  const size_t begin = s.find_first_not_of(" \t\r");
-  if (begin == std::string_view::npos) return {};
-  const size_t end = s.find_last_not_of(" \t\r");
-  return s.substr(begin, end - begin + 1);
-}
 
 template <class T>
 bool ParseNumber(std::string_view text, T* out) {
@@ -93,8 +87,8 @@ void AppendComment(std::string_view text, std::vector<std::string>* out) {
 }  // namespace
 
 void SetSlamOption(SlamOptions* options, std::string_view key, std::string_view value, std::string_view where) {
-  key = Trim(key);
-  value = Trim(value);
+  key = TrimBlanks(key);
+  value = TrimBlanks(value);
   bool found = false;
   options->VisitAll([&](const std::string& name, auto& field, const char*) {
     using T = std::remove_reference_t<decltype(field)>;
@@ -146,7 +140,7 @@ void LoadSlamConfig(const std::filesystem::path& path, SlamOptions* options) {
     ++number;
     std::string_view text(line);
     if (const size_t hash = text.find('#'); hash != std::string_view::npos) text = text.substr(0, hash);
-    text = Trim(text);
+    text = TrimBlanks(text);
     if (text.empty()) continue;
     const std::string where = path.string() + ":" + std::to_string(number);
     const size_t eq = text.find_first_of("=:");

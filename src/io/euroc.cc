@@ -6,6 +6,7 @@
 #include <system_error>
 
 #include "core/error.h"
+#include "core/text.h"
 #include "io/image_io.h"
 #include "io/rectify.h"
 #include "io/tum.h"
@@ -17,12 +18,6 @@ struct YamlField {
   std::string text;
   int line = 0;
 };
-
-std::string Trim(const std::string& s) {
-  const auto first = s.find_first_not_of(" \t\r\n");
-  if (first == std::string::npos) return {};
-  return s.substr(first, s.find_last_not_of(" \t\r\n") - first + 1);
-}
 
 // Block mappings of scalars and flow lists ("[a, b,\n c]"); nested keys become "T_BS.data".
 // Enough for EuRoC/Kalibr sensor.yaml files; anything else is skipped, not misread.
@@ -42,14 +37,14 @@ std::map<std::string, YamlField> ReadYamlSubset(const std::filesystem::path& pat
     const std::string line = raw.substr(0, raw.find('#'));
     if (!pending_key.empty()) {
       pending.text += ' ';
-      pending.text += Trim(line);
+      pending.text += Trimmed(line);
       if (line.find(']') != std::string::npos) {
         fields[pending_key] = pending;
         pending_key.clear();
       }
       continue;
     }
-    const std::string trimmed = Trim(line);
+    const std::string trimmed = Trimmed(line);
     if (trimmed.empty() || trimmed[0] == '%' || trimmed.rfind("---", 0) == 0) continue;
     const size_t colon = trimmed.find(':');
     if (colon == std::string::npos) continue;
@@ -57,13 +52,13 @@ std::map<std::string, YamlField> ReadYamlSubset(const std::filesystem::path& pat
     while (!parents.empty() && parents.back().first >= indent) parents.pop_back();
     std::string key;
     for (const auto& parent : parents) key += parent.second + ".";
-    key += Trim(trimmed.substr(0, colon));
-    std::string value = Trim(trimmed.substr(colon + 1));
+    key += Trimmed(trimmed.substr(0, colon));
+    std::string value = Trimmed(trimmed.substr(colon + 1));
     if (value.size() >= 2 && (value.front() == '"' || value.front() == '\'') && value.back() == value.front()) {
       value = value.substr(1, value.size() - 2);
     }
     if (value.empty() || value.rfind("!!", 0) == 0) {
-      parents.emplace_back(indent, Trim(trimmed.substr(0, colon)));
+      parents.emplace_back(indent, Trimmed(trimmed.substr(0, colon)));
     } else if (value.front() == '[' && value.find(']') == std::string::npos) {
       pending_key = key;
       pending = {value, number};
@@ -86,27 +81,22 @@ const YamlField& Require(const std::map<std::string, YamlField>& fields, const s
 std::vector<double> NumberList(const std::map<std::string, YamlField>& fields, const std::string& key, size_t count,
                                const std::filesystem::path& path) {
   const YamlField& field = Require(fields, key, path);
-  std::string text = Trim(field.text);
+  std::string text = Trimmed(field.text);
   FLATSLAM_CHECK(text.size() >= 2 && text.front() == '[' && text.back() == ']', io::Where(path, field.line), "field '",
                  key, "' must be a list [..]");
   std::vector<double> values;
   for (const std::string& item : io::SplitFields(text.substr(1, text.size() - 2), ",")) {
-    values.push_back(io::ParseNumber(Trim(item), path, field.line, key));
+    values.push_back(io::ParseNumber(Trimmed(item), path, field.line, key));
   }
   FLATSLAM_CHECK(values.size() == count, io::Where(path, field.line), "field '", key, "' must hold ", count,
                  " numbers, got ", values.size());
   return values;
 }
 
-struct StampedFile {
-  int64_t t_ns = 0;
-  std::filesystem::path file;
-};
-
 // mav0/camN/data.csv: "#timestamp [ns],filename"; images in mav0/camN/data/.
-std::vector<StampedFile> ReadCameraCsv(const std::filesystem::path& camera_dir) {
+std::vector<io::StampedFile> ReadCameraCsv(const std::filesystem::path& camera_dir) {
   const auto csv = camera_dir / "data.csv";
-  std::vector<StampedFile> list;
+  std::vector<io::StampedFile> list;
   for (const io::TextLine& line : io::ReadTextLines(csv)) {
     const auto fields = io::SplitFields(line.text, ",");
     FLATSLAM_CHECK(fields.size() == 2, io::Where(csv, line.number), "expected 'timestamp_ns,filename', got '",

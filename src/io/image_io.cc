@@ -16,10 +16,6 @@
 namespace flatslam {
 namespace {
 
-std::string SizeText(cv::Size size) {
-  return std::to_string(size.width) + "x" + std::to_string(size.height);
-}
-
 // Distinguishes "missing" from "present but undecodable" so the message says which.
 cv::Mat DecodeUnchanged(const std::filesystem::path& path) {
   std::error_code ec;
@@ -31,8 +27,8 @@ cv::Mat DecodeUnchanged(const std::filesystem::path& path) {
 
 void CheckSize(const cv::Mat& image, cv::Size expected, const std::filesystem::path& path) {
   if (expected.empty()) return;
-  FLATSLAM_CHECK(image.size() == expected, "image ", path.string(), " is ", SizeText(image.size()), ", expected ",
-                 SizeText(expected), " (from the calibration)");
+  FLATSLAM_CHECK(image.size() == expected, "image ", path.string(), " is ", io::SizeText(image.size()), ", expected ",
+                 io::SizeText(expected), " (from the calibration)");
 }
 
 }  // namespace
@@ -108,6 +104,10 @@ std::vector<std::string> SplitFields(std::string_view text, std::string_view sep
     begin = end + 1;
   }
   return fields;
+}
+
+std::string SizeText(cv::Size size) {
+  return std::to_string(size.width) + "x" + std::to_string(size.height);
 }
 
 std::string Where(const std::filesystem::path& path, int line) {

@@ -47,6 +47,16 @@ struct TextLine {
 // Splits on any of the separator characters, trimming blanks and dropping empty fields.
 [[nodiscard]] std::vector<std::string> SplitFields(std::string_view text, std::string_view separators = " \t");
 
+// An image file and its timestamp, as the list files of EuRoC (data.csv) and TUM RGB-D (rgb.txt,
+// depth.txt) name them.
+struct StampedFile {
+  int64_t t_ns = 0;
+  std::filesystem::path file;
+};
+
+// "WxH", as messages name an image size.
+[[nodiscard]] std::string SizeText(cv::Size size);
+
 // "file:line: " prefix of error messages.
 [[nodiscard]] std::string Where(const std::filesystem::path& path, int line);
 

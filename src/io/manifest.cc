@@ -6,17 +6,11 @@
 #include <set>
 
 #include "core/error.h"
+#include "core/text.h"
 #include "io/dataset.h"
 
 namespace flatslam {
 namespace {
-
-std::string Trim(const std::string& text) {
-  const size_t begin = text.find_first_not_of(" \t\r");
-  if (begin == std::string::npos) return "";
-  const size_t end = text.find_last_not_of(" \t\r");
-  return text.substr(begin, end - begin + 1);
-}
 
 // The line without a '#' comment (a '#' inside quotes is kept).
 std::string WithoutComment(const std::string& line) {
@@ -78,7 +72,7 @@ void SetField(SequenceSpec* spec, const std::string& key, const std::string& val
   } else if (key == "set" || key == "options") {
     for (size_t pos = 0; pos <= value.size();) {
       const size_t comma = std::min(value.find(',', pos), value.size());
-      const std::string item = Trim(value.substr(pos, comma - pos));
+      const std::string item = Trimmed(value.substr(pos, comma - pos));
       FLATSLAM_CHECK(item.find('=') != std::string::npos && item.find('=') > 0, where, ": option '", item,
                      "' is not KEY=VALUE");
       spec->set.push_back(item);
@@ -131,7 +125,7 @@ std::vector<SequenceSpec> ReadLineManifest(const std::vector<std::string>& lines
                                            const std::filesystem::path& base) {
   std::vector<SequenceSpec> out;
   for (size_t i = 0; i < lines.size(); ++i) {
-    const std::string line = Trim(WithoutComment(lines[i]));
+    const std::string line = Trimmed(WithoutComment(lines[i]));
     if (line.empty()) continue;
     const std::string where = file + ":" + std::to_string(i + 1);
     const std::vector<std::string> tokens = Words(line, where);
@@ -176,16 +170,16 @@ std::vector<SequenceSpec> ReadYamlManifest(const std::vector<std::string>& lines
   for (size_t i = 0; i < lines.size(); ++i) {
     std::string raw = WithoutComment(lines[i]);
     const std::string where = file + ":" + std::to_string(i + 1);
-    FLATSLAM_CHECK(raw.find('\t') == std::string::npos || Trim(raw).empty(), where,
+    FLATSLAM_CHECK(raw.find('\t') == std::string::npos || Trimmed(raw).empty(), where,
                    ": a tab in the indentation (YAML indents with spaces)");
-    if (Trim(raw).empty() || Trim(raw) == "---") continue;
+    if (Trimmed(raw).empty() || Trimmed(raw) == "---") continue;
     size_t indent = Indent(raw);
-    std::string content = Trim(raw);
+    std::string content = Trimmed(raw);
     if (content == "sequences:" && indent == 0) continue;
     bool new_item = false;
     if (content.rfind("- ", 0) == 0 || content == "-") {
       new_item = true;
-      content = Trim(content.substr(1));
+      content = Trimmed(content.substr(1));
       indent += 2;
       while (indent < raw.size() && raw[indent] == ' ') ++indent;
       if (out.size() > 0) RequireDataset(out.back());
@@ -198,8 +192,8 @@ std::vector<SequenceSpec> ReadYamlManifest(const std::vector<std::string>& lines
     FLATSLAM_CHECK(!out.empty(), where, ": expected a list item ('- path: DATASET')");
     const size_t colon = content.find(':');
     FLATSLAM_CHECK(colon != std::string::npos && colon > 0, where, ": expected 'key: value', got '", content, "'");
-    const std::string key = Trim(content.substr(0, colon));
-    const std::string value = Unquoted(Trim(content.substr(colon + 1)));
+    const std::string key = Trimmed(content.substr(0, colon));
+    const std::string value = Unquoted(Trimmed(content.substr(colon + 1)));
     if (options_indent && !new_item && indent > *item_indent) {
       // A key of the options mapping.
       FLATSLAM_CHECK(value.find(',') == std::string::npos, where, ": option ", key, " has a ',' in its value");
@@ -267,7 +261,7 @@ std::vector<SequenceSpec> ReadManifest(const std::filesystem::path& path) {
   const std::string ext = path.extension().string();
   bool yaml = ext == ".yaml" || ext == ".yml";
   for (const std::string& line : lines) {
-    const std::string content = Trim(WithoutComment(line));
+    const std::string content = Trimmed(WithoutComment(line));
     if (content.empty()) continue;
     yaml = yaml || content == "sequences:" || content == "---" || content.rfind("- ", 0) == 0;
     break;

@@ -16,6 +16,7 @@
 #include <opencv2/core.hpp>
 
 #include "core/error.h"
+#include "io/image_io.h"
 #include "io/rectify.h"
 
 namespace flatslam {
@@ -74,10 +75,6 @@ std::string RoundedNumber(double value) {
   char buffer[32];
   std::snprintf(buffer, sizeof(buffer), "%.7g", value);
   return buffer;
-}
-
-std::string SizeText(cv::Size size) {
-  return std::to_string(size.width) + "x" + std::to_string(size.height);
 }
 
 // Two values of one quantity agree to 1e-4 relative (files round differently, Stereo.T_c1_c2 is float).
@@ -347,7 +344,7 @@ OrbSettings ReadOrbSettings(const fs::path& path) {
   if (new_width || new_height) {
     const cv::Size resized(new_width.value_or(settings.size.width), new_height.value_or(settings.size.height));
     file.Check(resized == settings.size, "'Camera.newWidth' / 'Camera.newHeight' ask to resize the images to ",
-               SizeText(resized), "; resizing is not supported (resize them beforehand and scale the camera)");
+               io::SizeText(resized), "; resizing is not supported (resize them beforehand and scale the camera)");
   }
 
   // ORB-SLAM2 rectification blocks: the camera is LEFT.P, the rectified one.
@@ -384,11 +381,11 @@ OrbSettings ReadOrbSettings(const fs::path& path) {
                "'LEFT.P' and 'RIGHT.P' give different rectified intrinsics; a rectified pair shares one camera");
     file.Check(right.P(0, 3) < 0, "'RIGHT.P'[0][3] must be -fx times the baseline (negative), got ",
                FormatNumber(right.P(0, 3)));
-    file.Check(left.size == right.size, "'LEFT.width x LEFT.height' (", SizeText(left.size),
-               ") and 'RIGHT.width x RIGHT.height' (", SizeText(right.size), ") differ");
+    file.Check(left.size == right.size, "'LEFT.width x LEFT.height' (", io::SizeText(left.size),
+               ") and 'RIGHT.width x RIGHT.height' (", io::SizeText(right.size), ") differ");
     if (width) {
-      file.Check(left.size == settings.size, "'Camera.width x Camera.height' (", SizeText(settings.size),
-                 ") and 'LEFT.width x LEFT.height' (", SizeText(left.size), ") disagree");
+      file.Check(left.size == settings.size, "'Camera.width x Camera.height' (", io::SizeText(settings.size),
+                 ") and 'LEFT.width x LEFT.height' (", io::SizeText(left.size), ") disagree");
     }
     settings.size = left.size;
     settings.camera = {left.P(0, 0), left.P(1, 1), left.P(0, 2), left.P(1, 2), {}};
@@ -513,7 +510,7 @@ class SettingsDataset final : public Dataset {
     const cv::Size expected = s.left_block ? s.left_block->size : s.size;
     FLATSLAM_CHECK(expected.empty() || expected == size, "settings file ", file, ": ",
                    s.left_block ? "LEFT.width x LEFT.height" : "Camera.width x Camera.height", " is ",
-                   SizeText(expected), " but the images of ", raw_->name(), " are ", SizeText(size));
+                   io::SizeText(expected), " but the images of ", raw_->name(), " are ", io::SizeText(size));
     const bool stereo = inner.sensor == Sensor::kStereo;
     FLATSLAM_CHECK(!stereo || s.baseline_m > 0, "settings file ", file,
                    " gives no stereo baseline ('Camera.bf', 'Stereo.b', 'Stereo.T_c1_c2' or LEFT/RIGHT blocks) but ",

@@ -16,14 +16,9 @@
 namespace flatslam {
 namespace {
 
-struct StampedFile {
-  int64_t t_ns = 0;
-  std::filesystem::path file;
-};
-
 // rgb.txt / depth.txt: "timestamp filename" per line, filename relative to the sequence dir.
-std::vector<StampedFile> ReadFileList(const std::filesystem::path& path, const std::filesystem::path& dir) {
-  std::vector<StampedFile> list;
+std::vector<io::StampedFile> ReadFileList(const std::filesystem::path& path, const std::filesystem::path& dir) {
+  std::vector<io::StampedFile> list;
   for (const io::TextLine& line : io::ReadTextLines(path)) {
     const auto fields = io::SplitFields(line.text);
     FLATSLAM_CHECK(fields.size() >= 2, io::Where(path, line.number), "expected 'timestamp filename', got '", line.text,

@@ -11,6 +11,7 @@
 #include <fstream>
 
 #include "core/atomic_write.h"
+#include "core/clock.h"
 #include "core/error.h"
 #include "io/dataset.h"
 #include "io/orb_settings.h"
@@ -77,10 +78,6 @@ std::string StatsBefore(const std::filesystem::path& path, size_t next_frame) {
     out += line + "\n";
   }
   return out;
-}
-
-double Ms(std::chrono::steady_clock::duration d) {
-  return std::chrono::duration<double, std::milli>(d).count();
 }
 
 }  // namespace
@@ -276,7 +273,7 @@ SequenceResult RunSequence(const SequenceSpec& spec, const SequenceRunOptions& o
     result.status = "failed";
     result.error = e.what();
   }
-  result.wall_s = Ms(std::chrono::steady_clock::now() - start) / 1000.0;
+  result.wall_s = MsSince(start) / 1000.0;
   result.peak_rss_mib = options.peak_rss_mib ? options.peak_rss_mib() : PeakRssMiB();
   try {
     WriteSequenceSummary(options.out_dir, result, ground_truth);

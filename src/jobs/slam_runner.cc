@@ -8,6 +8,7 @@
 
 #include <tbb/task_arena.h>
 
+#include "core/clock.h"
 #include "core/error.h"
 #include "jobs/background_worker.h"
 #include "jobs/pipeline.h"
@@ -22,10 +23,6 @@ struct Item {
   double extract_ms = 0;
   std::string unreadable;  // why the frame could not be read (empty: it was)
 };
-
-double MsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
 
 // A request for a checkpoint: the copy of the session is taken by the job itself unless it was
 // already taken (captured) between two keyframes by the mapping queue.

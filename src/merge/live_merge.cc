@@ -5,6 +5,7 @@
 #include <map>
 #include <optional>
 
+#include "core/clock.h"
 #include "core/error.h"
 #include "merge/merged_loops.h"
 #include "optimization/pose_optimizer.h"
@@ -16,10 +17,6 @@ namespace {
 // Points of the merged map a new keyframe must see to be placed by them (else its run's frame
 // places it): well above the 6 unknowns of a pose, as tracking asks of a frame.
 constexpr size_t kMinPlacingPoints = 30;
-
-double MsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
 
 // The keyframes of `map` that query in a search (see GrowingMerge::SearchRunsApart): all of them
 // when it was never searched, else those newer than `through` with the `window` before them.

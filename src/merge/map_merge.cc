@@ -13,6 +13,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include "core/clock.h"
 #include "core/error.h"
 #include "config/options.h"
 #include "core/requirements.h"
@@ -25,10 +26,6 @@
 namespace flatslam {
 
 namespace {
-
-double MsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
 
 double AngleDeg(const Eigen::Matrix3d& R) {
   const double c = std::clamp((R.trace() - 1.0) / 2.0, -1.0, 1.0);

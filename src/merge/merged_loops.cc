@@ -5,6 +5,7 @@
 #include <tuple>
 #include <unordered_set>
 
+#include "core/clock.h"
 #include "mapping/map_bundle_adjustment.h"
 #include "merge/map_merge.h"
 
@@ -55,10 +56,9 @@ void MergedMapLoopCloser::Replay(Map& map, std::span<const KeyFrameHandle> keyfr
         ++out->global_adjustments;
       }
     }
-    out->global_adjustment_ms +=
-        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - gba_start).count();
+    out->global_adjustment_ms += MsSince(gba_start);
   }
-  out->ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  out->ms += MsSince(start);
 }
 
 std::vector<KeyFrameHandle> ReplayOrder(const Map& map, std::span<const KeyFrameHandle> keyframes) {

@@ -5,6 +5,7 @@
 #include <unordered_map>
 #include <unordered_set>
 
+#include "core/clock.h"
 #include "mapping/essential_graph.h"
 #include "matching/matcher.h"
 #include "place/vocabulary.h"
@@ -170,7 +171,7 @@ void CorrectLoop(Map& map, LoopClosingState& state, const SystemContext& context
   closure.matches = m.matches;
   closure.scale = m.S_cw.s;
   closure.correction_m = (map.keyframe(current).camera_center() - old_center).norm();
-  closure.correction_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  closure.correction_ms = MsSince(start);
   state.closures.push_back(closure);
   state.consistent_groups.clear();
   state.keyframes_since_loop = 0;

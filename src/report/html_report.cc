@@ -21,6 +21,7 @@
 
 #include "core/atomic_write.h"
 #include "core/error.h"
+#include "core/text.h"
 #include "trajectory/metrics.h"
 #include "trajectory/trajectory_io.h"
 
@@ -114,12 +115,6 @@ std::string InlineScript(std::string code) {
     out += code[i];
   }
   return out;
-}
-
-std::string Fixed(double value, int decimals) {
-  char text[64];
-  std::snprintf(text, sizeof(text), "%.*f", decimals, value);
-  return text;
 }
 
 bool IsNumber(const std::string& text) {
@@ -416,9 +411,9 @@ void TrajectoryPlots(const ReportSequence& sequence, const std::string& id, std:
     for (Eigen::Vector3d& p : est_positions)
       p = eval->alignment.scale * eval->alignment.rotation * p + eval->alignment.translation;
     std::string fact = std::string("Estimate aligned onto ground truth by ") + alignment_name;
-    if (mono) fact += " (scale " + Fixed(eval->alignment.scale, 4) + ")";
-    fact += " over " + std::to_string(eval->pairs.size()) + " matched poses: ATE RMSE " + Fixed(eval->ate_m.rmse, 4) +
-            " m, max " + Fixed(eval->ate_m.max, 4) + " m.";
+    if (mono) fact += " (scale " + FixedDecimals(eval->alignment.scale, 4) + ")";
+    fact += " over " + std::to_string(eval->pairs.size()) + " matched poses: ATE RMSE " +
+            FixedDecimals(eval->ate_m.rmse, 4) + " m, max " + FixedDecimals(eval->ate_m.max, 4) + " m.";
     facts->push_back(fact);
   }
   if (est) facts->push_back(std::to_string(est->size()) + " estimated poses.");

@@ -9,6 +9,7 @@
 
 #include "core/atomic_write.h"
 #include "core/error.h"
+#include "core/text.h"
 
 namespace flatslam {
 namespace {
@@ -60,12 +61,6 @@ const std::vector<Column>& Columns() {
   return columns;
 }
 
-std::string Fixed(double value, int decimals) {
-  char text[64];
-  std::snprintf(text, sizeof(text), "%.*f", decimals, value);
-  return text;
-}
-
 std::string Cell(const Column& column, const SequenceResult& row) {
   return std::visit(
       [&](auto field) -> std::string {
@@ -75,9 +70,9 @@ std::string Cell(const Column& column, const SequenceResult& row) {
         } else if constexpr (std::is_same_v<F, Count>) {
           return std::to_string(row.*field);
         } else if constexpr (std::is_same_v<F, Real>) {
-          return Fixed(row.*field, column.decimals);
+          return FixedDecimals(row.*field, column.decimals);
         } else {
-          return (row.*field) ? Fixed(*(row.*field), column.decimals) : std::string();
+          return (row.*field) ? FixedDecimals(*(row.*field), column.decimals) : std::string();
         }
       },
       column.field);
@@ -319,9 +314,9 @@ void WriteResultsJson(const std::filesystem::path& path, const std::vector<Seque
 std::string ResultsMarkdown(const std::vector<SequenceResult>& rows) {
   // The columns a reader scans first; the files hold all of them.
   static const std::vector<std::string> kShown = {
-      "sequence",        "sensor", "status",           "frames",      "lost",  "segments", "skipped",
-      "keyframes",       "loops",  "ate_se3_m",        "ate_sim3_m",  "scale", "rpe_m",
-      "kitti_t_rel_pct", "fps",    "cpu_ms_per_frame", "peak_rss_mib"};
+      "sequence", "sensor",          "status", "frames",           "lost",        "segments",
+      "skipped",  "keyframes",       "loops",  "ate_se3_m",        "ate_sim3_m",  "scale",
+      "rpe_m",    "kitti_t_rel_pct", "fps",    "cpu_ms_per_frame", "peak_rss_mib"};
   std::vector<size_t> shown;
   for (const std::string& name : kShown)
     shown.push_back(std::find(ResultColumns().begin(), ResultColumns().end(), name) - ResultColumns().begin());

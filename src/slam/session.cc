@@ -7,19 +7,12 @@
 
 #include <tbb/parallel_invoke.h>
 
+#include "core/clock.h"
 #include "core/error.h"
 #include "frontend/stereo_matcher.h"
 #include "place/vocabulary.h"
 
 namespace flatslam {
-namespace {
-
-double MsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
-
-}  // namespace
-
 // The access each step takes. Local mapping's buffers (the keyframe copies, the BA problem and
 // workspace) belong to the one mapping node and are not a shared component: triangulation and
 // the local BA solve take no access at all, and tracking runs beside them.
@@ -169,7 +162,7 @@ void SlamSession::MapKeyFrame(KeyFrameHandle keyframe) {
   auto stage_start = std::chrono::steady_clock::now();
   auto lap = [&stage_start](double* total) {
     const auto now = std::chrono::steady_clock::now();
-    *total += std::chrono::duration<double, std::milli>(now - stage_start).count();
+    *total += Milliseconds(now - stage_start);
     stage_start = now;
   };
   {

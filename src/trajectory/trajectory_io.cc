@@ -11,6 +11,7 @@
 
 #include "core/atomic_write.h"
 #include "core/error.h"
+#include "core/text.h"
 
 namespace flatslam {
 namespace {
@@ -71,19 +72,14 @@ std::vector<std::string_view> SplitLoose(std::string_view text) {
   return out;
 }
 
-std::string_view Trim(std::string_view s) {
-  while (!s.empty() && std::isspace(static_cast<unsigned char>(s.front()))) s.remove_prefix(1);
-  while (!s.empty() && std::isspace(static_cast<unsigned char>(s.back()))) s.remove_suffix(1);
-  return s;
-}
-
 // Splits on commas only (csv), trimming each field; empty fields are kept.
 std::vector<std::string_view> SplitCsv(std::string_view text) {
   std::vector<std::string_view> out;
   size_t start = 0;
   while (true) {
     size_t comma = text.find(',', start);
-    out.push_back(Trim(text.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start)));
+    out.push_back(
+        TrimBlanks(text.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start)));
     if (comma == std::string_view::npos) break;
     start = comma + 1;
   }
@@ -243,7 +239,7 @@ TrajectoryFormat DetectTrajectoryFormat(const fs::path& path) {
   DataLine line = lines.front();
   bool csv = Lowercase(path.extension().string()) == ".csv" || line.text.find(',') != std::string::npos;
   // A csv header without the leading '#' ("timestamp,p_x,...") is not data.
-  if (csv && std::isalpha(static_cast<unsigned char>(Trim(line.text).front()))) {
+  if (csv && std::isalpha(static_cast<unsigned char>(TrimBlanks(line.text).front()))) {
     FLATSLAM_CHECK(lines.size() > 1, path.string(), ": no poses (only a header)");
     line = lines[1];
   }

@@ -50,8 +50,8 @@ TEST(ObjectPool, ConcurrentUseNeverSharesAnObject) {
       auto lease = pool.Acquire();
       if (*lease != 0) ++conflicts;  // another holder's mark is still there
       *lease = i + 1;
-      for (volatile int spin = 0; spin < 100; spin = spin + 1) {
-      }
+      volatile int spin = 0;  // a short hold the compiler cannot drop
+      while (spin < 100) spin = spin + 1;
       if (*lease != i + 1) ++conflicts;  // another holder wrote meanwhile
       *lease = 0;
     }
