@@ -45,12 +45,26 @@ void FeatureGrid::Query(float u, float v, float r, std::vector<uint32_t>* out) c
   const int c1 = std::min(cols_ - 1, static_cast<int>((u + r) * inv_cell_));
   const int r0 = std::max(0, static_cast<int>((v - r) * inv_cell_));
   const int r1 = std::min(rows_ - 1, static_cast<int>((v + r) * inv_cell_));
-  // Cells c0..c1 of a row are one run of the grid order.
+  // Cells c0..c1 of a row are one run of the grid order. Every index of the runs is written and
+  // the write position advances only past those inside the square: no branch on each keypoint's
+  // position, whose outcome a dense cell makes unpredictable (same indices, same order).
+  size_t scanned = 0;
   for (int row = r0; row <= r1; ++row) {
     const size_t first = static_cast<size_t>(row) * cols_;
-    for (uint32_t k = cell_start_[first + c0]; k < cell_start_[first + c1 + 1]; ++k)
-      if (std::abs(uv_[k].x() - u) <= r && std::abs(uv_[k].y() - v) <= r) out->push_back(indices_[k]);
+    scanned += cell_start_[first + c1 + 1] - cell_start_[first + c0];
   }
+  if (scanned == 0) return;
+  const size_t start = out->size();
+  out->resize(start + scanned);
+  uint32_t* write = out->data() + start;
+  for (int row = r0; row <= r1; ++row) {
+    const size_t first = static_cast<size_t>(row) * cols_;
+    for (uint32_t k = cell_start_[first + c0]; k < cell_start_[first + c1 + 1]; ++k) {
+      *write = indices_[k];
+      write += static_cast<size_t>((std::abs(uv_[k].x() - u) <= r) & (std::abs(uv_[k].y() - v) <= r));
+    }
+  }
+  out->resize(static_cast<size_t>(write - out->data()));
 }
 
 void TrackedFrame::Prepare(int width, int height) {

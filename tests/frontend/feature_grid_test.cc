@@ -38,8 +38,12 @@ TEST(FeatureGrid, QueryFindsExactlyTheKeypointsInTheSquare) {
   std::uniform_real_distribution<float> u(-50.0f, kWidth + 50.0f), v(-50.0f, kHeight + 50.0f), r(0.5f, 80.0f);
   for (int q = 0; q < 300; ++q) {
     const float qu = u(rng), qv = v(rng), qr = r(rng);
-    std::vector<uint32_t> found;
+    // Query appends: what the vector held stays in front.
+    constexpr uint32_t kHeld = 123456;
+    std::vector<uint32_t> found = {kHeld};
     grid.Query(qu, qv, qr, &found);
+    ASSERT_EQ(found.front(), kHeld);
+    found.erase(found.begin());
     std::vector<uint32_t> expected;
     for (uint32_t i = 0; i < uv.size(); ++i)
       if (std::abs(uv[i].x() - qu) <= qr && std::abs(uv[i].y() - qv) <= qr) expected.push_back(i);
