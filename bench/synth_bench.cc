@@ -1,5 +1,6 @@
 // Renderer throughput: frames per second per sensor on one thread, at each scene's camera
-// (640x480; highway 1241x376); the *_portable rows shade without AVX2 (the same pixels).
+// (640x480; highway 1241x376); the *_portable rows shade and finish images without AVX2
+// (the same pixels).
 #include <benchmark/benchmark.h>
 
 #include "io/synthetic.h"

@@ -721,9 +721,11 @@ TEST(SyntheticHandheld, ExposureGainShiftsTheBrightness) {
   EXPECT_NEAR(ratio, lowest, 0.02);
 }
 
-// The AVX2 shading path gives the portable path's bits: every scene at its own camera, stereo
-// and RGB-D (exact depth), with moving objects, one frame per second of a 10-s run and the frame
-// of the fastest turn (where the hand-held scene blurs most).
+// The AVX2 paths (shading, and the gain, noise and rounding that finish each image) give the
+// portable paths' bits: every scene at its own camera (the motorway's 1241 columns end rows
+// between groups of eight), stereo and RGB-D (exact depth), with moving objects and image noise,
+// one frame per second of a 10-s run and the frame of the fastest turn (where the hand-held scene
+// blurs most).
 TEST(SyntheticScene, VectorShadingGivesThePortablePathsBits) {
   if (!HasAvx2()) GTEST_SKIP() << "no AVX2 on this CPU: only the portable path runs";
   auto same_bits = [](const cv::Mat& a, const cv::Mat& b) {
