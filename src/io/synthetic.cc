@@ -538,8 +538,6 @@ double BoundingCoverage(const SceneMover& mover, double scale,
   return w * h / (static_cast<double>(cam.width) * cam.height);
 }
 
-// Gain, noise and rounding: the last step of every image. The noise draws follow the pixels in
-// row-major order, so an image depends only on its seed.
 // One pixel of FinishImage: gain, noise drawn from *rng, rounding to a grey level.
 [[gnu::always_inline]] inline uint8_t FinishPixel(float x, float gain, float sigma, uint64_t* rng) {
   if (gain != 1.0f) x *= gain;
@@ -607,6 +605,8 @@ __attribute__((target("avx2"))) int FinishRowAvx2(const float* in, int width, fl
 }
 #endif  // x86
 
+// Gain, noise and rounding: the last step of every image. The noise draws follow the pixels in
+// row-major order, so an image depends only on its seed (with or without AVX2).
 void FinishImage(const float* value, int width, int height, float gain, float sigma, uint64_t noise_seed,
                  bool use_avx2, cv::Mat* gray) {
   gray->create(height, width, CV_8UC1);
