@@ -41,10 +41,14 @@ constexpr double kPi = 3.14159265358979323846;
 constexpr int kMaxTextureSide = 4096;
 constexpr float kNearPlane = 0.05f;
 
+// SplitMix64: the state steps by kSplitMixStep; the output mixes the new state with two multiplies.
+constexpr uint64_t kSplitMixStep = 0x9e3779b97f4a7c15ull;
+constexpr uint64_t kSplitMixMul1 = 0xbf58476d1ce4e5b9ull, kSplitMixMul2 = 0x94d049bb133111ebull;
+
 uint64_t SplitMix(uint64_t* state) {
-  uint64_t z = (*state += 0x9e3779b97f4a7c15ull);
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  uint64_t z = (*state += kSplitMixStep);
+  z = (z ^ (z >> 30)) * kSplitMixMul1;
+  z = (z ^ (z >> 27)) * kSplitMixMul2;
   return z ^ (z >> 31);
 }
 
@@ -555,10 +559,10 @@ __attribute__((target("avx2"))) inline __m256i MulLo64Avx2(__m256i a, __m256i b_
 
 // SplitMix's output for the four states of z, lane by lane.
 __attribute__((target("avx2"))) inline __m256i SplitMixOutputAvx2(__m256i z) {
-  const __m256i m1_lo = _mm256_set1_epi64x(0xbf58476d1ce4e5b9ull & 0xffffffffull);
-  const __m256i m1_hi = _mm256_set1_epi64x(0xbf58476d1ce4e5b9ull >> 32);
-  const __m256i m2_lo = _mm256_set1_epi64x(0x94d049bb133111ebull & 0xffffffffull);
-  const __m256i m2_hi = _mm256_set1_epi64x(0x94d049bb133111ebull >> 32);
+  const __m256i m1_lo = _mm256_set1_epi64x(static_cast<long long>(kSplitMixMul1 & 0xffffffffull));
+  const __m256i m1_hi = _mm256_set1_epi64x(static_cast<long long>(kSplitMixMul1 >> 32));
+  const __m256i m2_lo = _mm256_set1_epi64x(static_cast<long long>(kSplitMixMul2 & 0xffffffffull));
+  const __m256i m2_hi = _mm256_set1_epi64x(static_cast<long long>(kSplitMixMul2 >> 32));
   z = MulLo64Avx2(_mm256_xor_si256(z, _mm256_srli_epi64(z, 30)), m1_lo, m1_hi);
   z = MulLo64Avx2(_mm256_xor_si256(z, _mm256_srli_epi64(z, 27)), m2_lo, m2_hi);
   return _mm256_xor_si256(z, _mm256_srli_epi64(z, 31));
@@ -569,9 +573,9 @@ __attribute__((target("avx2"))) inline __m256i SplitMixOutputAvx2(__m256i z) {
 // Returns how many pixels it finished (a multiple of 8); *rng is advanced past them.
 __attribute__((target("avx2"))) int FinishRowAvx2(const float* in, int width, float gain, float sigma, uint64_t* rng,
                                                   uint8_t* out) {
-  constexpr uint64_t kStep = 0x9e3779b97f4a7c15ull;
-  const __m256i steps_a = _mm256_setr_epi64x(kStep, 2 * kStep, 3 * kStep, 4 * kStep);
-  const __m256i steps_b = _mm256_setr_epi64x(5 * kStep, 6 * kStep, 7 * kStep, 8 * kStep);
+  auto steps = [](uint64_t k) { return static_cast<long long>(k * kSplitMixStep); };
+  const __m256i steps_a = _mm256_setr_epi64x(steps(1), steps(2), steps(3), steps(4));
+  const __m256i steps_b = _mm256_setr_epi64x(steps(5), steps(6), steps(7), steps(8));
   const __m256i low_bytes = _mm256_set1_epi64x(0xffffffffll);
   const __m256i order = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
   const __m256 gain_v = _mm256_set1_ps(gain), sigma_v = _mm256_set1_ps(sigma);
@@ -594,7 +598,7 @@ __attribute__((target("avx2"))) int FinishRowAvx2(const float* in, int width, fl
           _mm256_permutevar8x32_epi32(_mm256_blend_epi32(a, _mm256_slli_epi64(b, 32), 0b10101010), order);
       const __m256 gauss = _mm256_mul_ps(_mm256_sub_ps(_mm256_cvtepi32_ps(sums), offset), scale);
       x = _mm256_add_ps(x, _mm256_mul_ps(sigma_v, gauss));
-      state += 8 * kStep;
+      state += 8 * kSplitMixStep;
     }
     const __m256i level = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(_mm256_add_ps(x, half), zero), top));
     const __m128i words = _mm_packus_epi32(_mm256_castsi256_si128(level), _mm256_extracti128_si256(level, 1));
