@@ -539,8 +539,11 @@ TEST(AgentsCli, AKilledAgentRestartsAndItsLaterKeyFramesJoinTheServersMap) {
   const pid_t killed = Spawn(
       {"agent", Town(1), "--id", "1", "--quiet", "--deterministic", "--dds-domain", d, "--out", first_out.string()},
       dir / "agent1_first.log");
-  // Killed once it has tracked 150 frames (stats.csv grows by a line a frame).
+  // Killed once it has tracked 150 frames (stats.csv grows by a line a frame) and the server has
+  // heard it: a run whose keyframes never reached the server has nothing there to keep (under a
+  // loaded machine the agents' discovery can take longer than those frames).
   WaitForTrackedFrames(first_out, 150);
+  WaitUntil([&] { return Contains(ReadBytes(dir / "server.log"), "\nheard         agent 1 run "); }, 120);
   ::kill(killed, SIGKILL);
   EXPECT_EQ(Wait(killed), 128 + SIGKILL);
   const size_t restart_at = LineCount(first_out / "stats.csv") - 1;
