@@ -52,6 +52,7 @@ void Map::AddObservation(PointHandle p, KeyFrameHandle kf, uint32_t keypoint) {
   for (const Observation& o : point.observations) FLATSLAM_CHECK(o.keyframe != kf, p, " already observed by ", kf);
   frame.points[keypoint] = p;
   point.observations.push_back({kf, keypoint});
+  point.descriptor_stale = true;
 }
 
 bool Map::EraseObservation(PointHandle p, KeyFrameHandle kf, size_t min_observations) {
@@ -62,6 +63,7 @@ bool Map::EraseObservation(PointHandle p, KeyFrameHandle kf, size_t min_observat
   if (it == point->observations.end()) return false;
   if (KeyFrame* frame = keyframes_.try_get(kf)) frame->points[it->keypoint] = PointHandle::null();
   point->observations.erase(it);
+  point->descriptor_stale = true;
   if (point->reference == kf && !point->observations.empty()) point->reference = point->observations.front().keyframe;
   if (point->observations.size() < min_observations) {
     ErasePoint(p);
@@ -133,6 +135,7 @@ void Map::ReplacePoint(PointHandle from, PointHandle into) {
     if (already || !frame->points[o.keypoint].is_null()) continue;
     frame->points[o.keypoint] = into;
     keep.observations.push_back(o);
+    keep.descriptor_stale = true;
   }
 }
 
@@ -275,8 +278,11 @@ void Map::UpdatePointStats(PointHandle p, const MapScales& scales) {
   point.max_distance = distance * level_scale;
   point.min_distance = point.max_distance / std::pow(scales.scale_factor, static_cast<float>(scales.levels - 1));
 
-  // Representative descriptor: least median distance to the others. Distances are symmetric:
-  // each pair is measured once.
+  // Representative descriptor: least median distance to the others, chosen again only when the
+  // observations changed (after a bundle adjustment only the position did). Distances are
+  // symmetric: each pair is measured once.
+  if (!point.descriptor_stale) return;
+  point.descriptor_stale = false;
   const size_t n = descriptors.size();
   distances.resize(n * n);
   for (size_t i = 0; i < n; ++i) {

@@ -76,6 +76,10 @@ struct MapPoint {
   uint64_t first_keyframe_id = 0;
   uint32_t visible = 1;  // frames where it should have been seen
   uint32_t found = 1;    // frames where it was matched
+  // The observations changed since `descriptor` was chosen from them (Map::UpdatePointStats
+  // chooses it again only then: a keyframe's descriptors never change, so the choice is a
+  // function of the observations and their order).
+  bool descriptor_stale = true;
 
   [[nodiscard]] float found_ratio() const { return static_cast<float>(found) / static_cast<float>(visible); }
 };

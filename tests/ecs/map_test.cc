@@ -186,42 +186,102 @@ TEST(Map, PointStatsFromObservations) {
   EXPECT_NEAR(p.min_distance, 5.0 / std::pow(1.2, 7), 1e-4);
 }
 
+// The observation of p with the least median Hamming distance to all of p's observations (the
+// first such, in observation order), every median computed in full.
+Descriptor LeastMedianDescriptor(const Map& map, PointHandle p) {
+  size_t best = 0;
+  int best_median = 1 << 30;
+  const auto& seen = map.point(p).observations;
+  for (size_t i = 0; i < seen.size(); ++i) {
+    std::vector<int> row;
+    for (const Observation& o : seen)
+      row.push_back(DescriptorDistance(map.keyframe(seen[i].keyframe).descriptor[seen[i].keypoint],
+                                       map.keyframe(o.keyframe).descriptor[o.keypoint]));
+    std::sort(row.begin(), row.end());
+    if (row[(row.size() - 1) / 2] < best_median) {
+      best_median = row[(row.size() - 1) / 2];
+      best = i;
+    }
+  }
+  return map.keyframe(seen[best].keyframe).descriptor[seen[best].keypoint];
+}
+
+// Keyframes 0..n-1 with one keypoint each, its descriptor drawn near a common one (a few bits
+// flipped each), as one feature seen again looks.
+std::vector<KeyFrameHandle> AddNoisyKeyFrames(Map& map, size_t n, std::mt19937_64& rng) {
+  std::vector<KeyFrameHandle> kfs;
+  const Descriptor common{rng(), rng(), rng(), rng()};
+  for (size_t i = 0; i < n; ++i) {
+    KeyFrame kf = MakeKeyFrame(1, static_cast<double>(i));
+    Descriptor d = common;
+    for (int flip = static_cast<int>(rng() % 60); flip > 0; --flip) d[rng() % 4] ^= 1ull << (rng() % 64);
+    kf.descriptor.mutable_data()[0] = d;
+    kfs.push_back(map.AddKeyFrame(std::move(kf)));
+  }
+  return kfs;
+}
+
 // A point's descriptor is the one of its observations with the least median Hamming distance to
-// all of them (the first such, on ties), for points seen by few and by many keyframes: descriptors
-// drawn near a common one (a few bits flipped each), as one feature seen again looks.
+// all of them (the first such, on ties), for points seen by few and by many keyframes.
 TEST(Map, APointsDescriptorIsItsObservationWithTheLeastMedianDistance) {
   std::mt19937_64 rng(11);
   for (size_t n : {1u, 2u, 3u, 8u, 31u, 120u}) {
     Map map;
-    std::vector<KeyFrameHandle> kfs;
-    const Descriptor common{rng(), rng(), rng(), rng()};
-    for (size_t i = 0; i < n; ++i) {
-      KeyFrame kf = MakeKeyFrame(1, static_cast<double>(i));
-      Descriptor d = common;
-      for (int flip = static_cast<int>(rng() % 60); flip > 0; --flip) d[rng() % 4] ^= 1ull << (rng() % 64);
-      kf.descriptor.mutable_data()[0] = d;
-      kfs.push_back(map.AddKeyFrame(std::move(kf)));
-    }
+    const std::vector<KeyFrameHandle> kfs = AddNoisyKeyFrames(map, n, rng);
     const PointHandle p = map.AddPoint(Eigen::Vector3d(0, 0, 5), kfs[0]);
     for (KeyFrameHandle kf : kfs) map.AddObservation(p, kf, 0);
     map.UpdatePointStats(p, MapScales{});
-    // Every median in full, in observation order.
-    size_t best = 0;
-    int best_median = 1 << 30;
-    const auto& seen = map.point(p).observations;
-    for (size_t i = 0; i < seen.size(); ++i) {
-      std::vector<int> row;
-      for (const Observation& o : seen)
-        row.push_back(
-            DescriptorDistance(map.keyframe(seen[i].keyframe).descriptor[0], map.keyframe(o.keyframe).descriptor[0]));
-      std::sort(row.begin(), row.end());
-      if (row[(row.size() - 1) / 2] < best_median) {
-        best_median = row[(row.size() - 1) / 2];
-        best = i;
-      }
-    }
-    EXPECT_EQ(map.point(p).descriptor, map.keyframe(seen[best].keyframe).descriptor[0]) << n << " observations";
+    EXPECT_EQ(map.point(p).descriptor, LeastMedianDescriptor(map, p)) << n << " observations";
   }
+}
+
+// UpdatePointStats chooses the descriptor again only when the observations changed: after each
+// kind of change (an observation added, one erased, a keyframe erased, a point fused into this
+// one) it is the one chosen from scratch, and a moved point gets its new viewing direction.
+TEST(Map, APointsDescriptorFollowsEveryChangeOfItsObservations) {
+  std::mt19937_64 rng(5);
+  Map map;
+  const std::vector<KeyFrameHandle> kfs = AddNoisyKeyFrames(map, 40, rng);
+  const PointHandle p = map.AddPoint(Eigen::Vector3d(0, 0, 5), kfs[0]);
+  for (size_t i = 0; i < 20; ++i) map.AddObservation(p, kfs[i], 0);
+  map.UpdatePointStats(p, MapScales{});
+  ASSERT_EQ(map.point(p).descriptor, LeastMedianDescriptor(map, p));
+  const Descriptor before = map.point(p).descriptor;
+  size_t changed = 0;
+  auto check = [&](const char* what) {
+    map.UpdatePointStats(p, MapScales{});
+    EXPECT_EQ(map.point(p).descriptor, LeastMedianDescriptor(map, p)) << what;
+    changed += map.point(p).descriptor != before;
+  };
+  // The observations chosen first, then the others: each erase changes the median set.
+  for (size_t i = 0; i < 6; ++i) {
+    const Descriptor chosen = map.point(p).descriptor;
+    for (const Observation& o : map.point(p).observations)
+      if (map.keyframe(o.keyframe).descriptor[0] == chosen) {
+        map.EraseObservation(p, o.keyframe);
+        break;
+      }
+    check("after erasing the chosen observation");
+  }
+  for (size_t i = 20; i < 30; ++i) {
+    map.AddObservation(p, kfs[i], 0);
+    check("after adding an observation");
+  }
+  map.EraseKeyFrame(map.point(p).observations[3].keyframe);
+  check("after erasing an observing keyframe");
+  const PointHandle other = map.AddPoint(Eigen::Vector3d(0, 0, 5), kfs[30]);
+  for (size_t i = 30; i < 40; ++i) map.AddObservation(other, kfs[i], 0);
+  map.UpdatePointStats(other, MapScales{});
+  map.ReplacePoint(other, p);
+  check("after a point was fused into it");
+  EXPECT_GT(changed, 0u) << "the changes never moved the choice: the test exercises nothing";
+  // Only the position changes: the viewing direction follows it.
+  map.point(p).position = Eigen::Vector3d(0, 40, 5);
+  check("after the point moved");
+  Eigen::Vector3d normal = Eigen::Vector3d::Zero();
+  for (const Observation& o : map.point(p).observations)
+    normal += (map.point(p).position - map.keyframe(o.keyframe).camera_center()).normalized();
+  EXPECT_LT((map.point(p).normal - normal.normalized()).norm(), 1e-12);
 }
 
 TEST(Map, RandomChurnKeepsReferencesConsistentAndSlotsBounded) {
