@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <thread>
 
 #include <Eigen/Geometry>
 
@@ -33,11 +34,12 @@ DdsOptions ParseDdsOptions(const std::string& domain, const std::string& peers) 
 }
 
 AgentLink::AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map, uint64_t run,
-                     uint64_t resumes)
+                     uint64_t resumes, double wait_for_server_s)
     : agent_(agent),
       move_map_(move_map),
       session_(run),
       resumes_(resumes),
+      wait_for_server_s_(wait_for_server_s),
       camera_(camera),
       node_(dds, "flatslam agent " + std::to_string(agent)),
       poses_(node_.PoseWriter(AgentPoseTopic(agent))),
@@ -152,15 +154,7 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
     if (resumes_ != 0) {
       // A resumed run: every server it meets drops the run it continues (whose keyframes after the
       // checkpoint died with it) and gets the resumed map's keyframes from here, sent below.
-      if (const int matches = keyframes_->matches_ever(); matches > announced_matches_) {
-        announced_matches_ = matches;
-        RunEnded replaced;
-        replaced.agent = agent_;
-        replaced.session = resumes_;
-        replaced.stopped = true;
-        replaced.resumed_by = session_;
-        WriteRunEnded(replaced);
-      }
+      AnnounceResumeToNewServers();
       if (!seeded_) {
         seeded_ = true;
         for (KeyFrameHandle h : map.keyframes().handles())
@@ -196,7 +190,30 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
   });
 }
 
+void AgentLink::AnnounceResumeToNewServers() {
+  if (const int matches = keyframes_->matches_ever(); matches > announced_matches_) {
+    announced_matches_ = matches;
+    RunEnded replaced;
+    replaced.agent = agent_;
+    replaced.session = resumes_;
+    replaced.stopped = true;
+    replaced.resumed_by = session_;
+    WriteRunEnded(replaced);
+  }
+}
+
 void AgentLink::PublishFinalMap(const SlamSession& slam) {
+  // A run shorter than discovery (or one started before its server) would otherwise end unheard.
+  // A stopped run does not wait: the user asked it to end.
+  if (wait_for_server_s_ > 0 && keyframes_->matches_ever() == 0 && !g_stop) {
+    std::fprintf(stderr, "\nno server has matched this agent yet: waiting up to %g s for one (--wait-for-server)\n",
+                 wait_for_server_s_);
+    std::fflush(stderr);
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(wait_for_server_s_);
+    while (keyframes_->matched() == 0 && !g_stop && std::chrono::steady_clock::now() < until)
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  if (resumes_ != 0) AnnounceResumeToNewServers();
   RunEnded ended;
   ended.agent = agent_;
   ended.session = session_;
@@ -228,6 +245,8 @@ void AgentLink::WriteRunEnded(const RunEnded& message) {
 bool AgentLink::Finish(double seconds) {
   return keyframes_->matched() == 0 || keyframes_->WaitForAcknowledgments(seconds);
 }
+
+int AgentLink::servers_matched() const { return keyframes_->matches_ever(); }
 
 std::string MergedFrameId(uint64_t frame_session) {
   char id[48];
@@ -280,7 +299,7 @@ void EnableLive() {
   g_make_agent_publisher = [](uint32_t agent, const LiveOptions& options,
                               const AgentCamera& camera) -> std::unique_ptr<AgentPublisher> {
     return std::make_unique<AgentLink>(agent, ParseDdsOptions(options.domain, options.peers), camera, options.move_map,
-                                       options.run, options.resumes);
+                                       options.run, options.resumes, options.wait_for_server_s);
   };
   g_run_server = &RunServerLive;
 }

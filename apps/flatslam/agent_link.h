@@ -49,16 +49,20 @@ class AgentLink : public AgentPublisher {
   // move_map: a stereo or RGB-D map moves into the merged map's frame with each newer correction.
   // run: this run's id; resumes: the run it continues from its checkpoint (0: none), which it
   // tells each server it meets to drop, sending the keyframes of the map it resumed instead.
+  // wait_for_server_s: how long the end of a run that no server matched waits for one.
   AgentLink(uint32_t agent, const DdsOptions& dds, const AgentCamera& camera, bool move_map, uint64_t run,
-            uint64_t resumes);
+            uint64_t resumes, double wait_for_server_s);
   void OnFrame(const FrameReport& report) override;
   // Moves the map into the merged map's frame first when a newer correction came (stereo and
   // RGB-D), then sends the keyframe.
   void OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) override;
-  // At the end of the run: every keyframe again, as loop closures and bundle adjustment left it,
-  // so the server's copy ends as the agent's map does; then the run-ended message.
+  // At the end of the run: when no server has matched yet, first waits up to wait_for_server_s for
+  // one (the writer keeps no history for a reader that matches later); then every keyframe again,
+  // as loop closures and bundle adjustment left it, so the server's copy ends as the agent's map
+  // does; then the run-ended message.
   void PublishFinalMap(const SlamSession& slam) override;
   bool Finish(double seconds) override;
+  [[nodiscard]] int servers_matched() const override;
   [[nodiscard]] std::string Summary() const override;
 
  private:
@@ -66,6 +70,7 @@ class AgentLink : public AgentPublisher {
   bool move_map_;
   uint64_t session_;
   uint64_t resumes_;
+  double wait_for_server_s_;
   int announced_matches_ = 0;  // servers told that resumes_ is replaced (matches of the writer)
   bool seeded_ = false;        // the resumed map's keyframes are in sent_
   AgentCamera camera_;
@@ -90,6 +95,8 @@ class AgentLink : public AgentPublisher {
   void SendCulled(const Map& map);
   // A run-ended message on the keyframe writer (this run's, or the one a resumed run replaces).
   void WriteRunEnded(const RunEnded& message);
+  // A resumed run: tells each server matched since the last call that this run replaces resumes_.
+  void AnnounceResumeToNewServers();
   // Matches of the keyframe writer already answered with the whole map (mapping lane).
   int answered_matches_ = 0;
   std::atomic<uint64_t> keyframes_sent_{0}, keyframe_bytes_{0}, updates_sent_{0}, update_bytes_{0}, poses_sent_{0},

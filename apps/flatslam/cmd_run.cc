@@ -44,7 +44,7 @@ const char* const kRunUsage =
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
     "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n"
     "                    [--settings FILE] [--strict] [--checkpoint FILE [--checkpoint-every S]]\n"
-    "                    [--publish [--dds-domain D] [--dds-peers IP,...|multicast]]\n"
+    "                    [--publish [--dds-domain D] [--dds-peers IP,...|multicast] [--wait-for-server S]]\n"
     "       flatslam run --resume CHECKPOINT [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
     "as fast as it can read, and prints a summary: frames, frames lost, keyframes, map points, ms per\n"
@@ -96,7 +96,9 @@ const char* const kRunUsage =
     "                   place the agent in a merged map, the agent moves its map into that map's\n"
     "                   frame (a monocular one to its scale; its saved trajectory and map follow);\n"
     "                   --own-frame keeps it in its own frame (published poses are corrected\n"
-    "                   either way)\n"
+    "                   either way). A run that no server has matched by its end ends unheard\n"
+    "                   (a warning says so); --wait-for-server S first waits up to S seconds for\n"
+    "                   one (default 0), then sends it the whole map\n"
     "Monocular runs initialize from two views; their scale is arbitrary (use Sim(3) ATE).\n"
     "The first SIGINT or SIGTERM stops reading: the frames in flight are tracked, mapping finishes, and\n"
     "the trajectory, stats, summary, map and checkpoint are written as at a normal end; the exit code\n"
@@ -141,7 +143,7 @@ const std::set<std::string> kRunFlags = {
     "sensor",      "out",        "seed",      "max-frames", "features",   "mapping-lag",
     "vocabulary",  "skip",       "lose-at",   "save-map",   "agent",      "load-map",
     "first-frame", "config",     "set",       "settings",   "checkpoint", "checkpoint-every",
-    "resume",      "dds-domain", "dds-peers", "run-id"};
+    "resume",      "dds-domain", "dds-peers", "run-id",     "wait-for-server"};
 const std::set<std::string> kRunSwitches = {"deterministic", "quiet",         "no-loop-closing",
                                             "no-global-ba",  "localize-only", "list-options",
                                             "strict",        "publish",       "own-frame"};
@@ -519,17 +521,19 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::unique_ptr<AgentPublisher> link;
   if (args.has("publish")) {
     FLATSLAM_CHECK(g_make_agent_publisher != nullptr, "--publish: this executable has no DDS support (flatslam-live)");
+    const double wait_for_server_s = args.get_double("wait-for-server", 0);
+    if (wait_for_server_s < 0) throw UsageError{"--wait-for-server must be 0 or a positive number of seconds"};
     link = g_make_agent_publisher(options.agent,
                                   LiveOptions{args.get_or("dds-domain", "0"), args.get_or("dds-peers", "127.0.0.1"),
-                                              !args.has("own-frame"), run_id, resumes_run},
+                                              !args.has("own-frame"), run_id, resumes_run, wait_for_server_s},
                                   AgentCamera{metadata.calibration, metadata.scales, metadata.rgbd_virtual_baseline_m});
     run.on_keyframe_mapped = [&](SlamSession& slam, KeyFrameHandle keyframe) { link->OnKeyFrame(slam, keyframe); };
     run.on_finished = [&, save = run.on_finished](const SlamSession& slam) {
       if (save) save(slam);
       link->PublishFinalMap(slam);
     };
-  } else if (args.has("dds-domain") || args.has("dds-peers") || args.has("own-frame")) {
-    throw UsageError{"--dds-domain, --dds-peers and --own-frame need --publish"};
+  } else if (args.has("dds-domain") || args.has("dds-peers") || args.has("own-frame") || args.has("wait-for-server")) {
+    throw UsageError{"--dds-domain, --dds-peers, --own-frame and --wait-for-server need --publish"};
   }
   run.on_frame = [&](const FrameReport& r) {
     recorder.OnFrame(r);
@@ -627,6 +631,11 @@ int RunRun(const std::vector<std::string>& original_argv) {
     const bool delivered = link->Finish(10.0);
     std::printf("published     %s%s\n", link->Summary().c_str(),
                 delivered ? "" : " (not every keyframe acknowledged within 10 s)");
+    if (link->servers_matched() == 0)
+      std::fprintf(stderr,
+                   "\nwarning: no server matched this agent, so no server holds its map: start flatslam server "
+                   "before the agent ends, check --dds-domain and --dds-peers, or let the agent wait for one at "
+                   "its end with --wait-for-server SECONDS\n");
   }
   if (warnings > 0) std::printf("warnings      %zu (background work that failed; see stderr)\n", warnings);
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());

@@ -21,7 +21,8 @@ std::unique_ptr<AgentPublisher> (*g_make_agent_publisher)(uint32_t, const LiveOp
 int (*g_run_server)(const std::vector<std::string>&) = nullptr;
 
 const char* const kAgentUsage =
-    "usage: flatslam agent DATASET --id N [--dds-domain D] [--dds-peers IP,...|multicast] [run options]\n\n"
+    "usage: flatslam agent DATASET --id N [--dds-domain D] [--dds-peers IP,...|multicast]\n"
+    "                      [--wait-for-server S] [run options]\n\n"
     "Runs SLAM over DATASET as live agent N: flatslam run DATASET --agent N --publish (see flatslam run\n"
     "--help for the other options). Each frame's pose goes out as a ROS 2 geometry_msgs/PoseStamped on\n"
     "rt/flatslam/agent_N/pose (best effort), each keyframe the agent maps to flatslam/keyframes (reliable;\n"
@@ -32,7 +33,9 @@ const char* const kAgentUsage =
     "its own (flatslam_agent_N_map). The agent also moves its map into that frame (a monocular one with\n"
     "the merged map's scale), so that its saved map and trajectory are in it (--own-frame: its map stays\n"
     "in its own frame).\n"
-    "The summary adds the bytes sent per keyframe and per second and the last correction.\n\n"
+    "The summary adds the bytes sent per keyframe and per second and the last correction. An agent that\n"
+    "no server matched by its end says so on stderr; --wait-for-server S makes it wait up to S seconds\n"
+    "for a first server at its end (default 0) and send that server its whole map.\n\n"
     "       flatslam agent --resume CHECKPOINT [--quiet]\n"
     "continues an agent that was stopped or killed from its --checkpoint (as flatslam run --resume\n"
     "does: its map, options and outputs, from the frame after the checkpoint). It publishes as a new\n"

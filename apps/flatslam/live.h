@@ -26,6 +26,8 @@ class AgentPublisher {
   virtual void PublishFinalMap(const SlamSession& slam) = 0;
   // Waits up to `seconds` for every matched server to acknowledge every keyframe; false on timeout.
   virtual bool Finish(double seconds) = 0;
+  // Servers matched since the run started (0: no server holds anything this run sent).
+  [[nodiscard]] virtual int servers_matched() const = 0;
   // Keyframes and bytes sent (per keyframe, per second), the final update, poses, servers matched.
   [[nodiscard]] virtual std::string Summary() const = 0;
 };
@@ -37,6 +39,9 @@ struct LiveOptions {
   bool move_map = true;  // move a stereo/RGB-D map into the merged frame (false: --own-frame)
   uint64_t run = 0;      // the run's id on the servers
   uint64_t resumes = 0;  // nonzero: the run this one resumes from its checkpoint
+  // --wait-for-server S: at the end of a run that no server has matched yet, wait up to S seconds
+  // for one before sending the final map (0: end at once).
+  double wait_for_server_s = 0;
 };
 
 // Set by EnableLive in flatslam-live; null in flatslam.

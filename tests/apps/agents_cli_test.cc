@@ -479,6 +479,54 @@ TEST(AgentsCli, ALateServerGetsTheWholeMap) {
   fs::remove_all(dir);
 }
 
+// An agent whose run ends before any server matched it (DDS keeps no history for a server that
+// matches later) says that no server holds its map; with --wait-for-server S it waits at its end
+// for a server that starts after its last frame, and that server gets its whole map.
+TEST(AgentsCli, AnAgentThatEndsUnheardSaysSoOrWaitsForALateServer) {
+  const fs::path dir = testing::FreshTempDir("agents_cli_unheard");
+  const std::string d = std::to_string(120 + getpid() % 30);
+  const std::string scene = "synth:room:duration=3,width=480,height=360";
+  const std::string warning = "warning: no server matched this agent, so no server holds its map";
+
+  const auto alone = RunApp("agent " + scene + " --id 0 --quiet --deterministic --dds-domain " + d);
+  ASSERT_EQ(alone.exit_code, 0) << alone.output;
+  EXPECT_TRUE(Contains(alone.output, warning)) << alone.output;
+  EXPECT_TRUE(Contains(alone.output, "0 server(s) matched")) << alone.output;
+
+  for (const char* bad : {"-1", "soon"}) {
+    const auto r = RunApp("agent " + scene + " --id 0 --quiet --dds-domain " + d + " --wait-for-server " + bad);
+    EXPECT_EQ(r.exit_code, 2) << r.output;
+    EXPECT_TRUE(Contains(r.output, "--wait-for-server")) << r.output;
+  }
+  const auto unpublished = RunApp("run " + scene + " --quiet --wait-for-server 5");
+  EXPECT_EQ(unpublished.exit_code, 2) << unpublished.output;
+  EXPECT_TRUE(Contains(unpublished.output, "--wait-for-server need --publish")) << unpublished.output;
+
+  const fs::path agent_out = dir / "agent";
+  const pid_t agent = Spawn({"agent", scene, "--id", "0", "--quiet", "--deterministic", "--dds-domain", d,
+                             "--wait-for-server", "60", "--out", agent_out.string()},
+                            dir / "agent.log");
+  // The server starts once the agent, done with its frames, says it waits: without the wait it
+  // would have ended there (as the run alone above did).
+  WaitUntil([&] { return Contains(ReadBytes(dir / "agent.log"), "waiting up to 60 s for one"); }, 120);
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  const pid_t server = SpawnServer(dir, 1, d);
+  ASSERT_EQ(Wait(agent), 0) << ReadBytes(dir / "agent.log");
+  const std::string agent_log = ReadBytes(dir / "agent.log");
+  if (!Contains(agent_log, "1 server(s) matched")) {
+    ::kill(server, SIGTERM);  // it waits for an agent it never heard
+    Wait(server);
+    FAIL() << "the agent ended before the server matched it\n" << agent_log;
+  }
+  EXPECT_FALSE(Contains(agent_log, warning)) << agent_log;
+  ASSERT_EQ(Wait(server), 0) << ReadBytes(dir / "server.log");
+  const std::string log = ReadBytes(dir / "server.log");
+  const size_t agent_keyframes = ReadTum(agent_out / "keyframes.tum").size();
+  EXPECT_GT(agent_keyframes, 0u);
+  EXPECT_TRUE(Contains(log, "agents [0], " + std::to_string(agent_keyframes) + " keyframes")) << log;
+  fs::remove_all(dir);
+}
+
 // A killed agent never says its run ended: a server waiting for it stops after --idle S of
 // silence, says so, and still writes the map of what it received.
 TEST(AgentsCli, AServerWaitingForAKilledAgentStopsAfterItsSilence) {
