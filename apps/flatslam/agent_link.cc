@@ -203,8 +203,8 @@ void AgentLink::AnnounceResumeToNewServers() {
 }
 
 void AgentLink::PublishFinalMap(const SlamSession& slam) {
-  // A run shorter than discovery (or one started before its server) would otherwise end unheard.
-  // A stopped run does not wait: the user asked it to end.
+  // A run that ends before discovery found a server (a short run, or one whose server starts
+  // late) would otherwise end unheard. A stopped run does not wait: the user asked it to end.
   if (wait_for_server_s_ > 0 && keyframes_->matches_ever() == 0 && !g_stop) {
     std::fprintf(stderr, "\nno server has matched this agent yet: waiting up to %g s for one (--wait-for-server)\n",
                  wait_for_server_s_);
