@@ -191,6 +191,7 @@ void AgentLink::OnKeyFrame(SlamSession& slam, KeyFrameHandle keyframe) {
 }
 
 void AgentLink::AnnounceResumeToNewServers() {
+  if (resumes_ == 0) return;
   if (const int matches = keyframes_->matches_ever(); matches > announced_matches_) {
     announced_matches_ = matches;
     RunEnded replaced;
@@ -213,7 +214,7 @@ void AgentLink::PublishFinalMap(const SlamSession& slam) {
     while (keyframes_->matched() == 0 && !g_stop && std::chrono::steady_clock::now() < until)
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }
-  if (resumes_ != 0) AnnounceResumeToNewServers();
+  AnnounceResumeToNewServers();
   RunEnded ended;
   ended.agent = agent_;
   ended.session = session_;

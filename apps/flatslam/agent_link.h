@@ -95,7 +95,8 @@ class AgentLink : public AgentPublisher {
   void SendCulled(const Map& map);
   // A run-ended message on the keyframe writer (this run's, or the one a resumed run replaces).
   void WriteRunEnded(const RunEnded& message);
-  // A resumed run: tells each server matched since the last call that this run replaces resumes_.
+  // A resumed run (none other): tells each server matched since the last call that this run
+  // replaces resumes_.
   void AnnounceResumeToNewServers();
   // Matches of the keyframe writer already answered with the whole map (mapping lane).
   int answered_matches_ = 0;
