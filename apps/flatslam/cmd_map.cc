@@ -17,10 +17,12 @@
 #include "args.h"
 #include "merge_and_save.h"
 #include "commands.h"
+#include "core/atomic_write.h"
 #include "core/clock.h"
 #include "core/error.h"
 #include "storage/colmap_export.h"
 #include "storage/snapshot.h"
+#include "mapping/camera_check.h"
 #include "mapping/rig_check.h"
 #include "merge/map_merge.h"
 #include "slam/session.h"
@@ -35,6 +37,7 @@ const char* const kMapUsage =
     "       flatslam map export FILE [--ply points.ply] [--ply-format ascii|binary]\n"
     "                               [--trajectory FILE [--format tum|kitti|euroc] [--agent N]]\n"
     "                               [--colmap DIR [--min-track N]]\n"
+    "       flatslam map calibrate FILE [--settings-out FILE]\n"
     "       flatslam map merge A B [C...] -o OUT [--vocabulary FILE] [--min-matches N] [--min-pairs N]\n"
     "                       [--refine] [--close-loops] [--seed N]\n\n"
     "Map snapshots (.fsmap) hold one or more maps with their keyframes, map points and graph edges.\n"
@@ -58,6 +61,21 @@ const char* const kMapUsage =
     "    --min-track N with --colmap: only points seen by N or more keyframes (default 1: every\n"
     "                  observed point); 2 for COLMAP's bundle_adjuster, which refuses points seen\n"
     "                  once (stereo and RGB-D maps hold points placed from one keyframe's depth)\n"
+    "  calibrate  how well the camera model fits the map's own keypoints: keyframes and points\n"
+    "           adjusted once more with the focal length (one scale for fx and fy) and a radial\n"
+    "           term k1 free (the first two keyframes held); prints both with standard errors and\n"
+    "           says whether the keypoints disagree with the model (beyond 5 standard errors).\n"
+    "           A monocular map's scale through turns follows small camera errors; a straight\n"
+    "           path barely fixes the focal length, and the standard errors say so\n"
+    "           A map made with a wrong model has partly absorbed it (the keyframes and points\n"
+    "           bend to fit it): the check sees what is left, so the refined camera moves towards\n"
+    "           the truth, not always all the way, and an error the map absorbed goes unseen\n"
+    "    --settings-out F  monocular maps: an ORB-SLAM2 settings file with the refined camera,\n"
+    "                      for `flatslam run DATASET --settings F`. k1 is a radial term of the\n"
+    "                      images as the map saw them (undistorted): the camera as written suits\n"
+    "                      datasets whose images are stored undistorted (KITTI, rectified folders);\n"
+    "                      where the dataset's calibration has distortion of its own (EuRoC, TUM\n"
+    "                      fr1-3), k1 is a residual on top of it, not a replacement\n"
     "  merge    joins the maps of several snapshots (same calibration and vocabulary) where they\n"
     "           overlap: place recognition between every pair of maps, a verified SE(3) transform\n"
     "           (Sim(3) for monocular maps) that several keyframe pairs must agree on; the maps\n"
@@ -363,6 +381,53 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   return 0;
 }
 
+int Calibrate(const std::string& file, const Args& args) {
+  const auto settings_out = args.get("settings-out");
+  const LoadedSnapshot loaded = LoadMapSnapshot(file);
+  const Calibration& calibration = loaded.metadata.calibration;
+  if (settings_out && calibration.sensor != Sensor::kMonocular)
+    throw UsageError{"--settings-out writes a monocular camera; " + file + " holds a " +
+                     SensorName(calibration.sensor) + " map (a stereo pair with distortion needs its rectification)"};
+  if (settings_out && loaded.maps.size() != 1)
+    throw UsageError{"--settings-out needs a snapshot of one map; " + file + " holds " +
+                     std::to_string(loaded.maps.size())};
+  const CameraGeometry geometry = MergeCamera::FromCalibration(calibration, loaded.metadata.scales, 0).geometry;
+  const PinholeCamera& camera = calibration.camera;
+  std::optional<CameraCheck> written;
+  for (const LoadedMap& m : loaded.maps) {
+    const auto start = std::chrono::steady_clock::now();
+    const CameraCheck check = CheckCameraModel(m.map, geometry);
+    if (!check.ok) {
+      if (check.observations < 1000)
+        std::printf("camera        map %u: too few observations to tell (%zu of points whose rays fix them, of at "
+                    "least 1000)\n",
+                    m.id, check.observations);
+      else
+        std::printf("camera        map %u: no solution (the adjustment or its standard errors failed)\n", m.id);
+      continue;
+    }
+    std::printf("camera        map %u (%.1f s): %s\n", m.id, MsSince(start) / 1000.0,
+                DescribeCameraCheck(check, camera).c_str());
+    written = check;
+  }
+  if (!settings_out) return 0;
+  if (!written) throw UsageError{file + ": no camera to write to " + *settings_out};
+  WriteFileAtomically(*settings_out, [&](std::FILE* out) {
+    std::fprintf(out,
+                 "%%YAML:1.0\n"
+                 "# refined by `flatslam map calibrate %s`: focal length and a radial term fitted to the map;\n"
+                 "# k1 applies to the images as the map saw them (undistorted): for a dataset with a\n"
+                 "# distortion of its own it is a residual on top of that one, not a replacement\n"
+                 "Camera.fx: %.6f\nCamera.fy: %.6f\nCamera.cx: %.6f\nCamera.cy: %.6f\n"
+                 "Camera.k1: %.6f\nCamera.k2: 0.0\nCamera.p1: 0.0\nCamera.p2: 0.0\n",
+                 file.c_str(), camera.fx * written->focal_scale, camera.fy * written->focal_scale, camera.cx, camera.cy,
+                 written->k1);
+    if (calibration.frame_rate_hz > 0) std::fprintf(out, "Camera.fps: %.6f\n", calibration.frame_rate_hz);
+  });
+  std::printf("wrote         %s\n", settings_out->c_str());
+  return 0;
+}
+
 }  // namespace
 
 int RunMap(const std::vector<std::string>& argv) {
@@ -371,20 +436,21 @@ int RunMap(const std::vector<std::string>& argv) {
     if (a == "-o") a = "--out";
   const Args args(expanded,
                   {"ply", "ply-format", "trajectory", "format", "agent", "colmap", "min-track", "vocabulary-checksum",
-                   "out", "vocabulary", "min-matches", "min-pairs", "seed"},
+                   "out", "vocabulary", "min-matches", "min-pairs", "seed", "settings-out"},
                   {"refine", "close-loops"});
   if (args.help()) {
     std::fputs(kMapUsage, stdout);
     return 0;
   }
   const auto& pos = args.positional();
-  if (pos.empty()) throw UsageError{"expected a subcommand: info, verify, export or merge"};
+  if (pos.empty()) throw UsageError{"expected a subcommand: info, verify, export, calibrate or merge"};
   if (pos[0] == "merge") return Merge(std::vector<std::string>(pos.begin() + 1, pos.end()), args);
   if (pos.size() != 2) throw UsageError{"expected: map " + pos[0] + " FILE"};
   if (pos[0] == "info") return Info(pos[1]);
   if (pos[0] == "verify") return Verify(pos[1], args);
   if (pos[0] == "export") return Export(pos[1], args);
-  throw UsageError{"unknown map subcommand '" + pos[0] + "' (info, verify, export, merge)"};
+  if (pos[0] == "calibrate") return Calibrate(pos[1], args);
+  throw UsageError{"unknown map subcommand '" + pos[0] + "' (info, verify, export, calibrate, merge)"};
 }
 
 }  // namespace flatslam::app

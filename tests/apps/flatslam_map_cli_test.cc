@@ -2,6 +2,7 @@
 // snapshot and on bad ones (missing, truncated, flipped, wrong type).
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -14,6 +15,7 @@
 #include <sys/wait.h>
 
 #include "cli.h"
+#include "io/orb_settings.h"
 #include "trajectory/trajectory_io.h"
 #include "test_data.h"
 
@@ -192,6 +194,34 @@ TEST_F(MapCli, BadFilesFailWithTheProblemNamed) {
   r = RunApp("map export " + (dir_ / "cut.fsmap").string() + " --ply " + (dir_ / "x.ply").string());
   EXPECT_EQ(r.exit_code, 1) << r.output;
   EXPECT_FALSE(fs::exists(dir_ / "x.ply"));
+}
+
+// The camera check on a monocular map of a rendered room, whose camera is exact: it agrees, and
+// the settings file it writes reads back with the refined camera. A stereo map gets its check
+// printed but no settings file (a distorted pair would need its rectification).
+TEST_F(MapCli, CalibrateChecksTheCameraAndWritesSettings) {
+  const fs::path mono = dir_ / "room_mono.fsmap", settings = dir_ / "refined.yaml";
+  Result r = RunApp("run synth:room:duration=6,width=480,height=360 --sensor mono --deterministic --quiet "
+                    "--vocabulary none --save-map " + mono.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = RunApp("map calibrate " + mono.string() + " --settings-out " + settings.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "agree with the camera model")) << r.output;
+  const double fx = NumberAfter(r.output, "s): fx ");
+  EXPECT_NEAR(fx, 360, 3.6) << r.output;  // the scene renders with fx 0.75 x 480
+  ASSERT_TRUE(fs::exists(settings));
+  const OrbSettings read = ReadOrbSettings(settings);
+  EXPECT_NEAR(read.camera.fx, fx, 0.01);
+  EXPECT_NEAR(read.camera.fy, fx, 0.01);
+  EXPECT_LT(std::abs(read.camera.distortion[0]), 0.01);
+
+  r = RunApp("map calibrate " + (dir_ / "room.fsmap").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "camera        map 0")) << r.output;
+  r = RunApp("map calibrate " + (dir_ / "room.fsmap").string() + " --settings-out " + (dir_ / "no.yaml").string());
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  EXPECT_TRUE(Contains(r.output, "holds a stereo map")) << r.output;
+  EXPECT_FALSE(fs::exists(dir_ / "no.yaml"));
 }
 
 TEST_F(MapCli, UsageErrors) {
