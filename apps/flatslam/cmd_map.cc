@@ -66,7 +66,7 @@ const char* const kMapUsage =
     "           term k1 free (the first two keyframes held); prints both with standard errors and\n"
     "           says whether the keypoints disagree with the model (beyond 5 standard errors).\n"
     "           A monocular map's scale through turns follows small camera errors; a straight\n"
-    "           path barely fixes the focal length, and the standard errors say so\n"
+    "           path barely fixes the focal length, and the standard errors say so.\n"
     "           A map made with a wrong model has partly absorbed it (the keyframes and points\n"
     "           bend to fit it): the check sees what is left, so the refined camera moves towards\n"
     "           the truth, not always all the way, and an error the map absorbed goes unseen\n"
@@ -398,10 +398,10 @@ int Calibrate(const std::string& file, const Args& args) {
     const auto start = std::chrono::steady_clock::now();
     const CameraCheck check = CheckCameraModel(m.map, geometry);
     if (!check.ok) {
-      if (check.observations < 1000)
+      if (check.observations < kCameraCheckMinObservations)
         std::printf("camera        map %u: too few observations to tell (%zu of points whose rays fix them, of at "
-                    "least 1000)\n",
-                    m.id, check.observations);
+                    "least %zu)\n",
+                    m.id, check.observations, kCameraCheckMinObservations);
       else
         std::printf("camera        map %u: no solution (the adjustment or its standard errors failed)\n", m.id);
       continue;
@@ -411,7 +411,10 @@ int Calibrate(const std::string& file, const Args& args) {
     written = check;
   }
   if (!settings_out) return 0;
-  if (!written) throw UsageError{file + ": no camera to write to " + *settings_out};
+  if (!written) {
+    std::fprintf(stderr, "flatslam map: %s: no refined camera to write to %s\n", file.c_str(), settings_out->c_str());
+    return 1;
+  }
   WriteFileAtomically(*settings_out, [&](std::FILE* out) {
     std::fprintf(out,
                  "%%YAML:1.0\n"

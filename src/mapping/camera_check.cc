@@ -39,7 +39,6 @@ struct CameraModelResidual {
 
 // Huber at the 95% chi-square of two degrees of freedom (5.991), on whitened residuals.
 constexpr double kHuberDelta = 2.4477;
-constexpr size_t kMinObservations = 1000;
 constexpr size_t kMinPoseObservations = 10;
 
 // Per-coordinate RMS over observations whose whitened squared error is under the chi-square
@@ -138,7 +137,7 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
   }
   check.observations = blocks.size();
   check.points = points.size();
-  if (check.observations < kMinObservations || !pose_used[0] || !pose_used[1]) return check;
+  if (check.observations < kCameraCheckMinObservations || !pose_used[0] || !pose_used[1]) return check;
   problem.SetParameterBlockConstant(poses[0].data());
   problem.SetParameterBlockConstant(poses[1].data());
   // A keyframe with too few such observations to fix its pose is held where it is.

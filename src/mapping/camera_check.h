@@ -24,8 +24,11 @@ struct CameraCheckOptions {
   double pixel_sigma = 1;  // keypoint noise at level 0, pixels (grows with the level's scale)
 };
 
+// Observations a check needs before it says anything.
+inline constexpr size_t kCameraCheckMinObservations = 1000;
+
 struct CameraCheck {
-  bool ok = false;             // enough observations (at least 1000) and the solve converged
+  bool ok = false;             // kCameraCheckMinObservations or more, and the solve converged
   double focal_scale = 1;      // refined fx / given fx (fy scales with it)
   double focal_scale_sigma = 0;
   double k1 = 0;               // radial term on top of the given (undistorted) model
