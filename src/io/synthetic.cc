@@ -657,7 +657,8 @@ Eigen::Isometry3d SceneMover::PoseAt(double t) const {
 bool SyntheticOptions::Check() const {
   return (width == 0 || width >= 32) && (height == 0 || height >= 32) && fx >= 0 && fy >= 0 && frame_rate_hz >= 0 &&
          duration_s >= 0 && baseline_m >= 0 && pixel_noise_sigma >= 0 && depth_noise_k >= 0 && max_depth_m > 0 &&
-         agent >= 0 && dynamic_fraction >= 0 && dynamic_fraction <= 0.3 && std::abs(rig_error_px) <= 5;
+         agent >= 0 && dynamic_fraction >= 0 && dynamic_fraction <= 0.3 && std::abs(rig_error_px) <= 5 &&
+         lens_k1 >= 0 && lens_k1 <= 0.1;
 }
 
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options) {
@@ -710,13 +711,17 @@ void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOp
       FLATSLAM_CHECK(std::abs(v) <= 5, "synthetic spec '", spec, "': rig_error=", value,
                      " is outside [-5, 5] (pixels of disparity)");
       options->rig_error_px = v;
+    } else if (key == "k1") {
+      FLATSLAM_CHECK(v >= 0 && v <= 0.1, "synthetic spec '", spec, "': k1=", value,
+                     " is outside [0, 0.1] (a radial distortion the calibration leaves out)");
+      options->lens_k1 = v;
     } else if (key == "structured_light") {
       FLATSLAM_CHECK(v == 0 || v == 1, "synthetic spec '", spec, "': structured_light=", value, " is not 0 or 1");
       options->structured_light = v == 1;
     } else {
       Fail("synthetic spec '", spec, "': unknown key '", key,
            "' (known: width, height, fx, fps, duration, baseline, noise, depth_noise, agent, seed, sensor, "
-           "dynamic, rig_error, structured_light)");
+           "dynamic, rig_error, structured_light, k1)");
     }
   }
 }
@@ -749,6 +754,22 @@ SyntheticScene::SyntheticScene(SceneDescription description, const SyntheticOpti
   calibration_.frame_rate_hz = options_.frame_rate_hz;
   frame_count_ = static_cast<size_t>(std::llround(options_.duration_s * options_.frame_rate_hz));
   FLATSLAM_CHECK(frame_count_ > 0, "synthetic scene '", description_.name, "' has no frames");
+  if (options_.lens_k1 > 0) {
+    // Each pixel of the distorted image shows the undistorted view at radius r_u, where
+    // r_u (1 + k1 r_u^2) is its own radius r_d (Newton's method from r_d; with k1 >= 0 r_u <= r_d).
+    const PinholeCamera& c = calibration_.camera;
+    lens_map_x_.create(options_.height, options_.width, CV_32F);
+    lens_map_y_.create(options_.height, options_.width, CV_32F);
+    for (int v = 0; v < options_.height; ++v)
+      for (int u = 0; u < options_.width; ++u) {
+        const double xd = (u - c.cx) / c.fx, yd = (v - c.cy) / c.fy, rd = std::hypot(xd, yd);
+        double r = rd;
+        for (int k = 0; k < 20; ++k) r -= (r + options_.lens_k1 * r * r * r - rd) / (1 + 3 * options_.lens_k1 * r * r);
+        const double f = rd > 0 ? r / rd : 1.0;
+        lens_map_x_.at<float>(v, u) = static_cast<float>(c.cx + c.fx * xd * f);
+        lens_map_y_.at<float>(v, u) = static_cast<float>(c.cy + c.fy * yd * f);
+      }
+  }
 
   path_ = std::make_unique<PathTable>(description_.agents[options_.agent].control_points);
 
@@ -1171,11 +1192,27 @@ void SyntheticScene::RenderLinear(const Eigen::Isometry3d& T_world_cam, double t
   }
 }
 
+void SyntheticScene::ApplyLens(float* value, cv::Mat* depth_m) const {
+  if (lens_map_x_.empty()) return;
+  // The view as the distorted image shows it, before noise (which the sensor adds); depth alike,
+  // nearest, so that no depth mixes two surfaces.
+  thread_local cv::Mat warped;
+  cv::Mat linear(options_.height, options_.width, CV_32F, value);
+  cv::remap(linear, warped, lens_map_x_, lens_map_y_, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+  warped.copyTo(linear);
+  if (depth_m != nullptr && !depth_m->empty()) {
+    cv::Mat depth_warped;
+    cv::remap(*depth_m, depth_warped, lens_map_x_, lens_map_y_, cv::INTER_NEAREST, cv::BORDER_REPLICATE);
+    *depth_m = depth_warped;
+  }
+}
+
 void SyntheticScene::RenderView(const Eigen::Isometry3d& T_world_cam, double t_s, uint64_t noise_seed, cv::Mat* gray,
                                 cv::Mat* depth_m) const {
   thread_local std::vector<float> value;
   value.resize(static_cast<size_t>(options_.width) * options_.height);
   RenderLinear(T_world_cam, t_s, value.data(), depth_m);
+  ApplyLens(value.data(), depth_m);
   const float sigma = noise_seed ? static_cast<float>(options_.pixel_noise_sigma) : 0.0f;
   FinishImage(value.data(), options_.width, options_.height, 1.0f, sigma, noise_seed, options_.use_avx2, gray);
 }
@@ -1206,6 +1243,7 @@ void SyntheticScene::RenderExposure(const std::vector<double>& times, double off
     const float scale = 1.0f / static_cast<float>(times.size());
     for (float& x : value) x *= scale;
   }
+  ApplyLens(value.data(), depth_m);
   const float sigma = noise_seed ? static_cast<float>(options_.pixel_noise_sigma) : 0.0f;
   FinishImage(value.data(), options_.width, options_.height, gain, sigma, noise_seed, options_.use_avx2, gray);
 }

@@ -141,6 +141,11 @@ struct SyntheticOptions {
   // x pixels from it, as a turned camera shifts them). KITTI 06's, measured from its map: about
   // -0.10 px (disparities short, depths long). In [-5, 5]; 0 = the exact rig.
   double rig_error_px = 0;
+  // A lens the calibration leaves out: every image shows a radial distortion x_d = x (1 + k1 r^2)
+  // of normalized coordinates (OpenCV's k1) that the calibration, pinhole, does not describe, as
+  // a rectification that did not fully correct its lens would. In [0, 0.1]: pincushion only, so
+  // that every pixel shows something of the undistorted view. 0 = none.
+  double lens_k1 = 0;
   // RGB-D: a structured-light sensor's depth image (Kinect v1 / Xtion class, as in TUM RGB-D)
   // instead of exact depth with independent noise: depth from a disparity quantized to 1/8 px of
   // a 580 px, 7.5 cm projector-camera pair (steps of 2.9 mm at 1 m, 4.6 cm at 4 m), the
@@ -158,7 +163,7 @@ struct SyntheticOptions {
 };
 
 // Parses "NAME[:key=value,...]" (keys: width, height, fx, fps, duration, baseline, noise,
-// depth_noise, agent, seed, sensor, dynamic, rig_error, structured_light) into a scene name and
+// depth_noise, agent, seed, sensor, dynamic, rig_error, structured_light, k1) into a scene name and
 // options. Throws flatslam::Error.
 void ParseSyntheticSpec(const std::string& spec, std::string* scene, SyntheticOptions* options);
 
@@ -208,6 +213,8 @@ class SyntheticScene {
   // then applies gain and noise; depth_m (optional) is the exact depth at the frame time.
   void RenderExposure(const std::vector<double>& times, double offset_x, float gain, uint64_t noise_seed, cv::Mat* gray,
                       cv::Mat* depth_m) const;
+  // lens_k1: warps a rendered view (and its depth, when given) as the lens shows it; else nothing.
+  void ApplyLens(float* value, cv::Mat* depth_m) const;
 
   SceneDescription description_;
   SyntheticOptions options_;
@@ -217,6 +224,7 @@ class SyntheticScene {
   std::vector<Eigen::Vector4d> bounds_;                // per quad as textures_: bounding sphere centre, radius
   std::vector<size_t> mover_texture_;                  // index in textures_ of each mover's first quad
   std::vector<std::pair<double, double>> gain_steps_;  // (time, gain factor from then on)
+  cv::Mat lens_map_x_, lens_map_y_;                    // lens_k1: the undistorted pixel each pixel shows
   std::unique_ptr<PathTable> path_;
 };
 

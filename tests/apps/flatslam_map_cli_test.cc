@@ -197,7 +197,8 @@ TEST_F(MapCli, BadFilesFailWithTheProblemNamed) {
 }
 
 // The camera check on a monocular map of a rendered room, whose camera is exact: it agrees, and
-// the settings file it writes reads back with the refined camera. A stereo map gets its check
+// the settings file it writes reads back with the refined camera; seen through a lens the
+// calibration leaves out, it disagrees and names the lens's k1. A stereo map gets its check
 // printed but no settings file (a distorted pair would need its rectification).
 TEST_F(MapCli, CalibrateChecksTheCameraAndWritesSettings) {
   const fs::path mono = dir_ / "room_mono.fsmap", settings = dir_ / "refined.yaml";
@@ -214,6 +215,16 @@ TEST_F(MapCli, CalibrateChecksTheCameraAndWritesSettings) {
   EXPECT_NEAR(read.camera.fx, fx, 0.01);
   EXPECT_NEAR(read.camera.fy, fx, 0.01);
   EXPECT_LT(std::abs(read.camera.distortion[0]), 0.01);
+
+  // The same room seen through a lens the calibration leaves out (k1 = 0.03): the check finds it.
+  const fs::path lens = dir_ / "room_lens.fsmap";
+  r = RunApp("run synth:room:duration=8,width=480,height=360,k1=0.03 --sensor mono --deterministic --quiet "
+             "--vocabulary none --save-map " + lens.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = RunApp("map calibrate " + lens.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "disagree with the camera model")) << r.output;
+  EXPECT_NEAR(NumberAfter(r.output, "k1 +"), 0.03, 0.008) << r.output;
 
   r = RunApp("map calibrate " + (dir_ / "room.fsmap").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;

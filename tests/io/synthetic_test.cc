@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numeric>
 #include <cstring>
 #include <cstdio>
 #include <thread>
@@ -369,6 +370,58 @@ TEST(SyntheticScene, ARigErrorAddsItsPixelsToEveryDisparity) {
     ADD_FAILURE() << "rig_error=6 accepted";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("rig_error"), std::string::npos) << e.what();
+  }
+}
+
+// A lens the calibration leaves out (k1): the distorted image shows at c + f x (1 + k1 r^2) what
+// the exact camera shows at c + f x, the forward model, away from the centre where the two differ
+// by pixels; the centre itself does not move.
+TEST(SyntheticScene, ALensTheCalibrationLeavesOutShowsEachPointWhereItsK1Puts) {
+  SyntheticOptions o = SmallOptions(Sensor::kMonocular);
+  o.pixel_noise_sigma = 0;
+  SyntheticScene exact(MakeScene("street"), o);
+  o.lens_k1 = 0.1;
+  SyntheticScene lens(MakeScene("street"), o);
+  const size_t i = 101;
+  const cv::Mat ideal = exact.Render(i).left, seen = lens.Render(i).left;
+  const PinholeCamera& cam = exact.calibration().camera;
+  std::vector<double> as_model, as_pinhole;
+  double widest_px = 0;
+  for (double yu = -0.48; yu <= 0.48; yu += 0.02) {
+    for (double xu = -0.64; xu <= 0.64; xu += 0.02) {
+      const double d = 1 + o.lens_k1 * (xu * xu + yu * yu);
+      const double u = cam.cx + cam.fx * xu, v = cam.cy + cam.fy * yu;
+      const double ud = cam.cx + cam.fx * xu * d, vd = cam.cy + cam.fy * yu * d;
+      if (ud < 1 || vd < 1 || ud > seen.cols - 2 || vd > seen.rows - 2) continue;
+      const double moved = std::hypot(ud - u, vd - v);
+      if (moved < 1.5) continue;  // the centre: both comparisons alike
+      widest_px = std::max(widest_px, moved);
+      as_model.push_back(std::abs(Bilinear(seen, ud, vd) - Bilinear(ideal, u, v)));
+      as_pinhole.push_back(std::abs(Bilinear(seen, u, v) - Bilinear(ideal, u, v)));
+    }
+  }
+  ASSERT_GT(as_model.size(), 200u);
+  EXPECT_GT(widest_px, 3.0);
+  auto mean = [](const std::vector<double>& e) { return std::accumulate(e.begin(), e.end(), 0.0) / e.size(); };
+  std::printf("k1 %.2f: %zu samples moved 1.5-%.1f px, mean difference %.2f grey levels as the model puts them, "
+              "%.2f where a pinhole would\n",
+              o.lens_k1, as_model.size(), widest_px, mean(as_model), mean(as_pinhole));
+  EXPECT_LT(mean(as_model), 1.5);
+  EXPECT_GT(mean(as_pinhole), 3 * mean(as_model));
+  EXPECT_EQ(seen.at<uint8_t>(static_cast<int>(cam.cy), static_cast<int>(cam.cx)),
+            ideal.at<uint8_t>(static_cast<int>(cam.cy), static_cast<int>(cam.cx)));
+
+  std::string name;
+  SyntheticOptions parsed;
+  ParseSyntheticSpec("street:k1=0.02", &name, &parsed);
+  EXPECT_EQ(parsed.lens_k1, 0.02);
+  for (const char* bad : {"street:k1=-0.01", "street:k1=0.2"}) {
+    try {
+      ParseSyntheticSpec(bad, &name, &parsed);
+      ADD_FAILURE() << bad << " accepted";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("k1="), std::string::npos) << e.what();
+    }
   }
 }
 
