@@ -110,9 +110,16 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
     return false;
   };
   std::vector<uint8_t> entered(point_values.size(), 0);
-  for (size_t i = 0; i < point_values.size(); ++i) {
-    if (!enters(point_values[i])) continue;
-    entered[i] = 1;
+  size_t qualified = 0;
+  for (size_t i = 0; i < point_values.size(); ++i) qualified += entered[i] = enters(point_values[i]) ? 1 : 0;
+  const size_t stride =
+      options.max_points > 0 && qualified > options.max_points ? (qualified + options.max_points - 1) / options.max_points : 1;
+  for (size_t i = 0, rank = 0; i < point_values.size(); ++i) {
+    if (!entered[i]) continue;
+    if (rank++ % stride != 0) {
+      entered[i] = 0;
+      continue;
+    }
     points.push_back({point_values[i].position.x(), point_values[i].position.y(), point_values[i].position.z()});
   }
   size_t next_point = 0;  // points keeps its size from here on: the addresses stay fixed
@@ -182,11 +189,29 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
   return check;
 }
 
+namespace {
+
+double Sigmas(double delta, double sigma) { return sigma > 0 ? std::abs(delta) / sigma : INFINITY; }
+
+}  // namespace
+
+bool CameraCheckDisagrees(const CameraCheck& check) {
+  return check.ok && (Sigmas(check.focal_scale - 1, check.focal_scale_sigma) > kCameraCheckDisagreeSigmas ||
+                      Sigmas(check.k1, check.k1_sigma) > kCameraCheckDisagreeSigmas);
+}
+
+double CameraCheckCornerShiftPx(const CameraCheck& check, const PinholeCamera& camera) {
+  // The corner farthest from the principal point, in the given model's normalized coordinates.
+  const double x = std::max(camera.cx, camera.width - camera.cx) / camera.fx;
+  const double y = std::max(camera.cy, camera.height - camera.cy) / camera.fy;
+  const double d = check.focal_scale * (1 + check.k1 * (x * x + y * y)) - 1;
+  return std::hypot(camera.fx * x * d, camera.fy * y * d);
+}
+
 std::string DescribeCameraCheck(const CameraCheck& check, const PinholeCamera& camera) {
   if (!check.ok) return {};
-  auto sigmas = [](double delta, double sigma) { return sigma > 0 ? std::abs(delta) / sigma : INFINITY; };
-  const double focal_sigmas = sigmas(check.focal_scale - 1, check.focal_scale_sigma);
-  const double k1_sigmas = sigmas(check.k1, check.k1_sigma);
+  const double focal_sigmas = Sigmas(check.focal_scale - 1, check.focal_scale_sigma);
+  const double k1_sigmas = Sigmas(check.k1, check.k1_sigma);
   char text[640];
   std::snprintf(text, sizeof text,
                 "fx %.2f +- %.2f (given %.2f: %+.2f%%, %.1f sigma), k1 %+.4f +- %.4f (given 0: %.1f sigma); "
@@ -195,7 +220,7 @@ std::string DescribeCameraCheck(const CameraCheck& check, const PinholeCamera& c
                 100 * (check.focal_scale - 1), focal_sigmas, check.k1, check.k1_sigma, k1_sigmas, check.rmse_before_px,
                 check.rmse_after_px, check.observations, check.points, check.keyframes);
   std::string out = text;
-  if (focal_sigmas > 5 || k1_sigmas > 5)
+  if (CameraCheckDisagrees(check))
     out += "\n  the map's keypoints disagree with the camera model: a monocular map's scale follows such an error "
            "through turns; try the refined camera (--settings) and compare";
   else

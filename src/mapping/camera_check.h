@@ -22,6 +22,10 @@ struct CameraCheckOptions {
   double min_ray_angle_deg = 1;  // and the widest angle between their rays
   int max_iterations = 50;
   double pixel_sigma = 1;  // keypoint noise at level 0, pixels (grows with the level's scale)
+  // At most this many of the points that qualify enter, an even share of them in id order
+  // (0 = all): the standard errors grow as one over the root of the observations, the time
+  // about linearly, so a check run during a session bounds its cost this way.
+  size_t max_points = 0;
 };
 
 // Observations a check needs before it says anything.
@@ -47,6 +51,19 @@ struct CameraCheck {
 // observations only. ok = false on a map too small to say.
 [[nodiscard]] CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry,
                                            const CameraCheckOptions& options = {});
+
+// How many standard errors from the given model a map must put either parameter to disagree
+// with it: beyond what a well-fitted map's own noise reaches (the exact camera's maps in
+// docs/STATUS.md stay within 2.2).
+inline constexpr double kCameraCheckDisagreeSigmas = 5;
+
+// The map's keypoints disagree with the camera model (check.ok and either parameter beyond
+// kCameraCheckDisagreeSigmas standard errors).
+[[nodiscard]] bool CameraCheckDisagrees(const CameraCheck& check);
+
+// How far, in pixels, the refined model moves the point at the image's farthest corner from where
+// the given one puts it: what the disagreement means on the image.
+[[nodiscard]] double CameraCheckCornerShiftPx(const CameraCheck& check, const PinholeCamera& camera);
 
 // Lines for a user: the refined focal length and k1 with their standard errors and how many
 // standard errors they sit from the given model; whether the map's keypoints disagree with it

@@ -116,6 +116,32 @@ TEST(CameraCheck, AStraightPathLeavesTheFocalLengthOpen) {
   EXPECT_LT(std::abs(straight.focal_scale - 1) / straight.focal_scale_sigma, 4.0);
 }
 
+// A share of the points (CameraCheckOptions::max_points) finds the same lens, its standard error
+// larger by about the root of the share; the corner shift says what the lens does to the image.
+TEST(CameraCheck, AShareOfThePointsFindsTheSameLens) {
+  const CameraGeometry g = Given(707);
+  const Map map = MapSeenBy(707, 0.02, 40);
+  const CameraCheck all = CheckCameraModel(map, g);
+  CameraCheckOptions options;
+  options.max_points = all.points / 3;
+  const CameraCheck share = CheckCameraModel(map, g, options);
+  ASSERT_TRUE(all.ok);
+  ASSERT_TRUE(share.ok);
+  EXPECT_LE(share.points, options.max_points);
+  EXPECT_GE(share.points, options.max_points / 2);
+  EXPECT_NEAR(share.k1, 0.02, 0.003);
+  EXPECT_GT(share.k1_sigma, 1.3 * all.k1_sigma);
+  EXPECT_LT(share.k1_sigma, 2.5 * all.k1_sigma);
+  EXPECT_TRUE(CameraCheckDisagrees(share));
+  // k1 = 0.02 at the corner of a 1226x370 image at fx 707 (r^2 about 0.82): about 10.5 px.
+  CameraCheck lens;
+  lens.ok = true;
+  lens.k1 = 0.02;
+  const double x = 613.0 / 707, y = 185.0 / 707;
+  EXPECT_NEAR(CameraCheckCornerShiftPx(lens, g.camera), 707 * 0.02 * (x * x + y * y) * std::hypot(x, y), 1e-9);
+  EXPECT_NEAR(CameraCheckCornerShiftPx(CameraCheck{}, g.camera), 0, 1e-12);
+}
+
 TEST(CameraCheck, NeedsEnoughObservations) {
   EXPECT_FALSE(CheckCameraModel(MapSeenBy(707, 0, 40, 20), Given(707)).ok);
   EXPECT_FALSE(CheckCameraModel(Map(), Given(707)).ok);
