@@ -43,4 +43,13 @@ struct Calibration {
   Eigen::Isometry3d T_body_cam = Eigen::Isometry3d::Identity();
 };
 
+// A correction of a monocular dataset's camera model found from its own map (the run's camera
+// check, mapping/camera_check.h): the images as the dataset gives them are undistorted by a radial
+// k1 at the focal lengths times focal_scale (ApplyCameraRefit, io/orb_settings.h).
+struct CameraRefit {
+  double focal_scale = 1;
+  double k1 = 0;
+  [[nodiscard]] bool refined() const { return focal_scale != 1 || k1 != 0; }
+};
+
 }  // namespace flatslam

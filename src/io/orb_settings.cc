@@ -586,4 +586,19 @@ std::unique_ptr<Dataset> ApplyOrbSettings(std::unique_ptr<Dataset> raw, std::sha
   return std::make_unique<SettingsDataset>(std::move(raw), std::move(settings));
 }
 
+std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, const CameraRefit& refit) {
+  FLATSLAM_CHECK(dataset, "ApplyCameraRefit: null dataset");
+  const Calibration& given = dataset->calibration();
+  FLATSLAM_CHECK(given.sensor == Sensor::kMonocular, "a refined camera applies to monocular datasets; ",
+                 dataset->name(), " is read as ", given.sensor == Sensor::kStereo ? "stereo" : "RGB-D");
+  auto settings = std::make_shared<OrbSettings>();
+  settings->file = "the camera its map refined";
+  settings->camera.fx = given.camera.fx * refit.focal_scale;
+  settings->camera.fy = given.camera.fy * refit.focal_scale;
+  settings->camera.cx = given.camera.cx;
+  settings->camera.cy = given.camera.cy;
+  settings->camera.distortion[0] = refit.k1;
+  return ApplyOrbSettings(std::move(dataset), std::move(settings));
+}
+
 }  // namespace flatslam

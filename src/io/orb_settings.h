@@ -95,4 +95,9 @@ struct OrbSettings {
 [[nodiscard]] std::unique_ptr<Dataset> ApplyOrbSettings(std::unique_ptr<Dataset> raw,
                                                         std::shared_ptr<const OrbSettings> settings);
 
+// The dataset seen through a refined camera: its images undistorted by refit.k1 at its focal
+// lengths times refit.focal_scale (principal point kept), its calibration the undistorted
+// camera's. A monocular dataset only (throws naming the dataset otherwise).
+[[nodiscard]] std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, const CameraRefit& refit);
+
 }  // namespace flatslam

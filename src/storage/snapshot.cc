@@ -301,7 +301,8 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
   const schema::ContentHash placeholder(0);
   const auto root =
       schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder, metadata.vocabulary_checksum,
-                                calibration, scales, segment_vector, session, metadata.rgbd_virtual_baseline_m);
+                                calibration, scales, segment_vector, session, metadata.rgbd_virtual_baseline_m,
+                                metadata.camera_refit.focal_scale, metadata.camera_refit.k1);
   schema::FinishMapSnapshotBuffer(builder, root);
 }
 
@@ -725,6 +726,9 @@ uint32_t MapSnapshotView::format_version() const {
 double MapSnapshotView::rgbd_virtual_baseline_m() const {
   return root_->rgbd_virtual_baseline_m();
 }
+CameraRefit MapSnapshotView::camera_refit() const {
+  return CameraRefit{root_->camera_refit_focal_scale(), root_->camera_refit_k1()};
+}
 uint64_t MapSnapshotView::vocabulary_checksum() const {
   return root_->vocabulary_checksum();
 }
@@ -816,6 +820,7 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
   out.metadata.scales = view.scales();
   out.metadata.vocabulary_checksum = view.vocabulary_checksum();
   out.metadata.rgbd_virtual_baseline_m = view.rgbd_virtual_baseline_m();
+  out.metadata.camera_refit = view.camera_refit();
   out.maps.resize(view.map_count());
   std::vector<std::vector<KeyFrameHandle>> kf_handles_of(view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {

@@ -52,6 +52,8 @@ struct SnapshotMetadata {
   std::optional<SnapshotSession> session;  // checkpoints only
   // RGB-D maps: the virtual stereo baseline of the keyframes' right_u (0 = not recorded).
   double rgbd_virtual_baseline_m = 0;
+  // The camera a monocular session refined over the dataset's (calibration is the refined one).
+  CameraRefit camera_refit;
 };
 
 // One map to save. Its agents are the distinct KeyFrame::agent values.
@@ -121,6 +123,7 @@ class MapSnapshotView {
   [[nodiscard]] Calibration calibration() const;
   [[nodiscard]] MapScales scales() const;
   [[nodiscard]] double rgbd_virtual_baseline_m() const;  // 0: not recorded
+  [[nodiscard]] CameraRefit camera_refit() const;
 
   [[nodiscard]] size_t map_count() const;
   [[nodiscard]] uint32_t map_id(size_t m) const;

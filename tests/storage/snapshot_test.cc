@@ -288,6 +288,26 @@ TEST(MapSnapshot, RgbdVirtualBaselineIsRecorded) {
   EXPECT_THROW((void)MergeCamera::FromCalibration(metadata.calibration, metadata.scales, 0), Error);
 }
 
+// A monocular map whose session refined its camera records the refinement (a session continuing
+// it sees the dataset through it); a map without one reads back the camera as given.
+TEST(MapSnapshot, ARefinedCameraIsRecorded) {
+  testing::RandomMapOptions o;
+  o.keyframes = 5;
+  const Map map = testing::RandomMap(o);
+  SnapshotMetadata metadata = TestMetadata(2);
+  const SnapshotMapRef ref{0, &map};
+  const std::vector<uint8_t> plain = SerializeMapSnapshot({&ref, 1}, metadata);
+  EXPECT_FALSE(MapSnapshotView::FromBytes(plain, "memory").camera_refit().refined());
+  metadata.camera_refit = CameraRefit{1.0042, 0.0153};
+  const std::vector<uint8_t> bytes = SerializeMapSnapshot({&ref, 1}, metadata);
+  const CameraRefit view = MapSnapshotView::FromBytes(bytes, "memory").camera_refit();
+  EXPECT_EQ(view.focal_scale, 1.0042);
+  EXPECT_EQ(view.k1, 0.0153);
+  const CameraRefit loaded = LoadMapSnapshotFromBytes(bytes, "memory").metadata.camera_refit;
+  EXPECT_EQ(loaded.focal_scale, 1.0042);
+  EXPECT_EQ(loaded.k1, 0.0153);
+}
+
 // A checkpoint's session (next frame, dataset, command line, trajectory anchored at keyframes)
 // comes back from the file with handles of the loaded map.
 TEST(MapSnapshot, SessionRoundTrips) {
