@@ -43,7 +43,7 @@ const char* const kRunUsage =
     "                    [--skip A:B,...] [--lose-at N,...]\n"
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
     "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n"
-    "                    [--settings FILE] [--strict] [--checkpoint FILE [--checkpoint-every S]]\n"
+    "                    [--settings FILE] [--keep-camera] [--strict] [--checkpoint FILE [--checkpoint-every S]]\n"
     "                    [--publish [--dds-domain D] [--dds-peers IP,...|multicast] [--wait-for-server S]]\n"
     "       flatslam run --resume CHECKPOINT [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
@@ -79,6 +79,11 @@ const char* const kRunUsage =
     "  --settings FILE  an ORB-SLAM2/3 settings YAML: its camera, distortion, baseline and frame rate\n"
     "                   replace the dataset's calibration, its ORBextractor.* and ThDepth set options\n"
     "                   (before --features, --config and --set); needed for a plain image folder\n"
+    "  --keep-camera    monocular: run with the camera as given. By default a monocular run checks\n"
+    "                   the camera model against its own map while it is young (as flatslam map\n"
+    "                   calibrate does: focal length and a radial k1) and, when the map disagrees\n"
+    "                   with it, starts over once with the refined camera: a monocular map's scale\n"
+    "                   through turns follows small errors of the camera model\n"
     "  --strict         stop at the first unreadable frame (default: report it, skip it like a\n"
     "                   dropped frame and go on; the summary counts skipped frames)\n"
     "  --checkpoint F   keep an atomic snapshot of the session in F (map, trajectory, options, next\n"
@@ -146,7 +151,8 @@ const std::set<std::string> kRunFlags = {
     "resume",      "dds-domain", "dds-peers", "run-id",     "wait-for-server"};
 const std::set<std::string> kRunSwitches = {"deterministic", "quiet",         "no-loop-closing",
                                             "no-global-ba",  "localize-only", "list-options",
-                                            "strict",        "publish",       "own-frame"};
+                                            "strict",        "publish",       "own-frame",
+                                            "keep-camera"};
 
 // The run's command line as a checkpoint keeps it for --resume: one "--name=value" per flag,
 // paths made absolute (a resume may start elsewhere), without --load-map and --first-frame (the
@@ -311,7 +317,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   dataset_options.seed = static_cast<uint64_t>(args.get_int("seed", 1));
   const std::optional<std::string> settings_file = args.get("settings");
   if (settings_file) dataset_options.settings = std::make_shared<const OrbSettings>(ReadOrbSettings(*settings_file));
-  const auto dataset = OpenDataset(args.positional()[0], dataset_options);
+  std::unique_ptr<Dataset> dataset = OpenDataset(args.positional()[0], dataset_options);
   if (settings_file && DetectDatasetLayout(args.positional()[0], true) != DatasetLayout::kImageFolder)
     std::fprintf(stderr, "settings %s replaces the dataset's calibration\n", settings_file->c_str());
   FLATSLAM_CHECK(dataset->size() > 0, "dataset ", args.positional()[0], " has no frames");
@@ -347,6 +353,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   // A saved map to continue (--load-map, or the checkpoint of --resume): same camera, same vocabulary.
   std::optional<Map> loaded_map;
   std::string loaded_note;
+  CameraRefit continued_refit;
   const std::optional<std::string> map_to_load =
       resume_file ? std::optional<std::string>(resume_file->string()) : args.get("load-map");
   if (const auto& m = map_to_load) {
@@ -355,6 +362,9 @@ int RunRun(const std::vector<std::string>& original_argv) {
     SnapshotReadOptions read;
     read.vocabulary_checksum = options.vocabulary->checksum();
     LoadedSnapshot snapshot = LoadMapSnapshot(*m, read);
+    // A map whose session refined the dataset's camera continues through that camera.
+    if (snapshot.metadata.camera_refit.refined() && dataset->calibration().sensor == Sensor::kMonocular)
+      dataset = ApplyCameraRefit(std::move(dataset), continued_refit = snapshot.metadata.camera_refit);
     const Calibration& have = snapshot.metadata.calibration;
     const Calibration& want = dataset->calibration();
     const bool same_camera = have.sensor == want.sensor && have.camera.width == want.camera.width &&
@@ -427,6 +437,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
     for (const auto& [n, unused] : ParseRanges("lose-at", *lose, false)) run.lose_at.push_back(n);
   SnapshotMetadata metadata;
   metadata.calibration = dataset->calibration();
+  metadata.camera_refit = continued_refit;
   metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
   // Identity of the vocabulary the map's keyframes were indexed with (0: none).
   metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;
@@ -544,6 +555,16 @@ int RunRun(const std::vector<std::string>& original_argv) {
   };
   // A checkpoint's rows and poses are on disk before the checkpoint itself.
   run.before_checkpoint = [&] { recorder.Flush(); };
+  // A live agent's keyframes leave the process as they are made: it keeps the camera it was given.
+  run.check_camera = !link && !args.has("keep-camera");
+  run.on_camera_refined = [&](const CameraRefit& refit, const Calibration& refined) {
+    // Saved maps and checkpoints describe the camera the run uses, and how to see the dataset through it.
+    metadata.calibration = refined;
+    metadata.camera_refit = refit;
+    if (!quiet)
+      std::fprintf(stderr, "\rcamera model refined by the map (k1 %+.4f, focal length %+.2f%%): starting over\n",
+                   refit.k1, 100 * (refit.focal_scale - 1));
+  };
   const StopSignals stop_signals("flatslam run");
   run.stop = &g_stop;
   const SlamRunResult result = RunSlam(*dataset, options, run);
@@ -564,6 +585,20 @@ int RunRun(const std::vector<std::string>& original_argv) {
                 c.camera.height, c.camera.fx, c.frame_rate_hz,
                 c.sensor == Sensor::kStereo ? (", baseline " + std::to_string(c.baseline_m) + " m").c_str() : "",
                 resolved.orb.features, options.orb.features == 0 ? " (from the camera)" : "");
+    const std::string check = DescribeCameraCheck(result.camera_check, c.camera);
+    if (result.camera_refit.refined()) {
+      std::printf("camera check  the map of the first %zu frames disagreed with the camera model: %s\n"
+                  "              the run started over with the refined camera (undistorted: fx %.2f); "
+                  "--keep-camera keeps the given one\n",
+                  result.frames_before_restart, check.substr(0, check.find('\n')).c_str(),
+                  result.calibration.camera.fx);
+    } else if (!check.empty()) {
+      std::printf("camera check  %s\n", check.c_str());
+      if (CameraCheckDisagrees(result.camera_check))
+        std::printf("              the run kept the given camera: the refined one moves the image's corner by %.1f px, "
+                    "outside what a run corrects by itself (1 px to 5%% of the half-diagonal)\n",
+                    CameraCheckCornerShiftPx(result.camera_check, c.camera));
+    }
   }
   std::printf("frames        %zu tracked, %zu lost, %zu before initialization, %zu skipped (unreadable)\n",
               trajectory.size(), counts.lost, counts.not_initialized, result.frames_skipped);

@@ -244,6 +244,7 @@ SequenceResult RunSequence(const SequenceSpec& spec, const SequenceRunOptions& o
     run.keep_reports = false;
     run.keep_results_on_error = true;
     run.stop = options.stop;
+    run.check_camera = true;  // as flatslam run: a monocular sequence may start over with a refined camera
     if (options.on_warning) {
       run.on_warning = options.on_warning;
       run.on_skipped = [&](size_t index, const std::string& reason) {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <functional>
 #include <mutex>
@@ -10,6 +11,7 @@
 
 #include "core/clock.h"
 #include "core/error.h"
+#include "io/orb_settings.h"
 #include "jobs/background_worker.h"
 #include "jobs/pipeline.h"
 #include "jobs/system_graph.h"
@@ -38,9 +40,10 @@ struct MappingJob {
   bool capture = false;
 };
 
-}  // namespace
-
-SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
+// One session over the dataset. abandon (may be null): like run.stop, but the run is being
+// replaced, not interrupted.
+SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run,
+                         const std::atomic<bool>* abandon) {
   SlamSession slam(dataset.calibration(), options);
   // The run's steps and the access they declare: refused before the first frame if two that may
   // run at once conflict without the session's guard between them. Mapping inline (deterministic)
@@ -175,7 +178,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     if (!skipped) order.push_back(i);
   }
   pipeline.set_source([&](size_t seq) -> std::optional<Item> {
-    if (seq >= order.size()) return std::nullopt;
+    if (seq >= order.size() || (abandon && abandon->load())) return std::nullopt;
     if (run.stop && run.stop->load()) {
       result.interrupted = true;
       return std::nullopt;
@@ -185,6 +188,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     return item;
   });
   pipeline.add_parallel_stage("extract", [&](Item& item) {
+    if (abandon && abandon->load()) return;  // the run is being replaced: frames in flight are dropped
     Frame frame;
     try {
       frame = dataset.read(item.index);
@@ -206,6 +210,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       run.deterministic || run.max_mapping_lag == 0 || tbb::this_task_arena::max_concurrency() < 2;
   std::string first_unreadable;
   pipeline.add_serial_stage("track", [&](Item& item) {
+    if (abandon && abandon->load()) return;
     ++result.frames;
     result.next_frame = item.index + 1;
     if (!item.unreadable.empty()) {
@@ -267,7 +272,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     if (!run.keep_results_on_error) throw;
     result.error = e.what();
   }
-  if (result.interrupted || !result.error.empty()) slam.AbandonBackground();
+  if (result.interrupted || !result.error.empty() || (abandon && abandon->load())) slam.AbandonBackground();
   background.Wait();
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (result.error.empty() && result.frames > 0 && result.frames_skipped == result.frames)
@@ -285,8 +290,174 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     capture();
     write_checkpoint(true);
   }
+  result.calibration = dataset.calibration();
   if (run.on_finished) run.on_finished(slam);
   return result;
+}
+
+// A dataset another owns, to be seen through a refined camera (ApplyOrbSettings owns its input).
+class BorrowedDataset final : public Dataset {
+ public:
+  explicit BorrowedDataset(const Dataset& dataset) : dataset_(dataset) {}
+  [[nodiscard]] std::string name() const override { return dataset_.name(); }
+  [[nodiscard]] const Calibration& calibration() const override { return dataset_.calibration(); }
+  [[nodiscard]] size_t size() const override { return dataset_.size(); }
+  [[nodiscard]] Frame read(size_t i) const override { return dataset_.read(i); }
+  [[nodiscard]] std::optional<Trajectory> ground_truth() const override { return dataset_.ground_truth(); }
+
+ private:
+  const Dataset& dataset_;
+};
+
+// The first pass of a run that checks its camera: holds back what on_frame and on_skipped would
+// hear until the check has decided, then passes it on (the run goes on) or drops it (the run
+// starts over). Callbacks come from the track stage and the mapping lane; one mutex orders them.
+class CameraCheckPass {
+ public:
+  CameraCheckPass(const SlamRunOptions& run, size_t frames)
+      : run_(run), window_frames_(static_cast<size_t>(CameraCheckWindow::kFrameShare * static_cast<double>(frames))) {}
+
+  // The options of the first pass: run's, with its callbacks wrapped.
+  [[nodiscard]] SlamRunOptions Options() {
+    SlamRunOptions first = run_;
+    first.on_frame = [this](const FrameReport& report) {
+      std::unique_lock<std::mutex> lock(mutex_);
+      ++frames_seen_;
+      if (state_ == kUndecided && frames_seen_ > window_frames_) GoOnLocked();
+      if (state_ != kGoOn) {
+        held_.push_back([this, report] { if (run_.on_frame) run_.on_frame(report); });
+        return;
+      }
+      lock.unlock();
+      if (run_.on_frame) run_.on_frame(report);
+    };
+    first.on_skipped = [this](size_t index, const std::string& reason) {
+      std::unique_lock<std::mutex> lock(mutex_);
+      if (state_ != kGoOn) {
+        held_.push_back([this, index, reason] { if (run_.on_skipped) run_.on_skipped(index, reason); });
+        return;
+      }
+      lock.unlock();
+      if (run_.on_skipped) run_.on_skipped(index, reason);
+    };
+    first.on_keyframe_mapped = [this](SlamSession& slam, KeyFrameHandle keyframe) {
+      if (run_.on_keyframe_mapped) run_.on_keyframe_mapped(slam, keyframe);
+      Check(slam);
+    };
+    if (run_.on_checkpoint)
+      first.on_checkpoint = [this](const SlamSession::State& state, size_t next_frame) {
+        {
+          const std::lock_guard<std::mutex> lock(mutex_);
+          if (state_ != kGoOn) return;  // a checkpoint describes the run that goes on
+        }
+        run_.on_checkpoint(state, next_frame);
+      };
+    first.on_finished = [this](const SlamSession& slam) {
+      {
+        const std::lock_guard<std::mutex> lock(mutex_);
+        // Interrupted while starting over: what the first pass computed is the result.
+        if (state_ == kRestart && !(run_.stop && run_.stop->load())) return;
+        GoOnLocked();
+      }
+      if (run_.on_finished) run_.on_finished(slam);
+    };
+    return first;
+  }
+
+  // Passes on what is held: the first pass ended in an error, and what it tracked is the result.
+  void Release() {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    GoOnLocked();
+  }
+
+  [[nodiscard]] const std::atomic<bool>* abandon() const { return &abandon_; }
+  [[nodiscard]] bool restart() const { return state_ == kRestart; }
+  [[nodiscard]] const CameraCheck& last_check() const { return last_; }
+  [[nodiscard]] size_t frames_at_restart() const { return frames_at_restart_; }
+
+ private:
+  // On the mapping lane after each keyframe: a check when the map has reached the next count.
+  void Check(SlamSession& slam) {
+    {
+      const std::lock_guard<std::mutex> lock(mutex_);
+      if (state_ != kUndecided) return;
+    }
+    CameraCheck check;
+    size_t keyframes = 0;
+    const CameraGeometry& geometry = slam.context().geometry;
+    slam.ReadMap([&](const Map& map) {
+      keyframes = map.keyframes().size();
+      if (keyframes < next_check_) return;
+      CameraCheckOptions options;
+      options.max_points = CameraCheckWindow::kMaxPoints;
+      check = CheckCameraModel(map, geometry, options);
+    });
+    if (keyframes < next_check_) return;
+    next_check_ = std::max(next_check_ + 1, next_check_ * 3 / 2);  // 4, 6, 9, 13, 19, 28, 42, 63
+    const std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ != kUndecided) return;
+    last_ = check;
+    if (CameraCheckWindow::Refits(check, geometry.camera)) {
+      state_ = kRestart;  // what is held stays held: dropped, unless a stop keeps this pass
+      frames_at_restart_ = frames_seen_;
+      abandon_ = true;
+    } else if (next_check_ > CameraCheckWindow::kMaxKeyFrames) {
+      GoOnLocked();
+    }
+  }
+
+  // The first pass is the run: everything held goes out, in order, before anything heard later.
+  void GoOnLocked() {
+    state_ = kGoOn;
+    for (const auto& call : held_) call();
+    held_.clear();
+  }
+
+  const SlamRunOptions& run_;
+  const size_t window_frames_;
+  std::mutex mutex_;
+  enum State { kUndecided, kGoOn, kRestart } state_ = kUndecided;
+  std::vector<std::function<void()>> held_;
+  size_t frames_seen_ = 0, frames_at_restart_ = 0;
+  size_t next_check_ = CameraCheckWindow::kFirst;  // mapping lane only
+  CameraCheck last_;
+  std::atomic<bool> abandon_{false};
+};
+
+}  // namespace
+
+bool CameraCheckWindow::Refits(const CameraCheck& check, const PinholeCamera& camera) {
+  const double shift = CameraCheckCornerShiftPx(check, camera);
+  return CameraCheckDisagrees(check) && shift >= kMinCornerShiftPx &&
+         shift <= kMaxCornerShiftShare * 0.5 * std::hypot(camera.width, camera.height);
+}
+
+SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
+  if (!run.check_camera || dataset.calibration().sensor != Sensor::kMonocular || run.initial_map)
+    return RunSession(dataset, options, run, nullptr);
+  const size_t end = run.max_frames > 0 ? std::min(run.max_frames, dataset.size()) : dataset.size();
+  CameraCheckPass pass(run, end > run.first_frame ? end - run.first_frame : 0);
+  SlamRunResult first;
+  try {
+    first = RunSession(dataset, options, pass.Options(), pass.abandon());
+  } catch (...) {
+    pass.Release();  // what the frames before the error gave is still heard
+    throw;
+  }
+  first.camera_check = pass.last_check();
+  if (!pass.restart()) {
+    if (pass.abandon()->load()) first.interrupted = true;  // stopped while starting over
+    return first;
+  }
+  const CameraRefit refit{pass.last_check().focal_scale, pass.last_check().k1};
+  const auto refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), refit);
+  if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration());
+  SlamRunResult second = RunSession(*refined, options, run, nullptr);
+  second.camera_check = pass.last_check();
+  second.camera_refit = refit;
+  second.frames_before_restart = pass.frames_at_restart();
+  second.wall_s += first.wall_s;
+  return second;
 }
 
 }  // namespace flatslam

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "io/dataset.h"
+#include "mapping/camera_check.h"
 #include "mapping/rig_check.h"
 #include "slam/session.h"
 
@@ -83,6 +84,39 @@ struct SlamRunOptions {
   // frames (so it may touch what on_frame writes): flush streamed outputs here, and they cover
   // every frame the checkpoint covers. May be empty.
   std::function<void()> before_checkpoint;
+  // A monocular session's scale through turns follows small errors of the camera model
+  // (mapping/camera_check.h). With check_camera, a monocular run without an initial map checks
+  // the model against its own map early on (kCameraCheckWindow); when the map disagrees with it
+  // by an amount CameraCheckWindow::Refits accepts, the run starts over from
+  // its first frame with the refined camera (the images undistorted by it). Until the check has
+  // decided, what on_frame and on_skipped would hear is held back (and dropped if the run starts
+  // over) and no checkpoint is written, so every output describes one run. Leave it off where
+  // keyframes leave the process as they are made (a live agent).
+  bool check_camera = false;
+  // Called before the run starts over, with the check and the calibration it runs with from then on.
+  std::function<void(const CameraRefit&, const Calibration&)> on_camera_refined;
+};
+
+// When a run checks its camera: at keyframe counts growing by half from kFirst, while no more
+// than kFrameShare of the run's frames are tracked and the map holds at most kMaxKeyFrames. The
+// share bounds what starting over costs (at most about that share of the run again), the
+// keyframe count and kMaxPoints each check's time (about 0.1-1 s); neither is a property of a
+// dataset. The corner shift has a floor, the keypoint noise at level 0 (a model change below it
+// is not worth a second pass), and a ceiling, 5% of the image's half-diagonal: the check
+// corrects what a calibration left over (KITTI 07's map asks for about 2%), not a camera it does
+// not describe at all, and a young monocular map that is itself degenerate (a motorway seen by a
+// short lens, whose scale collapses) can ask for absurd models (k1 = 3) at 5-10 standard errors.
+// Such a check is reported and the given camera kept.
+struct CameraCheckWindow {
+  static constexpr size_t kFirst = 4;
+  static constexpr double kFrameShare = 0.2;
+  static constexpr size_t kMaxKeyFrames = 64;
+  static constexpr size_t kMaxPoints = 3000;
+  static constexpr double kMinCornerShiftPx = 1;
+  static constexpr double kMaxCornerShiftShare = 0.05;
+
+  // The check disagrees with the camera by an amount the run corrects by starting over.
+  [[nodiscard]] static bool Refits(const CameraCheck& check, const PinholeCamera& camera);
 };
 
 struct SlamRunResult {
@@ -105,9 +139,17 @@ struct SlamRunResult {
   size_t checkpoints = 0, checkpoint_failures = 0;
   std::vector<double> checkpoint_capture_ms, checkpoint_write_ms;
   std::vector<double> frame_ms_during_checkpoints;
+  // check_camera: the last check the run made (ok = false if none could say), and the refined
+  // camera the run started over with once frames_before_restart frames were tracked (the first
+  // pass counted in wall_s; refined() false: it kept the given one).
+  CameraCheck camera_check;
+  CameraRefit camera_refit;
+  size_t frames_before_restart = 0;
+  Calibration calibration;  // the calibration the (last) session ran with
 };
 
-// Runs SLAM; the session is created from the dataset's calibration and options.
+// Runs SLAM; the session is created from the dataset's calibration and options (and, with
+// check_camera, may start over once with a refined camera).
 [[nodiscard]] SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run);
 
 }  // namespace flatslam

@@ -216,15 +216,32 @@ TEST_F(MapCli, CalibrateChecksTheCameraAndWritesSettings) {
   EXPECT_NEAR(read.camera.fy, fx, 0.01);
   EXPECT_LT(std::abs(read.camera.distortion[0]), 0.01);
 
-  // The same room seen through a lens the calibration leaves out (k1 = 0.03): the check finds it.
+  // The same room seen through a lens the calibration leaves out (k1 = 0.03), the camera kept as
+  // given: the check finds the lens.
   const fs::path lens = dir_ / "room_lens.fsmap";
-  r = RunApp("run synth:room:duration=8,width=480,height=360,k1=0.03 --sensor mono --deterministic --quiet "
-             "--vocabulary none --save-map " + lens.string());
+  const std::string lens_run = "run synth:room:duration=8,width=480,height=360,k1=0.03 --sensor mono --deterministic "
+                               "--quiet --vocabulary none --save-map " + lens.string();
+  r = RunApp(lens_run + " --keep-camera");
   ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_FALSE(Contains(r.output, "started over")) << r.output;
   r = RunApp("map calibrate " + lens.string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(Contains(r.output, "disagree with the camera model")) << r.output;
   EXPECT_NEAR(NumberAfter(r.output, "k1 +"), 0.03, 0.008) << r.output;
+  // By default the run finds it itself, starts over with the refined camera, and saves the map
+  // with that camera: its own check then agrees, and a session continuing the map on the same
+  // dataset sees it through that camera (the shipped vocabulary: continuing needs one).
+  const std::string lens_default = "run synth:room:duration=8,width=480,height=360,k1=0.03 --sensor mono --quiet ";
+  r = RunApp(lens_default + "--save-map " + lens.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "the run started over with the refined camera")) << r.output;
+  r = RunApp("map calibrate " + lens.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "agree with the camera model")) << r.output;
+  EXPECT_FALSE(Contains(r.output, "(given 360.00")) << r.output;  // the refined camera is the map's
+  r = RunApp(lens_default + "--max-frames 40 --load-map " + lens.string());
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_FALSE(Contains(r.output, "another camera")) << r.output;
 
   r = RunApp("map calibrate " + (dir_ / "room.fsmap").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
