@@ -28,22 +28,27 @@ namespace flatslam::app {
 const char* const kBatchUsage =
     "usage: flatslam batch INPUT... [--out DIR] [--jobs N] [--memory BYTES] [--shard I/N] [--quiet]\n"
     "                      [--sensor mono|stereo|rgbd] [--settings FILE] [--config FILE] [--set K=V,...]\n"
-    "                      [--max-frames N] [--seed N] [--vocabulary FILE|none] [--deterministic]\n"
+    "                      [--max-frames N] [--seed N] [--vocabulary FILE|none] [--keep-camera]\n"
+    "                      [--deterministic]\n"
     "       flatslam batch --collect DIR... --out DIR\n\n"
     "Runs SLAM over many sequences in one process, as many at once as --jobs and --memory allow, all\n"
     "sharing the cores and one vocabulary, and writes one results table and one report.\n"
     "INPUT is a dataset folder (KITTI sequence, EuRoC, TUM RGB-D), a folder of dataset folders (or a\n"
     "KITTI root with sequences/), synth:SPEC, or a manifest file, one sequence per line:\n"
     "    DATASET [--name N] [--sensor S] [--settings F] [--config F] [--set K=V,...] [--seed N]\n"
-    "            [--max-frames N]\n"
+    "            [--max-frames N] [--keep-camera]\n"
     "or YAML, a list of mappings:\n"
     "    - path: DATASET\n"
     "      name: N\n"
     "      sensor: stereo\n"
     "      options:\n"
     "        orb.features: 2000\n"
-    "(also settings, config, seed, max_frames). Relative paths are from the manifest's folder; the\n"
-    "flags above apply to every sequence that does not set its own.\n"
+    "(also settings, config, seed, max_frames, keep_camera). Relative paths are from the manifest's\n"
+    "folder; the flags above apply to every sequence that does not set its own.\n"
+    "  --keep-camera    monocular sequences run with the camera as given (as flatslam run\n"
+    "                   --keep-camera): by default each checks its camera against its young map and\n"
+    "                   may start over once with the refined one (results: camera_refit_k1,\n"
+    "                   camera_refit_focal_scale)\n"
     "  --out DIR        results (default ./flatslam-batch): DIR/<sequence>/ holds what flatslam run\n"
     "                   --out writes (trajectories, stats.csv, groundtruth.tum, results.csv,\n"
     "                   report.html); DIR/results.csv, DIR/results.json and DIR/report.html cover\n"
@@ -68,7 +73,7 @@ namespace {
 
 const std::set<std::string> kBatchFlags = {"out",    "jobs", "memory",     "shard", "sensor",    "settings",
                                            "config", "set",  "max-frames", "seed",  "vocabulary"};
-const std::set<std::string> kBatchSwitches = {"quiet", "deterministic", "collect"};
+const std::set<std::string> kBatchSwitches = {"quiet", "deterministic", "collect", "keep-camera"};
 
 // "6G", "800M", "512K" or plain bytes -> MiB.
 double ParseBytesMiB(const std::string& text) {
@@ -249,6 +254,7 @@ int RunBatch(const std::vector<std::string>& argv) {
   if (max_frames < 0) throw UsageError{"--max-frames must be at least 1"};
   defaults.max_frames = static_cast<size_t>(max_frames);
   defaults.seed = static_cast<uint64_t>(args.get_int("seed", 1));
+  if (args.has("keep-camera")) defaults.keep_camera = true;
   std::vector<SequenceSpec> all = ExpandBatchInputs(args.positional(), defaults);
 
   std::vector<size_t> positions(all.size());

@@ -82,8 +82,16 @@ void SetField(SequenceSpec* spec, const std::string& key, const std::string& val
     spec->seed = ReadCount(value, where, "seed");
   } else if (key == "max-frames" || key == "max_frames") {
     spec->max_frames = ReadCount(value, where, "max_frames");
+  } else if (key == "keep-camera" || key == "keep_camera") {
+    if (value == "true" || value == "yes" || value == "1")
+      spec->keep_camera = true;
+    else if (value == "false" || value == "no" || value == "0")
+      spec->keep_camera = false;
+    else
+      Fail(where, ": keep_camera '", value, "' is not true or false");
   } else {
-    Fail(where, ": unknown key '", key, "' (path, name, sensor, settings, config, options/set, seed, max_frames)");
+    Fail(where, ": unknown key '", key,
+         "' (path, name, sensor, settings, config, options/set, seed, max_frames, keep_camera)");
   }
 }
 
@@ -139,6 +147,8 @@ std::vector<SequenceSpec> ReadLineManifest(const std::vector<std::string>& lines
         if (eq != std::string::npos) {
           value = key.substr(eq + 1);
           key = key.substr(0, eq);
+        } else if (key == "keep-camera") {
+          value = "true";  // a switch, as on flatslam run's command line
         } else {
           FLATSLAM_CHECK(t + 1 < tokens.size(), where, ": ", token, " needs a value");
           value = tokens[++t];
@@ -282,6 +292,7 @@ std::vector<SequenceSpec> ExpandBatchInputs(const std::vector<std::string>& inpu
     // The batch's options first, the sequence's own after them (later settings win).
     spec.set.insert(spec.set.begin(), defaults.set.begin(), defaults.set.end());
     if (spec.max_frames == 0) spec.max_frames = defaults.max_frames;
+    if (!spec.keep_camera) spec.keep_camera = defaults.keep_camera;
     if (spec.name.empty()) spec.name = DefaultName(spec.dataset);
     specs.push_back(std::move(spec));
   };

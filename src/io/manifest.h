@@ -23,13 +23,17 @@ struct SequenceSpec {
   std::vector<std::string> set;  // KEY=VALUE options (--set), applied last
   std::optional<uint64_t> seed;  // synthetic scenes' noise (empty: 1)
   size_t max_frames = 0;         // 0 = every frame
+  // Monocular: run with the camera as given (--keep-camera), not checked against the young map
+  // (SlamRunOptions::check_camera). Empty: the batch's default (check).
+  std::optional<bool> keep_camera;
   std::string where;             // where it was declared ("FILE:LINE" for a manifest), for errors
 };
 
 // Reads a manifest. Two forms, told apart by the first line that is not blank or a comment:
 //
 //   Lines: one sequence per line, "DATASET [--name N] [--sensor S] [--settings F] [--config F]
-//          [--set K=V,...] [--seed N] [--max-frames N]"; '#' starts a comment.
+//          [--set K=V,...] [--seed N] [--max-frames N] [--keep-camera]"; '#' starts a comment
+//          (--keep-camera alone means true; --keep-camera=false is also read).
 //
 //   YAML (a list of mappings, optionally under "sequences:"):
 //          - path: DATASET        (required; also "dataset:")
@@ -39,6 +43,7 @@ struct SequenceSpec {
 //            config: F
 //            seed: 2
 //            max_frames: 100
+//            keep_camera: true    (true/false, yes/no, 1/0)
 //            options:             (a mapping of option keys, or one "K=V,K=V" string)
 //              orb.features: 2000
 //

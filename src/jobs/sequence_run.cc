@@ -165,6 +165,10 @@ SequenceResult ResultOfRun(const SlamRunResult& run, const RunRecorder::Counts& 
   r.map_points = run.point_count;
   r.loops = run.loop_closures.size();
   if (run.rig.ok) r.rig_offset_px = run.rig.offset_px;
+  if (run.camera_refit.refined()) {
+    r.camera_refit_k1 = run.camera_refit.k1;
+    r.camera_refit_focal_scale = run.camera_refit.focal_scale;
+  }
   r.fps = run.wall_s > 0 ? static_cast<double>(run.frames) / run.wall_s : 0;
   // Work per frame: the time the frame pipeline's stages and local mapping took. It is CPU time
   // where each stage has a core to itself, the figure that says how many sequences a machine
@@ -244,7 +248,8 @@ SequenceResult RunSequence(const SequenceSpec& spec, const SequenceRunOptions& o
     run.keep_reports = false;
     run.keep_results_on_error = true;
     run.stop = options.stop;
-    run.check_camera = true;  // as flatslam run: a monocular sequence may start over with a refined camera
+    // As flatslam run: a monocular sequence may start over with a refined camera.
+    run.check_camera = !spec.keep_camera.value_or(false);
     if (options.on_warning) {
       run.on_warning = options.on_warning;
       run.on_skipped = [&](size_t index, const std::string& reason) {

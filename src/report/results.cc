@@ -52,6 +52,8 @@ const std::vector<Column>& Columns() {
       {"kitti_t_rel_pct", &SequenceResult::kitti_t_rel_pct, 3, Combine::kMedian},
       {"kitti_r_rel_deg_per_100m", &SequenceResult::kitti_r_rel_deg_per_100m, 3, Combine::kMedian},
       {"rig_offset_px", &SequenceResult::rig_offset_px, 3, Combine::kMedian},
+      {"camera_refit_k1", &SequenceResult::camera_refit_k1, 5, Combine::kMedian},
+      {"camera_refit_focal_scale", &SequenceResult::camera_refit_focal_scale, 5, Combine::kMedian},
       {"wall_s", &SequenceResult::wall_s, 2, Combine::kSum},
       {"fps", &SequenceResult::fps, 1, Combine::kMedian},
       {"cpu_ms_per_frame", &SequenceResult::cpu_ms_per_frame, 2, Combine::kMedian},

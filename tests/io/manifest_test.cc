@@ -23,8 +23,8 @@ TEST(Manifest, LinesNameEachSequenceWithItsOptions) {
                           "# KITTI and a synthetic scene\n"
                           "\n"
                           "seqs/07 --sensor mono --set orb.features=2000,close_depth_baselines=40 --name k07\n"
-                          "synth:room:duration=5 --seed 3 --max-frames 50   # short\n"
-                          "other --config cfg.txt --settings 'my camera.yaml'\n");
+                          "synth:room:duration=5 --seed 3 --max-frames 50 --keep-camera  # short\n"
+                          "other --config cfg.txt --settings 'my camera.yaml' --keep-camera=false\n");
   const std::vector<SequenceSpec> specs = ReadManifest(file);
   ASSERT_EQ(specs.size(), 3u);
   EXPECT_EQ(specs[0].dataset, (dir / "seqs/07").string());
@@ -35,6 +35,9 @@ TEST(Manifest, LinesNameEachSequenceWithItsOptions) {
   EXPECT_EQ(specs[1].dataset, "synth:room:duration=5");
   EXPECT_EQ(specs[1].seed, 3u);
   EXPECT_EQ(specs[1].max_frames, 50u);
+  EXPECT_FALSE(specs[0].keep_camera.has_value());
+  EXPECT_EQ(specs[1].keep_camera, true);
+  EXPECT_EQ(specs[2].keep_camera, false);
   EXPECT_EQ(specs[2].config, (dir / "cfg.txt").string());
   EXPECT_EQ(specs[2].where, file.string() + ":5");
 }
@@ -51,7 +54,8 @@ TEST(Manifest, YamlListOfMappings) {
                           "    name: \"k06\"\n"
                           "  - dataset: synth:corridor:duration=5\n"
                           "    options: orb.features=800,min_local_map_inliers=20\n"
-                          "    max_frames: 40\n");
+                          "    max_frames: 40\n"
+                          "    keep_camera: yes\n");
   const std::vector<SequenceSpec> specs = ReadManifest(file);
   ASSERT_EQ(specs.size(), 2u);
   EXPECT_EQ(specs[0].dataset, "/data/kitti/sequences/06");
@@ -60,6 +64,8 @@ TEST(Manifest, YamlListOfMappings) {
   EXPECT_EQ(specs[1].dataset, "synth:corridor:duration=5");
   EXPECT_EQ(specs[1].set, (std::vector<std::string>{"orb.features=800", "min_local_map_inliers=20"}));
   EXPECT_EQ(specs[1].max_frames, 40u);
+  EXPECT_FALSE(specs[0].keep_camera.has_value());
+  EXPECT_EQ(specs[1].keep_camera, true);
   EXPECT_EQ(specs[1].where, file.string() + ":8");
 }
 
@@ -80,6 +86,8 @@ TEST(Manifest, ErrorsNameTheFileAndLine) {
   ExpectErrorMentions([&] { (void)ReadManifest(indent); }, {"f.yaml:2", "indentation"});
   const auto option = Write(dir / "g.yaml", "- path: synth:room\n  options: orb.features\n");
   ExpectErrorMentions([&] { (void)ReadManifest(option); }, {"g.yaml:2", "KEY=VALUE"});
+  const auto keep = Write(dir / "i.yaml", "- path: synth:room\n  keep_camera: maybe\n");
+  ExpectErrorMentions([&] { (void)ReadManifest(keep); }, {"i.yaml:2", "keep_camera 'maybe'"});
   const auto empty = Write(dir / "h.txt", "# nothing\n\n");
   ExpectErrorMentions([&] { (void)ReadManifest(empty); }, {"h.txt", "no sequence"});
   ExpectErrorMentions([&] { (void)ReadManifest(dir / "missing.txt"); }, {"missing.txt", "cannot open"});
@@ -112,15 +120,19 @@ TEST(BatchInputs, FoldersOfDatasetsSynthAndUniqueNames) {
 
 TEST(BatchInputs, ManifestOptionsComeAfterTheBatchDefaults) {
   const auto dir = testing::FreshTempDir("manifest_defaults");
-  const auto file = Write(dir / "m.txt", "synth:room --set orb.features=900\nsynth:corridor --seed 4\n");
+  const auto file = Write(dir / "m.txt",
+                          "synth:room --set orb.features=900\nsynth:corridor --seed 4 --keep-camera=false\n");
   SequenceSpec defaults;
   defaults.set = {"orb.features=1500"};
   defaults.seed = 7;
+  defaults.keep_camera = true;
   const auto specs = ExpandBatchInputs({file.string()}, defaults);
   ASSERT_EQ(specs.size(), 2u);
   EXPECT_EQ(specs[0].set, (std::vector<std::string>{"orb.features=1500", "orb.features=900"}));
   EXPECT_EQ(specs[0].seed, 7u);
   EXPECT_EQ(specs[1].seed, 4u);
+  EXPECT_EQ(specs[0].keep_camera, true);  // the batch's --keep-camera
+  EXPECT_EQ(specs[1].keep_camera, false);
 }
 
 TEST(BatchInputs, ShardsCoverEverySequenceOnce) {

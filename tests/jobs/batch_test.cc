@@ -85,6 +85,36 @@ TEST(Batch, EachSequenceGivesItsSingleRunAndAFailureStopsNoOther) {
   }
 }
 
+// A monocular sequence checks its camera as flatslam run does: the room seen through a lens its
+// calibration leaves out (k1 = 0.03) starts over with the refined camera and its row says which;
+// keep_camera (a manifest's or the batch's --keep-camera) runs it with the given camera.
+TEST(SequenceRun, AMonocularSequenceRecordsTheCameraItRefinedUnlessItKeepsItsOwn) {
+  const auto dir = testing::FreshTempDir("sequence_refit");
+  SequenceSpec spec = Spec("lens", "synth:room:duration=8,width=480,height=360,sensor=mono,k1=0.03");
+  SequenceRunOptions options;
+  options.deterministic = true;
+  options.out_dir = dir / "checked";
+  const SequenceResult checked = RunSequence(spec, options);
+  ASSERT_EQ(checked.status, "ok") << checked.error;
+  ASSERT_TRUE(checked.camera_refit_k1.has_value());
+  EXPECT_NEAR(*checked.camera_refit_k1, 0.03, 0.008);
+  ASSERT_TRUE(checked.camera_refit_focal_scale.has_value());
+  EXPECT_NEAR(*checked.camera_refit_focal_scale, 1, 0.02);
+  const std::vector<SequenceResult> row = ReadResultsCsv(options.out_dir / "results.csv");
+  ASSERT_EQ(row.size(), 1u);
+  ASSERT_TRUE(row[0].camera_refit_k1.has_value());
+  EXPECT_NEAR(*row[0].camera_refit_k1, *checked.camera_refit_k1, 1e-5);  // the file's 5 decimals
+
+  spec.keep_camera = true;
+  options.out_dir = dir / "kept";
+  const SequenceResult kept = RunSequence(spec, options);
+  ASSERT_EQ(kept.status, "ok") << kept.error;
+  EXPECT_FALSE(kept.camera_refit_k1.has_value());
+  EXPECT_EQ(kept.frames, checked.frames);
+  ASSERT_TRUE(kept.ate_sim3_m && checked.ate_sim3_m);
+  EXPECT_LT(*checked.ate_sim3_m, *kept.ate_sim3_m);
+}
+
 TEST(Batch, AStopFlagEndsTheBatchWithEveryRow) {
   const auto dir = testing::FreshTempDir("batch_stop");
   std::vector<SequenceSpec> specs;

@@ -54,6 +54,8 @@ std::vector<SequenceResult> Rows() {
   c.ate_sim3_m.reset();
   c.frames = 100;
   c.fps = 50;
+  c.camera_refit_k1 = 0.0191;  // a monocular run that started over with a refined camera
+  c.camera_refit_focal_scale = 1.0061;
   return {a, b, c};
 }
 
@@ -67,6 +69,10 @@ TEST(ResultsTable, CsvRoundTripKeepsEveryCell) {
   EXPECT_EQ(back[1].dataset, rows[1].dataset);
   EXPECT_FALSE(back[1].ate_se3_m.has_value());
   EXPECT_FALSE(back[2].ate_sim3_m.has_value());
+  EXPECT_FALSE(back[0].camera_refit_k1.has_value());
+  ASSERT_TRUE(back[2].camera_refit_k1.has_value());
+  EXPECT_EQ(*back[2].camera_refit_k1, 0.0191);
+  EXPECT_EQ(*back[2].camera_refit_focal_scale, 1.0061);
 }
 
 TEST(ResultsTable, SummaryAddsCountsAndTakesMediansOfKnownMetrics) {
