@@ -585,14 +585,18 @@ int RunRun(const std::vector<std::string>& original_argv) {
                 c.camera.height, c.camera.fx, c.frame_rate_hz,
                 c.sensor == Sensor::kStereo ? (", baseline " + std::to_string(c.baseline_m) + " m").c_str() : "",
                 resolved.orb.features, options.orb.features == 0 ? " (from the camera)" : "");
-    const std::string check = DescribeCameraCheck(result.camera_check, c.camera);
     if (result.camera_refit.refined()) {
-      std::printf("camera check  the map of the first %zu frames disagreed with the camera model: %s\n"
-                  "              the run started over with the refined camera (undistorted: fx %.2f); "
-                  "--keep-camera keeps the given one\n",
-                  result.frames_before_restart, check.substr(0, check.find('\n')).c_str(),
-                  result.calibration.camera.fx);
-    } else if (!check.empty()) {
+      const CameraRefit& refit = result.camera_refit;
+      const std::string last = DescribeCameraCheck(result.camera_check, result.camera_checked);
+      std::printf("camera check  the map of the first %zu frames disagreed with the camera model%s: the run started "
+                  "over with k1 %+.4f and the focal length %+.2f%% (undistorted: fx %.2f); --keep-camera keeps "
+                  "the given one\n"
+                  "              last check, of the camera at fx %.2f: %s\n",
+                  result.frames_before_restart,
+                  result.camera_restarts > 1 ? " (twice: the first refinement fell short)" : "", refit.k1,
+                  100 * (refit.focal_scale - 1), result.calibration.camera.fx, result.camera_checked.fx,
+                  last.substr(0, last.find('\n')).c_str());
+    } else if (const std::string check = DescribeCameraCheck(result.camera_check, c.camera); !check.empty()) {
       std::printf("camera check  %s\n", check.c_str());
       if (CameraCheckDisagrees(result.camera_check))
         std::printf("              the run kept the given camera: the refined one moves the image's corner by %.1f px, "

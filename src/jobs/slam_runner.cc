@@ -436,28 +436,51 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   if (!run.check_camera || dataset.calibration().sensor != Sensor::kMonocular || run.initial_map)
     return RunSession(dataset, options, run, nullptr);
   const size_t end = run.max_frames > 0 ? std::min(run.max_frames, dataset.size()) : dataset.size();
-  CameraCheckPass pass(run, end > run.first_frame ? end - run.first_frame : 0);
-  SlamRunResult first;
-  try {
-    first = RunSession(dataset, options, pass.Options(), pass.abandon());
-  } catch (...) {
-    pass.Release();  // what the frames before the error gave is still heard
-    throw;
+  const size_t frames = end > run.first_frame ? end - run.first_frame : 0;
+  CameraRefit refit;                  // the refinements so far, composed
+  std::unique_ptr<Dataset> refined;   // the dataset seen through refit
+  CameraCheck last_check;             // the last check any pass made, and its pass's camera
+  PinholeCamera checked_camera = dataset.calibration().camera;
+  size_t restarts = 0, frames_before_restart = 0;
+  double wall_s = 0;
+  SlamRunResult result;
+  for (;;) {
+    const Dataset& seen = refined ? *refined : dataset;
+    if (restarts == CameraCheckWindow::kMaxRestarts) {
+      result = RunSession(seen, options, run, nullptr);
+      wall_s += result.wall_s;
+      break;
+    }
+    CameraCheckPass pass(run, frames);
+    try {
+      result = RunSession(seen, options, pass.Options(), pass.abandon());
+    } catch (...) {
+      pass.Release();  // what the frames before the error gave is still heard
+      throw;
+    }
+    wall_s += result.wall_s;
+    if (pass.last_check().ok || !last_check.ok) {
+      last_check = pass.last_check();
+      checked_camera = seen.calibration().camera;
+    }
+    if (!pass.restart()) {
+      if (pass.abandon()->load()) result.interrupted = true;  // stopped while starting over
+      break;
+    }
+    // Start over through the dataset's images once more, with the refinement composed into one.
+    refit = ThenRefit(refit, CameraRefit{pass.last_check().focal_scale, pass.last_check().k1});
+    ++restarts;
+    frames_before_restart += pass.frames_at_restart();
+    refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), refit);
+    if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration());
   }
-  first.camera_check = pass.last_check();
-  if (!pass.restart()) {
-    if (pass.abandon()->load()) first.interrupted = true;  // stopped while starting over
-    return first;
-  }
-  const CameraRefit refit{pass.last_check().focal_scale, pass.last_check().k1};
-  const auto refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), refit);
-  if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration());
-  SlamRunResult second = RunSession(*refined, options, run, nullptr);
-  second.camera_check = pass.last_check();
-  second.camera_refit = refit;
-  second.frames_before_restart = pass.frames_at_restart();
-  second.wall_s += first.wall_s;
-  return second;
+  result.camera_check = last_check;
+  result.camera_checked = checked_camera;
+  result.camera_refit = refit;
+  result.camera_restarts = restarts;
+  result.frames_before_restart = frames_before_restart;
+  result.wall_s = wall_s;  // every pass's
+  return result;
 }
 
 }  // namespace flatslam

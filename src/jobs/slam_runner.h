@@ -86,14 +86,17 @@ struct SlamRunOptions {
   std::function<void()> before_checkpoint;
   // A monocular session's scale through turns follows small errors of the camera model
   // (mapping/camera_check.h). With check_camera, a monocular run without an initial map checks
-  // the model against its own map early on (kCameraCheckWindow); when the map disagrees with it
-  // by an amount CameraCheckWindow::Refits accepts, the run starts over from
-  // its first frame with the refined camera (the images undistorted by it). Until the check has
-  // decided, what on_frame and on_skipped would hear is held back (and dropped if the run starts
-  // over) and no checkpoint is written, so every output describes one run. Leave it off where
-  // keyframes leave the process as they are made (a live agent).
+  // the model against its own map early on (CameraCheckWindow); when the map disagrees with it
+  // by an amount CameraCheckWindow::Refits accepts, the run starts over from its first frame
+  // with the refined camera (the images undistorted by it), and checks that camera the same way
+  // (a young map's refinement can fall short of the lens: what is left starts it over again, up
+  // to CameraCheckWindow::kMaxRestarts times). Until a pass's check has decided, what on_frame
+  // and on_skipped would hear is held back (and dropped if the run starts over) and no
+  // checkpoint is written, so every output describes one run. Leave it off where keyframes leave
+  // the process as they are made (a live agent).
   bool check_camera = false;
-  // Called before the run starts over, with the check and the calibration it runs with from then on.
+  // Called before each new start, with the refinement of the dataset's camera (all so far,
+  // composed) and the calibration the run uses from then on.
   std::function<void(const CameraRefit&, const Calibration&)> on_camera_refined;
 };
 
@@ -106,7 +109,8 @@ struct SlamRunOptions {
 // corrects what a calibration left over (KITTI 07's map asks for about 2%), not a camera it does
 // not describe at all, and a young monocular map that is itself degenerate (a motorway seen by a
 // short lens, whose scale collapses) can ask for absurd models (k1 = 3) at 5-10 standard errors.
-// Such a check is reported and the given camera kept.
+// Such a check is reported and the given camera kept. A run starts over at most kMaxRestarts
+// times (the last pass is not checked): each costs at most kFrameShare of the frames again.
 struct CameraCheckWindow {
   static constexpr size_t kFirst = 4;
   static constexpr double kFrameShare = 0.2;
@@ -114,6 +118,7 @@ struct CameraCheckWindow {
   static constexpr size_t kMaxPoints = 3000;
   static constexpr double kMinCornerShiftPx = 1;
   static constexpr double kMaxCornerShiftShare = 0.05;
+  static constexpr size_t kMaxRestarts = 2;
 
   // The check disagrees with the camera by an amount the run corrects by starting over.
   [[nodiscard]] static bool Refits(const CameraCheck& check, const PinholeCamera& camera);
@@ -139,11 +144,14 @@ struct SlamRunResult {
   size_t checkpoints = 0, checkpoint_failures = 0;
   std::vector<double> checkpoint_capture_ms, checkpoint_write_ms;
   std::vector<double> frame_ms_during_checkpoints;
-  // check_camera: the last check the run made (ok = false if none could say), and the refined
-  // camera the run started over with once frames_before_restart frames were tracked (the first
-  // pass counted in wall_s; refined() false: it kept the given one).
+  // check_camera: the last check the run made (ok = false if none could say) and the camera it
+  // checked (the given one, or a refined one after a restart); the refinement of the given camera
+  // the run ended with (refined() false: it kept the given one), how many times it started over,
+  // and the frames its earlier passes tracked before they did (those passes count in wall_s).
   CameraCheck camera_check;
+  PinholeCamera camera_checked;
   CameraRefit camera_refit;
+  size_t camera_restarts = 0;
   size_t frames_before_restart = 0;
   Calibration calibration;  // the calibration the (last) session ran with
 };

@@ -234,7 +234,7 @@ TEST_F(MapCli, CalibrateChecksTheCameraAndWritesSettings) {
   const std::string lens_default = "run synth:room:duration=8,width=480,height=360,k1=0.03 --sensor mono --quiet ";
   r = RunApp(lens_default + "--save-map " + lens.string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_TRUE(Contains(r.output, "the run started over with the refined camera")) << r.output;
+  EXPECT_TRUE(Contains(r.output, "the run started over with k1 +")) << r.output;
   r = RunApp("map calibrate " + lens.string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(Contains(r.output, "agree with the camera model")) << r.output;

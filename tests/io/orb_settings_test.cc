@@ -1,6 +1,7 @@
 #include "io/orb_settings.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <string>
@@ -631,6 +632,34 @@ ThDepth: 40.0
   EXPECT_EQ(cv::norm(a.left, b.left, cv::NORM_INF), 0);
   cv::Mat scaled = b.depth * 5.0;  // written at 5000 units per metre, read at 1000
   EXPECT_LT(cv::norm(a.depth, scaled, cv::NORM_INF), 1e-4);
+}
+
+// A refinement found on images another refinement gave composes with it into one: the pixel the
+// two put a point at (the second on the first's undistorted camera, the first on the dataset's)
+// is the one the composed refinement puts it at, to the neglected second-order term.
+TEST(CameraRefit, TwoRefinementsComposeIntoOne) {
+  const double fx = 707;  // KITTI's camera, its farthest corner at about (0.87, 0.26)
+  const CameraRefit first{1.006, 0.019}, second{0.998, 0.004};
+  const CameraRefit both = ThenRefit(first, second);
+  EXPECT_DOUBLE_EQ(both.focal_scale, 1.006 * 0.998);
+  double worst = 0;
+  for (double x = 0; x <= 0.87; x += 0.029)
+    for (double y = 0; y <= 0.26; y += 0.026) {
+      const double rt2 = x * x + y * y;
+      // The second model: the first's undistorted image shows the point at s_b x (1 + k_b r^2).
+      const double g = second.focal_scale * (1 + second.k1 * rt2);
+      const double xu = g * x, yu = g * y;
+      // The first: the dataset's image shows that at fx s_a xu (1 + k_a |xu|^2).
+      const double f = fx * first.focal_scale * (1 + first.k1 * (xu * xu + yu * yu));
+      const double c = fx * both.focal_scale * (1 + both.k1 * rt2);
+      worst = std::max(worst, std::hypot(f * xu - c * x, f * yu - c * y));
+    }
+  EXPECT_LT(worst, 0.15);
+  EXPECT_GT(worst, 0.01);  // the second-order term is there: the composition is to first order
+  // Refining nothing changes nothing.
+  const CameraRefit same = ThenRefit(first, CameraRefit{});
+  EXPECT_DOUBLE_EQ(same.focal_scale, first.focal_scale);
+  EXPECT_DOUBLE_EQ(same.k1, first.k1);
 }
 
 }  // namespace
