@@ -283,8 +283,16 @@ bool SameCalibration(const Calibration& a, const Calibration& b) {
          near(a.camera.cy, b.camera.cy) && near(a.baseline_m, b.baseline_m);
 }
 
-// The virtual stereo baseline of an RGB-D map's keyframes; files that do not record it were
-// written with SLAM's default.
+// How a session's camera came from the dataset's, for a merge's error: "the given camera" or the
+// refinement a monocular run made from its own map (SnapshotMetadata::camera_refit).
+std::string CameraOrigin(const SnapshotMetadata& m) {
+  if (!m.camera_refit.refined()) return "the camera as given";
+  char text[96];
+  std::snprintf(text, sizeof text, "refined from its own map: k1 %+.4f, focal length %+.2f%%", m.camera_refit.k1,
+                100 * (m.camera_refit.focal_scale - 1));
+  return text;
+}
+
 int Merge(const std::vector<std::string>& inputs, const Args& args) {
   const auto out = args.get("out");
   if (!out) throw UsageError{"merge needs -o OUT"};
@@ -334,11 +342,20 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
     loaded[i].reset();
     const SnapshotMetadata& first = snapshots.front().metadata;
     const SnapshotMetadata& m = snapshots.back().metadata;
+    // Sessions of one camera whose runs refined it differently saw their images through different
+    // models: their keypoints do not share a camera.
+    const bool refits_differ = first.camera_refit.refined() != m.camera_refit.refined() ||
+                               first.camera_refit.k1 != m.camera_refit.k1 ||
+                               first.camera_refit.focal_scale != m.camera_refit.focal_scale;
     FLATSLAM_CHECK(SameCalibration(first.calibration, m.calibration), "cannot merge ", in, ": its calibration (",
                    SensorName(m.calibration.sensor), ", ", m.calibration.camera.width, "x", m.calibration.camera.height,
                    ", fx ", m.calibration.camera.fx, ") differs from ", inputs.front(), " (",
                    SensorName(first.calibration.sensor), ", ", first.calibration.camera.width, "x",
-                   first.calibration.camera.height, ", fx ", first.calibration.camera.fx, ")");
+                   first.calibration.camera.height, ", fx ", first.calibration.camera.fx, ")",
+                   refits_differ ? "; " + in + "'s session used " + CameraOrigin(m) + ", " + inputs.front() + "'s " +
+                                       CameraOrigin(first) +
+                                       ": run the sessions to merge with --keep-camera (or one --settings)"
+                                 : std::string());
     FLATSLAM_CHECK(first.scales.scale_factor == m.scales.scale_factor && first.scales.levels == m.scales.levels,
                    "cannot merge ", in, ": its scale pyramid differs from ", inputs.front());
     auto vocabulary_name = [](uint64_t checksum) {

@@ -136,6 +136,23 @@ void MapMergeCli::RefusesAnotherCalibration() {
   EXPECT_NE(r.exit_code, 0) << r.output;
   EXPECT_TRUE(Contains(r.output, "calibration")) << r.output;
   EXPECT_FALSE(fs::exists(path("out_calib")));
+
+  // One camera, two monocular sessions: one refined the camera from its own map, one kept it.
+  // Their keypoints do not share a camera, and the error says why and what to do.
+  const std::string lens = "run synth:room:duration=8,width=480,height=360,k1=0.03 --sensor mono --deterministic "
+                           "--quiet --vocabulary none --save-map ";
+  Result run = RunApp(lens + path("lens_refined"));
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  ASSERT_TRUE(Contains(run.output, "the run started over")) << run.output;
+  run = RunApp(lens + path("lens_kept") + " --keep-camera");
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const Result mixed =
+      RunApp("map merge " + path("lens_refined") + " " + path("lens_kept") + " -o " + path("out_lens"));
+  EXPECT_NE(mixed.exit_code, 0) << mixed.output;
+  EXPECT_TRUE(Contains(mixed.output, "the camera as given")) << mixed.output;
+  EXPECT_TRUE(Contains(mixed.output, "refined from its own map: k1 +0.0")) << mixed.output;
+  EXPECT_TRUE(Contains(mixed.output, "--keep-camera")) << mixed.output;
+  EXPECT_FALSE(fs::exists(path("out_lens")));
 }
 
 void MapMergeCli::RefusesAnotherVocabulary() {
