@@ -354,7 +354,8 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
                    first.calibration.camera.height, ", fx ", first.calibration.camera.fx, ")",
                    refits_differ ? "; " + in + "'s session used " + CameraOrigin(m) + ", " + inputs.front() + "'s " +
                                        CameraOrigin(first) +
-                                       ": run the sessions to merge with --keep-camera (or one --settings)"
+                                       ": run the later sessions with --camera-from " + inputs.front() +
+                                       " (or all with --keep-camera)"
                                  : std::string());
     FLATSLAM_CHECK(first.scales.scale_factor == m.scales.scale_factor && first.scales.levels == m.scales.levels,
                    "cannot merge ", in, ": its scale pyramid differs from ", inputs.front());

@@ -43,7 +43,8 @@ const char* const kRunUsage =
     "                    [--skip A:B,...] [--lose-at N,...]\n"
     "                    [--save-map FILE] [--agent N] [--load-map FILE [--localize-only]]\n"
     "                    [--first-frame N] [--config FILE] [--set KEY=VALUE,...] [--list-options]\n"
-    "                    [--settings FILE] [--keep-camera] [--strict] [--checkpoint FILE [--checkpoint-every S]]\n"
+    "                    [--settings FILE] [--keep-camera | --camera-from MAP] [--strict]\n"
+    "                    [--checkpoint FILE [--checkpoint-every S]]\n"
     "                    [--publish [--dds-domain D] [--dds-peers IP,...|multicast] [--wait-for-server S]]\n"
     "       flatslam run --resume CHECKPOINT [--quiet]\n\n"
     "Runs SLAM over DATASET (a KITTI/EuRoC/TUM folder, synth:SPEC, or an image folder with --settings)\n"
@@ -82,8 +83,11 @@ const char* const kRunUsage =
     "  --keep-camera    monocular: run with the camera as given. By default a monocular run checks\n"
     "                   the camera model against its own map while it is young (as flatslam map\n"
     "                   calibrate does: focal length and a radial k1) and, when the map disagrees\n"
-    "                   with it, starts over once with the refined camera: a monocular map's scale\n"
+    "                   with it, starts over with the refined camera: a monocular map's scale\n"
     "                   through turns follows small errors of the camera model\n"
+    "  --camera-from MAP  monocular: run with the camera a saved map's session ran with (refined\n"
+    "                   from its map, or as given), not checked: sessions of one camera then share\n"
+    "                   it, and their maps merge (flatslam map merge)\n"
     "  --strict         stop at the first unreadable frame (default: report it, skip it like a\n"
     "                   dropped frame and go on; the summary counts skipped frames)\n"
     "  --checkpoint F   keep an atomic snapshot of the session in F (map, trajectory, options, next\n"
@@ -148,7 +152,7 @@ const std::set<std::string> kRunFlags = {
     "sensor",      "out",        "seed",      "max-frames", "features",   "mapping-lag",
     "vocabulary",  "skip",       "lose-at",   "save-map",   "agent",      "load-map",
     "first-frame", "config",     "set",       "settings",   "checkpoint", "checkpoint-every",
-    "resume",      "dds-domain", "dds-peers", "run-id",     "wait-for-server"};
+    "resume",      "dds-domain", "dds-peers", "run-id",     "wait-for-server", "camera-from"};
 const std::set<std::string> kRunSwitches = {"deterministic", "quiet",         "no-loop-closing",
                                             "no-global-ba",  "localize-only", "list-options",
                                             "strict",        "publish",       "own-frame",
@@ -391,6 +395,34 @@ int RunRun(const std::vector<std::string>& original_argv) {
     loaded_note = note;
     loaded_map = std::move(snapshot.maps[best].map);
   }
+  // Another session's camera: the refinement its map records, applied to this dataset, must give
+  // the camera that map was built with (the same camera before refinement). A resumed run's
+  // checkpoint already records the camera its session used.
+  const std::optional<std::string> camera_from = resume_file ? std::nullopt : args.get("camera-from");
+  if (camera_from) {
+    if (args.has("keep-camera")) throw UsageError{"--camera-from and --keep-camera: choose one camera"};
+    if (map_to_load) throw UsageError{"--camera-from with --load-map: a continued map has its own camera"};
+    FLATSLAM_CHECK(dataset->calibration().sensor == Sensor::kMonocular, "--camera-from ", *camera_from,
+                   ": only monocular runs refine their camera; ", args.positional()[0], " is read as ",
+                   SensorName(dataset->calibration().sensor));
+    SnapshotMetadata from;
+    {
+      const MapSnapshotView view = MapSnapshotView::Open(*camera_from);
+      from.calibration = view.calibration();
+      from.camera_refit = view.camera_refit();
+    }
+    if (from.camera_refit.refined()) dataset = ApplyCameraRefit(std::move(dataset), from.camera_refit);
+    const PinholeCamera& have = from.calibration.camera;
+    const PinholeCamera& want = dataset->calibration().camera;
+    FLATSLAM_CHECK(from.calibration.sensor == Sensor::kMonocular && have.width == want.width &&
+                       have.height == want.height && std::abs(have.fx - want.fx) < 1e-6 * want.fx &&
+                       std::abs(have.fy - want.fy) < 1e-6 * want.fy && std::abs(have.cx - want.cx) < 1e-6 * want.fx &&
+                       std::abs(have.cy - want.cy) < 1e-6 * want.fy,
+                   "--camera-from ", *camera_from, ": its map was made with another camera (", have.width, "x",
+                   have.height, ", fx ", have.fx, ") than ", args.positional()[0], " gives (", want.width, "x",
+                   want.height, ", fx ", want.fx, " through the map's refinement)");
+    continued_refit = from.camera_refit;
+  }
   const int64_t agent = args.get_int("agent", 0);
   if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
   options.agent = static_cast<uint32_t>(agent);
@@ -556,7 +588,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   // A checkpoint's rows and poses are on disk before the checkpoint itself.
   run.before_checkpoint = [&] { recorder.Flush(); };
   // A live agent's keyframes leave the process as they are made: it keeps the camera it was given.
-  run.check_camera = !link && !args.has("keep-camera");
+  run.check_camera = !link && !args.has("keep-camera") && !camera_from;
   run.on_camera_refined = [&](const CameraRefit& refit, const Calibration& refined) {
     // Saved maps and checkpoints describe the camera the run uses, and how to see the dataset through it.
     metadata.calibration = refined;

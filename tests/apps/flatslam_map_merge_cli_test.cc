@@ -151,8 +151,32 @@ void MapMergeCli::RefusesAnotherCalibration() {
   EXPECT_NE(mixed.exit_code, 0) << mixed.output;
   EXPECT_TRUE(Contains(mixed.output, "the camera as given")) << mixed.output;
   EXPECT_TRUE(Contains(mixed.output, "refined from its own map: k1 +0.0")) << mixed.output;
-  EXPECT_TRUE(Contains(mixed.output, "--keep-camera")) << mixed.output;
+  EXPECT_TRUE(Contains(mixed.output, "--camera-from")) << mixed.output;
   EXPECT_FALSE(fs::exists(path("out_lens")));
+  // A later session run with the first one's camera: the maps share it and merge.
+  run = RunApp(lens + path("lens_shared") + " --camera-from " + path("lens_refined"));
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  EXPECT_FALSE(Contains(run.output, "camera check")) << run.output;  // not checked again
+  const Result shared =
+      RunApp("map merge " + path("lens_refined") + " " + path("lens_shared") + " -o " + path("out_shared"));
+  EXPECT_EQ(shared.exit_code, 0) << shared.output;
+  EXPECT_TRUE(fs::exists(path("out_shared")));
+  // Its map records that camera, so a third session can take it from either.
+  run = RunApp(lens + path("lens_third") + " --max-frames 20 --camera-from " + path("lens_shared"));
+  EXPECT_EQ(run.exit_code, 0) << run.output;
+  // A map of another camera, and a stereo run, are refused naming the file.
+  run = RunApp("run synth:room:duration=2,width=640,height=480 --sensor mono --quiet --vocabulary none --camera-from " +
+               path("lens_refined"));
+  EXPECT_NE(run.exit_code, 0) << run.output;
+  EXPECT_TRUE(Contains(run.output, "another camera")) << run.output;
+  EXPECT_TRUE(Contains(run.output, "lens_refined")) << run.output;
+  run = RunApp("run synth:room:duration=2,width=480,height=360 --sensor stereo --quiet --camera-from " +
+               path("lens_refined"));
+  EXPECT_NE(run.exit_code, 0) << run.output;
+  EXPECT_TRUE(Contains(run.output, "only monocular")) << run.output;
+  run = RunApp(lens + path("lens_both") + " --keep-camera --camera-from " + path("lens_refined"));
+  EXPECT_NE(run.exit_code, 0) << run.output;
+  EXPECT_TRUE(Contains(run.output, "choose one camera")) << run.output;
 }
 
 void MapMergeCli::RefusesAnotherVocabulary() {
