@@ -287,6 +287,17 @@ void PrintSegmentAccuracy(const Trajectory& gt, const Trajectory& trajectory, co
   }
 }
 
+// A saved map's calibration is the one a dataset gives (to a millionth of the focal length):
+// its keypoints were measured through that camera.
+bool SameCamera(const Calibration& have, const Calibration& want) {
+  return have.sensor == want.sensor && have.camera.width == want.camera.width &&
+         have.camera.height == want.camera.height && std::abs(have.camera.fx - want.camera.fx) < 1e-6 * want.camera.fx &&
+         std::abs(have.camera.fy - want.camera.fy) < 1e-6 * want.camera.fy &&
+         std::abs(have.camera.cx - want.camera.cx) < 1e-6 * want.camera.fx &&
+         std::abs(have.camera.cy - want.camera.cy) < 1e-6 * want.camera.fy &&
+         std::abs(have.baseline_m - want.baseline_m) < 1e-9 + 1e-6 * want.baseline_m;
+}
+
 }  // namespace
 
 int RunRun(const std::vector<std::string>& original_argv) {
@@ -369,17 +380,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
     // A map whose session refined the dataset's camera continues through that camera.
     if (snapshot.metadata.camera_refit.refined() && dataset->calibration().sensor == Sensor::kMonocular)
       dataset = ApplyCameraRefit(std::move(dataset), continued_refit = snapshot.metadata.camera_refit);
-    const Calibration& have = snapshot.metadata.calibration;
-    const Calibration& want = dataset->calibration();
-    const bool same_camera = have.sensor == want.sensor && have.camera.width == want.camera.width &&
-                             have.camera.height == want.camera.height &&
-                             std::abs(have.camera.fx - want.camera.fx) < 1e-6 * want.camera.fx &&
-                             std::abs(have.camera.fy - want.camera.fy) < 1e-6 * want.camera.fy &&
-                             std::abs(have.camera.cx - want.camera.cx) < 1e-6 * want.camera.fx &&
-                             std::abs(have.camera.cy - want.camera.cy) < 1e-6 * want.camera.fy &&
-                             std::abs(have.baseline_m - want.baseline_m) < 1e-9 + 1e-6 * want.baseline_m;
-    FLATSLAM_CHECK(same_camera, flag, *m, ": the map was built with another camera or sensor than ",
-                   args.positional()[0]);
+    FLATSLAM_CHECK(SameCamera(snapshot.metadata.calibration, dataset->calibration()), flag, *m,
+                   ": the map was built with another camera or sensor than ", args.positional()[0]);
     FLATSLAM_CHECK(!snapshot.maps.empty(), flag, *m, ": the snapshot holds no map");
     size_t best = 0;
     for (size_t k = 1; k < snapshot.maps.size(); ++k)
@@ -414,10 +416,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
     if (from.camera_refit.refined()) dataset = ApplyCameraRefit(std::move(dataset), from.camera_refit);
     const PinholeCamera& have = from.calibration.camera;
     const PinholeCamera& want = dataset->calibration().camera;
-    FLATSLAM_CHECK(from.calibration.sensor == Sensor::kMonocular && have.width == want.width &&
-                       have.height == want.height && std::abs(have.fx - want.fx) < 1e-6 * want.fx &&
-                       std::abs(have.fy - want.fy) < 1e-6 * want.fy && std::abs(have.cx - want.cx) < 1e-6 * want.fx &&
-                       std::abs(have.cy - want.cy) < 1e-6 * want.fy,
+    FLATSLAM_CHECK(SameCamera(from.calibration, dataset->calibration()),
                    "--camera-from ", *camera_from, ": its map was made with another camera (", have.width, "x",
                    have.height, ", fx ", have.fx, ") than ", args.positional()[0], " gives (", want.width, "x",
                    want.height, ", fx ", want.fx, " through the map's refinement)");
