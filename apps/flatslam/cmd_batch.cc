@@ -28,27 +28,29 @@ namespace flatslam::app {
 const char* const kBatchUsage =
     "usage: flatslam batch INPUT... [--out DIR] [--jobs N] [--memory BYTES] [--shard I/N] [--quiet]\n"
     "                      [--sensor mono|stereo|rgbd] [--settings FILE] [--config FILE] [--set K=V,...]\n"
-    "                      [--max-frames N] [--seed N] [--vocabulary FILE|none] [--keep-camera]\n"
-    "                      [--deterministic]\n"
+    "                      [--max-frames N] [--seed N] [--vocabulary FILE|none]\n"
+    "                      [--keep-camera | --camera-from MAP] [--deterministic]\n"
     "       flatslam batch --collect DIR... --out DIR\n\n"
     "Runs SLAM over many sequences in one process, as many at once as --jobs and --memory allow, all\n"
     "sharing the cores and one vocabulary, and writes one results table and one report.\n"
     "INPUT is a dataset folder (KITTI sequence, EuRoC, TUM RGB-D), a folder of dataset folders (or a\n"
     "KITTI root with sequences/), synth:SPEC, or a manifest file, one sequence per line:\n"
     "    DATASET [--name N] [--sensor S] [--settings F] [--config F] [--set K=V,...] [--seed N]\n"
-    "            [--max-frames N] [--keep-camera]\n"
+    "            [--max-frames N] [--keep-camera] [--camera-from MAP]\n"
     "or YAML, a list of mappings:\n"
     "    - path: DATASET\n"
     "      name: N\n"
     "      sensor: stereo\n"
     "      options:\n"
     "        orb.features: 2000\n"
-    "(also settings, config, seed, max_frames, keep_camera). Relative paths are from the manifest's\n"
-    "folder; the flags above apply to every sequence that does not set its own.\n"
+    "(also settings, config, seed, max_frames, keep_camera, camera_from). Relative paths are from\n"
+    "the manifest's folder; the flags above apply to every sequence that does not set its own.\n"
     "  --keep-camera    monocular sequences run with the camera as given (as flatslam run\n"
     "                   --keep-camera): by default each checks its camera against its young map and\n"
     "                   may start over once with the refined one (results: camera_refit_k1,\n"
     "                   camera_refit_focal_scale)\n"
+    "  --camera-from MAP  monocular sequences run with the camera the saved map's session used (as\n"
+    "                   flatslam run --camera-from), not checked: their maps share it and merge\n"
     "  --out DIR        results (default ./flatslam-batch): DIR/<sequence>/ holds what flatslam run\n"
     "                   --out writes (trajectories, stats.csv, groundtruth.tum, results.csv,\n"
     "                   report.html); DIR/results.csv, DIR/results.json and DIR/report.html cover\n"
@@ -72,7 +74,7 @@ const char* const kBatchUsage =
 namespace {
 
 const std::set<std::string> kBatchFlags = {"out",    "jobs", "memory",     "shard", "sensor",    "settings",
-                                           "config", "set",  "max-frames", "seed",  "vocabulary"};
+                                           "config", "set",  "max-frames", "seed",  "vocabulary", "camera-from"};
 const std::set<std::string> kBatchSwitches = {"quiet", "deterministic", "collect", "keep-camera"};
 
 // "6G", "800M", "512K" or plain bytes -> MiB.
@@ -255,6 +257,10 @@ int RunBatch(const std::vector<std::string>& argv) {
   defaults.max_frames = static_cast<size_t>(max_frames);
   defaults.seed = static_cast<uint64_t>(args.get_int("seed", 1));
   if (args.has("keep-camera")) defaults.keep_camera = true;
+  if (auto m = args.get("camera-from")) {
+    if (args.has("keep-camera")) throw UsageError{"--camera-from and --keep-camera: choose one camera"};
+    defaults.camera_from = std::filesystem::absolute(*m).string();
+  }
   std::vector<SequenceSpec> all = ExpandBatchInputs(args.positional(), defaults);
 
   std::vector<size_t> positions(all.size());

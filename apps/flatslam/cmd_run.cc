@@ -25,6 +25,7 @@
 #include "core/error.h"
 #include "io/dataset.h"
 #include "io/orb_settings.h"
+#include "jobs/map_camera.h"
 #include "jobs/sequence_run.h"
 #include "jobs/slam_runner.h"
 #include "mapping/rig_check.h"
@@ -287,17 +288,6 @@ void PrintSegmentAccuracy(const Trajectory& gt, const Trajectory& trajectory, co
   }
 }
 
-// A saved map's calibration is the one a dataset gives (to a millionth of the focal length):
-// its keypoints were measured through that camera.
-bool SameCamera(const Calibration& have, const Calibration& want) {
-  return have.sensor == want.sensor && have.camera.width == want.camera.width &&
-         have.camera.height == want.camera.height && std::abs(have.camera.fx - want.camera.fx) < 1e-6 * want.camera.fx &&
-         std::abs(have.camera.fy - want.camera.fy) < 1e-6 * want.camera.fy &&
-         std::abs(have.camera.cx - want.camera.cx) < 1e-6 * want.camera.fx &&
-         std::abs(have.camera.cy - want.camera.cy) < 1e-6 * want.camera.fy &&
-         std::abs(have.baseline_m - want.baseline_m) < 1e-9 + 1e-6 * want.baseline_m;
-}
-
 }  // namespace
 
 int RunRun(const std::vector<std::string>& original_argv) {
@@ -404,23 +394,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   if (camera_from) {
     if (args.has("keep-camera")) throw UsageError{"--camera-from and --keep-camera: choose one camera"};
     if (map_to_load) throw UsageError{"--camera-from with --load-map: a continued map has its own camera"};
-    FLATSLAM_CHECK(dataset->calibration().sensor == Sensor::kMonocular, "--camera-from ", *camera_from,
-                   ": only monocular runs refine their camera; ", args.positional()[0], " is read as ",
-                   SensorName(dataset->calibration().sensor));
-    SnapshotMetadata from;
-    {
-      const MapSnapshotView view = MapSnapshotView::Open(*camera_from);
-      from.calibration = view.calibration();
-      from.camera_refit = view.camera_refit();
-    }
-    if (from.camera_refit.refined()) dataset = ApplyCameraRefit(std::move(dataset), from.camera_refit);
-    const PinholeCamera& have = from.calibration.camera;
-    const PinholeCamera& want = dataset->calibration().camera;
-    FLATSLAM_CHECK(SameCamera(from.calibration, dataset->calibration()),
-                   "--camera-from ", *camera_from, ": its map was made with another camera (", have.width, "x",
-                   have.height, ", fx ", have.fx, ") than ", args.positional()[0], " gives (", want.width, "x",
-                   want.height, ", fx ", want.fx, " through the map's refinement)");
-    continued_refit = from.camera_refit;
+    dataset = DatasetThroughCameraOf(std::move(dataset), *camera_from, &continued_refit);
   }
   const int64_t agent = args.get_int("agent", 0);
   if (agent < 0 || agent > 0xffff) throw UsageError{"--agent must be in [0, 65535]"};
@@ -711,6 +685,10 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
   // The run's row of the results table, as `flatslam batch` writes it for each sequence.
   SequenceResult row = ResultOfRun(result, counts);
+  if (continued_refit.refined()) {  // the camera of --camera-from or of the continued map
+    row.camera_refit_k1 = continued_refit.k1;
+    row.camera_refit_focal_scale = continued_refit.focal_scale;
+  }
   row.name = dataset->name();
   row.dataset = args.positional()[0];
   row.sensor = SensorName(dataset->calibration().sensor);

@@ -82,6 +82,8 @@ void SetField(SequenceSpec* spec, const std::string& key, const std::string& val
     spec->seed = ReadCount(value, where, "seed");
   } else if (key == "max-frames" || key == "max_frames") {
     spec->max_frames = ReadCount(value, where, "max_frames");
+  } else if (key == "camera-from" || key == "camera_from") {
+    spec->camera_from = Resolve(base, value);
   } else if (key == "keep-camera" || key == "keep_camera") {
     if (value == "true" || value == "yes" || value == "1")
       spec->keep_camera = true;
@@ -91,7 +93,7 @@ void SetField(SequenceSpec* spec, const std::string& key, const std::string& val
       Fail(where, ": keep_camera '", value, "' is not true or false");
   } else {
     Fail(where, ": unknown key '", key,
-         "' (path, name, sensor, settings, config, options/set, seed, max_frames, keep_camera)");
+         "' (path, name, sensor, settings, config, options/set, seed, max_frames, keep_camera, camera_from)");
   }
 }
 
@@ -293,6 +295,7 @@ std::vector<SequenceSpec> ExpandBatchInputs(const std::vector<std::string>& inpu
     spec.set.insert(spec.set.begin(), defaults.set.begin(), defaults.set.end());
     if (spec.max_frames == 0) spec.max_frames = defaults.max_frames;
     if (!spec.keep_camera) spec.keep_camera = defaults.keep_camera;
+    if (spec.camera_from.empty()) spec.camera_from = defaults.camera_from;
     if (spec.name.empty()) spec.name = DefaultName(spec.dataset);
     specs.push_back(std::move(spec));
   };

@@ -26,13 +26,16 @@ struct SequenceSpec {
   // Monocular: run with the camera as given (--keep-camera), not checked against the young map
   // (SlamRunOptions::check_camera). Empty: the batch's default (check).
   std::optional<bool> keep_camera;
+  // Monocular: run with the camera this saved map's session used (--camera-from), or empty.
+  std::string camera_from;
   std::string where;             // where it was declared ("FILE:LINE" for a manifest), for errors
 };
 
 // Reads a manifest. Two forms, told apart by the first line that is not blank or a comment:
 //
 //   Lines: one sequence per line, "DATASET [--name N] [--sensor S] [--settings F] [--config F]
-//          [--set K=V,...] [--seed N] [--max-frames N] [--keep-camera]"; '#' starts a comment
+//          [--set K=V,...] [--seed N] [--max-frames N] [--keep-camera] [--camera-from MAP]";
+//          '#' starts a comment
 //          (--keep-camera alone means true; --keep-camera=false is also read).
 //
 //   YAML (a list of mappings, optionally under "sequences:"):
@@ -44,6 +47,7 @@ struct SequenceSpec {
 //            seed: 2
 //            max_frames: 100
 //            keep_camera: true    (true/false, yes/no, 1/0)
+//            camera_from: MAP     (a saved map: its session's camera)
 //            options:             (a mapping of option keys, or one "K=V,K=V" string)
 //              orb.features: 2000
 //

@@ -15,6 +15,7 @@
 #include "core/error.h"
 #include "io/dataset.h"
 #include "io/orb_settings.h"
+#include "jobs/map_camera.h"
 #include "report/html_report.h"
 #include "config/slam_config.h"
 #include "trajectory/metrics.h"
@@ -232,7 +233,9 @@ SequenceResult RunSequence(const SequenceSpec& spec, const SequenceRunOptions& o
     dataset_options.seed = spec.seed.value_or(1);
     if (!spec.settings.empty())
       dataset_options.settings = std::make_shared<const OrbSettings>(ReadOrbSettings(spec.settings));
-    const auto dataset = OpenDataset(spec.dataset, dataset_options);
+    std::unique_ptr<Dataset> dataset = OpenDataset(spec.dataset, dataset_options);
+    CameraRefit camera_from;  // the refinement of spec.camera_from's session
+    if (!spec.camera_from.empty()) dataset = DatasetThroughCameraOf(std::move(dataset), spec.camera_from, &camera_from);
     const Sensor sensor = dataset->calibration().sensor;
     result.sensor = SensorName(sensor);
     FLATSLAM_CHECK(dataset->size() > 0, "dataset ", spec.dataset, " has no frames");
@@ -249,7 +252,7 @@ SequenceResult RunSequence(const SequenceSpec& spec, const SequenceRunOptions& o
     run.keep_results_on_error = true;
     run.stop = options.stop;
     // As flatslam run: a monocular sequence may start over with a refined camera.
-    run.check_camera = !spec.keep_camera.value_or(false);
+    run.check_camera = !spec.keep_camera.value_or(false) && spec.camera_from.empty();
     if (options.on_warning) {
       run.on_warning = options.on_warning;
       run.on_skipped = [&](size_t index, const std::string& reason) {
@@ -265,6 +268,10 @@ SequenceResult RunSequence(const SequenceSpec& spec, const SequenceRunOptions& o
     const SlamRunResult slam_result = RunSlam(*dataset, slam, run);
     recorder.Finish(slam_result);
     SequenceResult scored = ResultOfRun(slam_result, recorder.counts());
+    if (camera_from.refined()) {
+      scored.camera_refit_k1 = camera_from.k1;
+      scored.camera_refit_focal_scale = camera_from.focal_scale;
+    }
     scored.name = result.name;
     scored.dataset = result.dataset;
     scored.input = result.input;

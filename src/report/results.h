@@ -32,8 +32,9 @@ struct SequenceResult {
   // Stereo: measured minus predicted disparity of the map's points (a rig's rectification error,
   // mapping/rig_check.h), pixels; what the run took off already is not included.
   std::optional<double> rig_offset_px;
-  // Monocular runs that started over with the camera their young map refined
-  // (SlamRunResult::camera_refit): its radial k1 and focal-length scale; empty: the given camera.
+  // Monocular runs through a refined camera: the one their young map refined and started over
+  // with (SlamRunResult::camera_refit), or the one of the map they continued or took their camera
+  // from (--camera-from); its radial k1 and focal-length scale. Empty: the given camera.
   std::optional<double> camera_refit_k1, camera_refit_focal_scale;
   double wall_s = 0;            // from opening the dataset to the results computed
   double fps = 0;               // frames / tracking wall time

@@ -13,6 +13,8 @@
 #include <sys/wait.h>
 
 #include "cli.h"
+#include "report/results.h"
+#include "storage/snapshot.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -174,6 +176,16 @@ void MapMergeCli::RefusesAnotherCalibration() {
                path("lens_refined"));
   EXPECT_NE(run.exit_code, 0) << run.output;
   EXPECT_TRUE(Contains(run.output, "only monocular")) << run.output;
+  // A batch takes a map's camera for its sequences the same way, and its rows say which camera.
+  run = RunApp("batch synth:room:duration=4,width=480,height=360,k1=0.03 --sensor mono --quiet --vocabulary none "
+               "--out " + (dir_ / "batch_lens").string() + " --camera-from " + path("lens_refined"));
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const std::vector<SequenceResult> rows = ReadResultsCsv(dir_ / "batch_lens" / "results.csv");
+  const CameraRefit used = MapSnapshotView::Open(path("lens_refined")).camera_refit();
+  ASSERT_EQ(rows.size(), 1u);
+  ASSERT_TRUE(used.refined());
+  ASSERT_TRUE(rows[0].camera_refit_k1.has_value());
+  EXPECT_NEAR(*rows[0].camera_refit_k1, used.k1, 1e-5);
   run = RunApp(lens + path("lens_both") + " --keep-camera --camera-from " + path("lens_refined"));
   EXPECT_NE(run.exit_code, 0) << run.output;
   EXPECT_TRUE(Contains(run.output, "choose one camera")) << run.output;

@@ -55,7 +55,8 @@ TEST(Manifest, YamlListOfMappings) {
                           "  - dataset: synth:corridor:duration=5\n"
                           "    options: orb.features=800,min_local_map_inliers=20\n"
                           "    max_frames: 40\n"
-                          "    keep_camera: yes\n");
+                          "    keep_camera: yes\n"
+                          "    camera_from: maps/first.fsmap\n");
   const std::vector<SequenceSpec> specs = ReadManifest(file);
   ASSERT_EQ(specs.size(), 2u);
   EXPECT_EQ(specs[0].dataset, "/data/kitti/sequences/06");
@@ -66,6 +67,8 @@ TEST(Manifest, YamlListOfMappings) {
   EXPECT_EQ(specs[1].max_frames, 40u);
   EXPECT_FALSE(specs[0].keep_camera.has_value());
   EXPECT_EQ(specs[1].keep_camera, true);
+  EXPECT_EQ(specs[1].camera_from, (dir / "maps/first.fsmap").string());
+  EXPECT_TRUE(specs[0].camera_from.empty());
   EXPECT_EQ(specs[1].where, file.string() + ":8");
 }
 
