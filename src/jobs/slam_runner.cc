@@ -44,6 +44,7 @@ struct MappingJob {
 // replaced, not interrupted.
 SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run,
                          const std::atomic<bool>* abandon) {
+  const auto abandoned = [abandon] { return abandon && abandon->load(); };
   SlamSession slam(dataset.calibration(), options);
   // The run's steps and the access they declare: refused before the first frame if two that may
   // run at once conflict without the session's guard between them. Mapping inline (deterministic)
@@ -178,7 +179,7 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
     if (!skipped) order.push_back(i);
   }
   pipeline.set_source([&](size_t seq) -> std::optional<Item> {
-    if (seq >= order.size() || (abandon && abandon->load())) return std::nullopt;
+    if (seq >= order.size() || abandoned()) return std::nullopt;
     if (run.stop && run.stop->load()) {
       result.interrupted = true;
       return std::nullopt;
@@ -188,7 +189,7 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
     return item;
   });
   pipeline.add_parallel_stage("extract", [&](Item& item) {
-    if (abandon && abandon->load()) return;  // the run is being replaced: frames in flight are dropped
+    if (abandoned()) return;  // the run is being replaced: frames in flight are dropped
     Frame frame;
     try {
       frame = dataset.read(item.index);
@@ -210,7 +211,7 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
       run.deterministic || run.max_mapping_lag == 0 || tbb::this_task_arena::max_concurrency() < 2;
   std::string first_unreadable;
   pipeline.add_serial_stage("track", [&](Item& item) {
-    if (abandon && abandon->load()) return;
+    if (abandoned()) return;
     ++result.frames;
     result.next_frame = item.index + 1;
     if (!item.unreadable.empty()) {
@@ -272,7 +273,7 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
     if (!run.keep_results_on_error) throw;
     result.error = e.what();
   }
-  if (result.interrupted || !result.error.empty() || (abandon && abandon->load())) slam.AbandonBackground();
+  if (result.interrupted || !result.error.empty() || abandoned()) slam.AbandonBackground();
   background.Wait();
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (result.error.empty() && result.frames > 0 && result.frames_skipped == result.frames)
@@ -321,24 +322,10 @@ class CameraCheckPass {
   [[nodiscard]] SlamRunOptions Options() {
     SlamRunOptions first = run_;
     first.on_frame = [this](const FrameReport& report) {
-      std::unique_lock<std::mutex> lock(mutex_);
-      ++frames_seen_;
-      if (state_ == kUndecided && frames_seen_ > window_frames_) GoOnLocked();
-      if (state_ != kGoOn) {
-        held_.push_back([this, report] { if (run_.on_frame) run_.on_frame(report); });
-        return;
-      }
-      lock.unlock();
-      if (run_.on_frame) run_.on_frame(report);
+      Hear([this, report] { if (run_.on_frame) run_.on_frame(report); }, true);
     };
     first.on_skipped = [this](size_t index, const std::string& reason) {
-      std::unique_lock<std::mutex> lock(mutex_);
-      if (state_ != kGoOn) {
-        held_.push_back([this, index, reason] { if (run_.on_skipped) run_.on_skipped(index, reason); });
-        return;
-      }
-      lock.unlock();
-      if (run_.on_skipped) run_.on_skipped(index, reason);
+      Hear([this, index, reason] { if (run_.on_skipped) run_.on_skipped(index, reason); }, false);
     };
     first.on_keyframe_mapped = [this](SlamSession& slam, KeyFrameHandle keyframe) {
       if (run_.on_keyframe_mapped) run_.on_keyframe_mapped(slam, keyframe);
@@ -376,6 +363,19 @@ class CameraCheckPass {
   [[nodiscard]] size_t frames_at_restart() const { return frames_at_restart_; }
 
  private:
+  // A call for run's on_frame or on_skipped: held while undecided, else made (outside the lock).
+  // A frame's call counts towards the window, whose end decides that the run goes on.
+  void Hear(std::function<void()> call, bool frame) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    if (frame && ++frames_seen_ > window_frames_ && state_ == kUndecided) GoOnLocked();
+    if (state_ != kGoOn) {
+      held_.push_back(std::move(call));
+      return;
+    }
+    lock.unlock();
+    call();
+  }
+
   // On the mapping lane after each keyframe: a check when the map has reached the next count.
   void Check(SlamSession& slam) {
     {
