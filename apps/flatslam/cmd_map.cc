@@ -293,6 +293,51 @@ std::string CameraOrigin(const SnapshotMetadata& m) {
   return text;
 }
 
+// The camera a session was given before any refinement: its calibration's when it refined none,
+// else the one its snapshot recorded (none in snapshots saved before they did).
+std::optional<PinholeCamera> GivenCamera(const SnapshotMetadata& m) {
+  if (!m.camera_refit.refined()) return m.calibration.camera;
+  if (m.given_camera.fx <= 0) return std::nullopt;
+  return m.given_camera;
+}
+
+// A session's keypoints into another session's camera: two refinements of one given camera.
+struct CameraMove {
+  RefinedCamera from, to;
+  std::string from_origin, to_origin;  // CameraOrigin of each
+};
+
+// The move of monocular session m's keypoints into session into's camera, when both record the
+// camera they were given and it is the same one.
+std::optional<CameraMove> CameraMoveBetween(const SnapshotMetadata& m, const SnapshotMetadata& into) {
+  if (m.calibration.sensor != Sensor::kMonocular || into.calibration.sensor != Sensor::kMonocular)
+    return std::nullopt;
+  const std::optional<PinholeCamera> given = GivenCamera(m), given_into = GivenCamera(into);
+  if (!given || !given_into) return std::nullopt;
+  Calibration a = m.calibration, b = into.calibration;
+  a.camera = *given;
+  b.camera = *given_into;
+  if (!SameCalibration(a, b)) return std::nullopt;
+  return CameraMove{RefinedCamera(*given, m.camera_refit), RefinedCamera(*given_into, into.camera_refit),
+                    CameraOrigin(m), CameraOrigin(into)};
+}
+
+// Why two sessions whose runs refined the camera differently cannot merge, and what to do, for
+// the calibration error ("" when the refinements agree: the cameras simply differ).
+std::string RefitHint(const std::string& in, const SnapshotMetadata& m, const std::string& first_in,
+                      const SnapshotMetadata& first) {
+  const bool refits_differ = first.camera_refit.refined() != m.camera_refit.refined() ||
+                             first.camera_refit.k1 != m.camera_refit.k1 ||
+                             first.camera_refit.focal_scale != m.camera_refit.focal_scale;
+  if (!refits_differ) return "";
+  const std::string used = "; " + in + "'s session used " + CameraOrigin(m) + ", " + first_in + "'s " +
+                           CameraOrigin(first);
+  if (GivenCamera(first) && GivenCamera(m)) return used + ", of another given camera";
+  return used + ", and a snapshot saved before snapshots recorded the camera a session was given cannot be "
+                "re-expressed in another: run the later sessions with --camera-from " +
+         first_in + " (or all with --keep-camera)";
+}
+
 int Merge(const std::vector<std::string>& inputs, const Args& args) {
   const auto out = args.get("out");
   if (!out) throw UsageError{"merge needs -o OUT"};
@@ -335,6 +380,7 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
     }
   });
   std::vector<LoadedSnapshot> snapshots;
+  std::vector<std::optional<CameraMove>> moves;  // per input: into the first input's camera
   for (size_t i = 0; i < inputs.size(); ++i) {
     const std::string& in = inputs[i];
     if (failed[i]) std::rethrow_exception(failed[i]);
@@ -343,20 +389,18 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
     const SnapshotMetadata& first = snapshots.front().metadata;
     const SnapshotMetadata& m = snapshots.back().metadata;
     // Sessions of one camera whose runs refined it differently saw their images through different
-    // models: their keypoints do not share a camera.
-    const bool refits_differ = first.camera_refit.refined() != m.camera_refit.refined() ||
-                               first.camera_refit.k1 != m.camera_refit.k1 ||
-                               first.camera_refit.focal_scale != m.camera_refit.focal_scale;
-    FLATSLAM_CHECK(SameCalibration(first.calibration, m.calibration), "cannot merge ", in, ": its calibration (",
+    // models: their keypoints are re-expressed in the first one's camera through the camera both
+    // were given (snapshots that do not record it are refused).
+    std::optional<CameraMove> move;
+    if (!SameCalibration(first.calibration, m.calibration)) move = CameraMoveBetween(m, first);
+    FLATSLAM_CHECK(move || SameCalibration(first.calibration, m.calibration), "cannot merge ", in,
+                   ": its calibration (",
                    SensorName(m.calibration.sensor), ", ", m.calibration.camera.width, "x", m.calibration.camera.height,
                    ", fx ", m.calibration.camera.fx, ") differs from ", inputs.front(), " (",
                    SensorName(first.calibration.sensor), ", ", first.calibration.camera.width, "x",
                    first.calibration.camera.height, ", fx ", first.calibration.camera.fx, ")",
-                   refits_differ ? "; " + in + "'s session used " + CameraOrigin(m) + ", " + inputs.front() + "'s " +
-                                       CameraOrigin(first) +
-                                       ": run the later sessions with --camera-from " + inputs.front() +
-                                       " (or all with --keep-camera)"
-                                 : std::string());
+                   RefitHint(in, m, inputs.front(), first));
+    moves.push_back(std::move(move));
     FLATSLAM_CHECK(first.scales.scale_factor == m.scales.scale_factor && first.scales.levels == m.scales.levels,
                    "cannot merge ", in, ": its scale pyramid differs from ", inputs.front());
     auto vocabulary_name = [](uint64_t checksum) {
@@ -382,9 +426,17 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
   }
   std::vector<Map> maps;
   std::vector<std::string> names;
+  const MergeCamera camera = MergeCamera::FromCalibration(metadata.calibration, metadata.scales, 0);
   for (size_t f = 0; f < snapshots.size(); ++f) {
     for (LoadedMap& m : snapshots[f].maps) {
       names.push_back(inputs[f] + "#" + std::to_string(m.id));
+      if (const std::optional<CameraMove>& move = moves[f]) {
+        const CameraChange c = ReexpressMapCamera(m.map, move->from, move->to, camera, options);
+        std::printf("camera        %s: keypoints from %s into %s's %s: %zu moved, up to %.2f px, %zu observations "
+                    "left the image; adjusted alone, %zu outliers (%.0f ms)\n",
+                    names.back().c_str(), move->from_origin.c_str(), inputs.front().c_str(), move->to_origin.c_str(),
+                    c.keypoints, c.max_shift_px, c.observations_erased, c.adjustment.outliers, c.adjustment.ms);
+      }
       maps.push_back(std::move(m.map));
     }
   }

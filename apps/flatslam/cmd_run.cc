@@ -359,6 +359,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::optional<Map> loaded_map;
   std::string loaded_note;
   CameraRefit continued_refit;
+  // The camera as the dataset (and --settings) gives it: what a refinement applies to.
+  const PinholeCamera given_camera = dataset->calibration().camera;
   const std::optional<std::string> map_to_load =
       resume_file ? std::optional<std::string>(resume_file->string()) : args.get("load-map");
   if (const auto& m = map_to_load) {
@@ -443,6 +445,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   SnapshotMetadata metadata;
   metadata.calibration = dataset->calibration();
   metadata.camera_refit = continued_refit;
+  if (dataset->calibration().sensor == Sensor::kMonocular) metadata.given_camera = given_camera;
   metadata.scales = MapScales{options.orb.scale_factor, options.orb.levels};
   // Identity of the vocabulary the map's keyframes were indexed with (0: none).
   metadata.vocabulary_checksum = options.vocabulary ? options.vocabulary->checksum() : 0;

@@ -13,6 +13,7 @@
 #include <string_view>
 #include <system_error>
 
+#include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 
 #include "core/error.h"
@@ -498,6 +499,26 @@ PinholeCamera CameraOf(const cv::Matx33d& k, cv::Size size) {
   return {k(0, 0), k(1, 1), k(0, 2), k(1, 2), size.width, size.height};
 }
 
+cv::Matx33d MatrixOf(const PinholeCamera& c) { return {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1}; }
+
+// The camera a single (not stereo) settings camera's images are undistorted to: every pixel valid
+// (alpha 0), or the camera itself when it has no distortion.
+PinholeCamera UndistortedCamera(const SettingsCamera& camera, cv::Size size) {
+  if (!camera.distorted()) return CameraOf(camera.K(), size);
+  return CameraOf(UndistortedCameraMatrix(camera.K(), camera.distortion_mat(), size, 0), size);
+}
+
+// The settings camera ApplyCameraRefit sees a dataset's images through.
+SettingsCamera RefitLens(const PinholeCamera& given, const CameraRefit& refit) {
+  SettingsCamera lens;
+  lens.fx = given.fx * refit.focal_scale;
+  lens.fy = given.fy * refit.focal_scale;
+  lens.cx = given.cx;
+  lens.cy = given.cy;
+  lens.distortion[0] = refit.k1;
+  return lens;
+}
+
 // A dataset delivering raw images, seen through a settings file's calibration.
 class SettingsDataset final : public Dataset {
  public:
@@ -542,11 +563,11 @@ class SettingsDataset final : public Dataset {
       FLATSLAM_CHECK(!stereo, "settings file ", file,
                      ": distortion (Camera.k1 ...) on a stereo pair needs its rectification: LEFT/RIGHT blocks "
                      "(ORB-SLAM2) or Camera2.* with Stereo.T_c1_c2 (ORB-SLAM3)");
-      const cv::Matx33d k = UndistortedCameraMatrix(s.camera.K(), s.camera.distortion_mat(), size, 0);
-      left_map_ = RectifyMap(s.camera.K(), s.camera.distortion_mat(), cv::Matx33d::eye(), k, size);
-      calibration_.camera = CameraOf(k, size);
+      calibration_.camera = UndistortedCamera(s.camera, size);
+      left_map_ = RectifyMap(s.camera.K(), s.camera.distortion_mat(), cv::Matx33d::eye(),
+                             MatrixOf(calibration_.camera), size);
     } else {
-      calibration_.camera = CameraOf(s.camera.K(), size);
+      calibration_.camera = UndistortedCamera(s.camera, size);
     }
     // The rectified left camera is the raw one rotated by R_left; poses follow it.
     const Eigen::Isometry3d T_raw_rect = RawFromRectified(R_left);
@@ -593,12 +614,46 @@ std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, cons
                  dataset->name(), " is read as ", given.sensor == Sensor::kStereo ? "stereo" : "RGB-D");
   auto settings = std::make_shared<OrbSettings>();
   settings->file = "the camera its map refined";
-  settings->camera.fx = given.camera.fx * refit.focal_scale;
-  settings->camera.fy = given.camera.fy * refit.focal_scale;
-  settings->camera.cx = given.camera.cx;
-  settings->camera.cy = given.camera.cy;
-  settings->camera.distortion[0] = refit.k1;
+  settings->camera = RefitLens(given.camera, refit);
   return ApplyOrbSettings(std::move(dataset), std::move(settings));
+}
+
+RefinedCamera::RefinedCamera(const PinholeCamera& given, const CameraRefit& refit)
+    : lens_(RefitLens(given, refit)), camera_(UndistortedCamera(lens_, cv::Size(given.width, given.height))) {}
+
+std::vector<Eigen::Vector2d> RefinedCamera::ToGiven(std::span<const Eigen::Vector2d> p) const {
+  // RectifyMap's undistortion samples the given image where the lens distorts the normalized ray
+  // of a refined pixel: the same forward model here.
+  std::vector<cv::Point3d> rays;
+  rays.reserve(p.size());
+  for (const Eigen::Vector2d& x : p)
+    rays.emplace_back((x.x() - camera_.cx) / camera_.fx, (x.y() - camera_.cy) / camera_.fy, 1.0);
+  std::vector<cv::Point2d> q;
+  if (!rays.empty())
+    cv::projectPoints(rays, cv::Vec3d::zeros(), cv::Vec3d::zeros(), lens_.K(), lens_.distortion_mat(), q);
+  std::vector<Eigen::Vector2d> out;
+  out.reserve(q.size());
+  for (const cv::Point2d& x : q) out.emplace_back(x.x, x.y);
+  return out;
+}
+
+std::vector<Eigen::Vector2d> RefinedCamera::FromGiven(std::span<const Eigen::Vector2d> q) const {
+  std::vector<cv::Point2d> given;
+  given.reserve(q.size());
+  for (const Eigen::Vector2d& x : q) given.emplace_back(x.x(), x.y());
+  std::vector<cv::Point2d> p;
+  if (!given.empty())
+    cv::undistortPoints(given, p, lens_.K(), lens_.distortion_mat(), cv::noArray(), MatrixOf(camera_),
+                        cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 50, 1e-12));
+  std::vector<Eigen::Vector2d> out;
+  out.reserve(p.size());
+  for (const cv::Point2d& x : p) out.emplace_back(x.x, x.y);
+  return out;
+}
+
+std::vector<Eigen::Vector2d> Reexpress(const RefinedCamera& from, const RefinedCamera& to,
+                                       std::span<const Eigen::Vector2d> p) {
+  return to.FromGiven(from.ToGiven(p));
 }
 
 }  // namespace flatslam

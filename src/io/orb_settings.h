@@ -23,6 +23,7 @@
 #include <filesystem>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
@@ -99,5 +100,28 @@ struct OrbSettings {
 // lengths times refit.focal_scale (principal point kept), its calibration the undistorted
 // camera's. A monocular dataset only (throws naming the dataset otherwise).
 [[nodiscard]] std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, const CameraRefit& refit);
+
+// One refinement of a given camera as ApplyCameraRefit applies it: the camera of the images it
+// gives, and where their pixels lie in the given images. Two refinements of one camera see the
+// same given image, so a keypoint measured through one is re-expressed in the other through it.
+class RefinedCamera {
+ public:
+  RefinedCamera(const PinholeCamera& given, const CameraRefit& refit);
+
+  // The camera of the refined images (ApplyCameraRefit's calibration).
+  [[nodiscard]] const PinholeCamera& camera() const { return camera_; }
+  // Pixels of the refined image in the given image, and back (the inverse of the distortion by
+  // fixed-point iteration, until it reproduces the given pixel to 1e-12 px or for 50 steps).
+  [[nodiscard]] std::vector<Eigen::Vector2d> ToGiven(std::span<const Eigen::Vector2d> p) const;
+  [[nodiscard]] std::vector<Eigen::Vector2d> FromGiven(std::span<const Eigen::Vector2d> q) const;
+
+ private:
+  SettingsCamera lens_;   // the given camera at the refined focal lengths, with the refined k1
+  PinholeCamera camera_;  // the undistorted camera
+};
+
+// Pixels of the images of refinement `from` in those of refinement `to` of the same given camera.
+[[nodiscard]] std::vector<Eigen::Vector2d> Reexpress(const RefinedCamera& from, const RefinedCamera& to,
+                                                     std::span<const Eigen::Vector2d> p);
 
 }  // namespace flatslam

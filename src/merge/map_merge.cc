@@ -669,6 +669,45 @@ MergedMapAdjustment AdjustMergedMap(Map& map, const MergeCamera& camera, const M
   return out;
 }
 
+CameraChange ReexpressMapCamera(Map& map, const RefinedCamera& from, const RefinedCamera& to,
+                                const MergeCamera& camera, const MapMergeOptions& options) {
+  CameraChange out;
+  const PinholeCamera& image = to.camera();
+  const std::vector<KeyFrameHandle> keyframes(map.keyframes().handles().begin(), map.keyframes().handles().end());
+  std::vector<std::vector<uint32_t>> left(keyframes.size());  // keypoints outside the new image
+  std::vector<double> shift(keyframes.size(), 0.0);
+  tbb::parallel_for(size_t{0}, keyframes.size(), [&](size_t k) {
+    KeyFrame& kf = map.keyframe(keyframes[k]);
+    std::vector<Eigen::Vector2d> uv;
+    uv.reserve(kf.size());
+    for (const Eigen::Vector2f& p : kf.uv) uv.push_back(p.cast<double>());
+    const std::vector<Eigen::Vector2d> moved = Reexpress(from, to, uv);
+    std::vector<Eigen::Vector2f> column(moved.size());
+    for (size_t i = 0; i < moved.size(); ++i) {
+      column[i] = moved[i].cast<float>();
+      shift[k] = std::max(shift[k], (moved[i] - uv[i]).norm());
+      const bool inside = moved[i].x() >= 0 && moved[i].y() >= 0 && moved[i].x() < image.width &&
+                          moved[i].y() < image.height;
+      if (!inside) left[k].push_back(static_cast<uint32_t>(i));
+    }
+    kf.uv = std::move(column);
+  });
+  for (size_t k = 0; k < keyframes.size(); ++k) {
+    out.keypoints += map.keyframe(keyframes[k]).size();
+    out.max_shift_px = std::max(out.max_shift_px, shift[k]);
+    for (uint32_t i : left[k]) {
+      const PointHandle p = map.keyframe(keyframes[k]).points[i];
+      if (p.is_null()) continue;
+      map.EraseObservation(p, keyframes[k]);
+      ++out.observations_erased;
+    }
+  }
+  MapMergeOptions adjust = options;
+  adjust.refine = true;
+  out.adjustment = AdjustMergedMap(map, camera, adjust);
+  return out;
+}
+
 MultiMapMerge MergeAllMaps(std::vector<Map> maps, const Vocabulary& vocabulary, const MergeCamera& camera,
                            const MapMergeOptions& options) {
   MultiMapMerge out;

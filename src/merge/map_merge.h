@@ -17,6 +17,7 @@
 
 #include "ecs/map.h"
 #include "io/calibration.h"
+#include "io/orb_settings.h"
 #include "io/types.h"
 #include "optimization/bundle_adjustment.h"
 #include "mapping/map_bundle_adjustment.h"
@@ -233,6 +234,24 @@ struct MergedMapAdjustment {
 // Adjusts a merged map as a whole (MapMergeOptions::adjust_iterations): every keyframe free but
 // the one with the lowest id, which holds the frame.
 [[nodiscard]] MergedMapAdjustment AdjustMergedMap(Map& map, const MergeCamera& camera, const MapMergeOptions& options);
+
+// What re-expressing a map in another camera did (ReexpressMapCamera).
+struct CameraChange {
+  size_t keypoints = 0;            // keypoints moved
+  double max_shift_px = 0;         // the largest move of one
+  size_t observations_erased = 0;  // their keypoint left the new camera's image
+  MergedMapAdjustment adjustment;  // the map alone, in the new camera
+};
+
+// Re-expresses a map whose keypoints were measured through refinement `from` of a camera in
+// refinement `to` of the same camera (two runs that refined one lens differently saw one given
+// image through two models): every keypoint moves through the given image, observations whose
+// keypoint leaves `to`'s image are erased, then the map is adjusted alone in `to` (camera, whose
+// calibration is to.camera()) to convergence, since each keypoint moved by the model's error,
+// and that is systematic, not noise. The map can then merge with maps built through `to`.
+// Concurrency: exclusive access to map; keyframes move on TBB workers, each its own.
+[[nodiscard]] CameraChange ReexpressMapCamera(Map& map, const RefinedCamera& from, const RefinedCamera& to,
+                                              const MergeCamera& camera, const MapMergeOptions& options);
 
 struct MultiMapMerge {
   std::vector<Map> maps;                         // one per group of overlapping inputs

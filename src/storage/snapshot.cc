@@ -302,7 +302,9 @@ void BuildSnapshot(fb::FlatBufferBuilder& builder, std::span<const SnapshotMapRe
   const auto root =
       schema::CreateMapSnapshot(builder, kMapSnapshotFormatVersion, &placeholder, metadata.vocabulary_checksum,
                                 calibration, scales, segment_vector, session, metadata.rgbd_virtual_baseline_m,
-                                metadata.camera_refit.focal_scale, metadata.camera_refit.k1);
+                                metadata.camera_refit.focal_scale, metadata.camera_refit.k1,
+                                metadata.given_camera.fx, metadata.given_camera.fy, metadata.given_camera.cx,
+                                metadata.given_camera.cy);
   schema::FinishMapSnapshotBuffer(builder, root);
 }
 
@@ -729,6 +731,18 @@ double MapSnapshotView::rgbd_virtual_baseline_m() const {
 CameraRefit MapSnapshotView::camera_refit() const {
   return CameraRefit{root_->camera_refit_focal_scale(), root_->camera_refit_k1()};
 }
+PinholeCamera MapSnapshotView::given_camera() const {
+  PinholeCamera camera;
+  if (root_->camera_given_fx() <= 0) return camera;
+  const PinholeCamera made_with = calibration().camera;
+  camera.fx = root_->camera_given_fx();
+  camera.fy = root_->camera_given_fy();
+  camera.cx = root_->camera_given_cx();
+  camera.cy = root_->camera_given_cy();
+  camera.width = made_with.width;
+  camera.height = made_with.height;
+  return camera;
+}
 uint64_t MapSnapshotView::vocabulary_checksum() const {
   return root_->vocabulary_checksum();
 }
@@ -821,6 +835,7 @@ LoadedSnapshot LoadMapSnapshot(const MapSnapshotView& view) {
   out.metadata.vocabulary_checksum = view.vocabulary_checksum();
   out.metadata.rgbd_virtual_baseline_m = view.rgbd_virtual_baseline_m();
   out.metadata.camera_refit = view.camera_refit();
+  out.metadata.given_camera = view.given_camera();
   out.maps.resize(view.map_count());
   std::vector<std::vector<KeyFrameHandle>> kf_handles_of(view.map_count());
   for (size_t m = 0; m < view.map_count(); ++m) {

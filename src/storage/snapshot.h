@@ -54,6 +54,8 @@ struct SnapshotMetadata {
   double rgbd_virtual_baseline_m = 0;
   // The camera a monocular session refined over the dataset's (calibration is the refined one).
   CameraRefit camera_refit;
+  // Refined sessions: the camera as the dataset gave it, before camera_refit (fx 0: not recorded).
+  PinholeCamera given_camera;
 };
 
 // One map to save. Its agents are the distinct KeyFrame::agent values.
@@ -124,6 +126,7 @@ class MapSnapshotView {
   [[nodiscard]] MapScales scales() const;
   [[nodiscard]] double rgbd_virtual_baseline_m() const;  // 0: not recorded
   [[nodiscard]] CameraRefit camera_refit() const;
+  [[nodiscard]] PinholeCamera given_camera() const;  // fx 0: not recorded
 
   [[nodiscard]] size_t map_count() const;
   [[nodiscard]] uint32_t map_id(size_t m) const;

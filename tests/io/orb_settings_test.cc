@@ -8,6 +8,7 @@
 #include <vector>
 
 #include <gtest/gtest.h>
+#include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 
 #include "core/error.h"
@@ -660,6 +661,63 @@ TEST(CameraRefit, TwoRefinementsComposeIntoOne) {
   const CameraRefit same = ThenRefit(first, CameraRefit{});
   EXPECT_DOUBLE_EQ(same.focal_scale, first.focal_scale);
   EXPECT_DOUBLE_EQ(same.k1, first.k1);
+}
+
+// A refinement's camera is the one ApplyCameraRefit gives, its pixels sit where the undistortion
+// maps sample the given image, and two refinements of one camera map pixels into each other.
+TEST(RefinedCamera, PixelsMoveBetweenRefinementsOfOneCamera) {
+  DatasetOptions options;
+  options.sensor = Sensor::kMonocular;
+  const std::string scene = "synth:room:width=480,height=360,duration=0.2";
+  const PinholeCamera given = OpenDataset(scene, options)->calibration().camera;
+  const CameraRefit a{1.012, 0.03}, b{0.995, -0.01}, focal_only{1.02, 0};
+  std::vector<Eigen::Vector2d> grid;
+  for (double u = 0; u < given.width; u += given.width / 12.0)
+    for (double v = 0; v < given.height; v += given.height / 9.0) grid.emplace_back(u, v);
+  for (const CameraRefit& refit : {a, b, focal_only, CameraRefit{}}) {
+    const RefinedCamera refined(given, refit);
+    const PinholeCamera through = ApplyCameraRefit(OpenDataset(scene, options), refit)->calibration().camera;
+    EXPECT_DOUBLE_EQ(refined.camera().fx, through.fx);
+    EXPECT_DOUBLE_EQ(refined.camera().fy, through.fy);
+    EXPECT_DOUBLE_EQ(refined.camera().cx, through.cx);
+    EXPECT_DOUBLE_EQ(refined.camera().cy, through.cy);
+    EXPECT_EQ(refined.camera().width, through.width);
+    // The maps the refined images are resampled with.
+    const cv::Matx33d lens(given.fx * refit.focal_scale, 0, given.cx, 0, given.fy * refit.focal_scale, given.cy, 0,
+                           0, 1);
+    const cv::Matx33d undistorted(through.fx, 0, through.cx, 0, through.fy, through.cy, 0, 0, 1);
+    cv::Mat map_u, map_v;
+    cv::initUndistortRectifyMap(lens, cv::Mat(cv::Vec4d(refit.k1, 0, 0, 0)), cv::Mat::eye(3, 3, CV_64F),
+                                undistorted, cv::Size(given.width, given.height), CV_32FC1, map_u, map_v);
+    const std::vector<Eigen::Vector2d> in_given = refined.ToGiven(grid);
+    const std::vector<Eigen::Vector2d> back = refined.FromGiven(in_given);
+    ASSERT_EQ(in_given.size(), grid.size());
+    double worst_map = 0, worst_round_trip = 0;
+    for (size_t i = 0; i < grid.size(); ++i) {
+      const int u = static_cast<int>(grid[i].x()), v = static_cast<int>(grid[i].y());
+      const Eigen::Vector2d at(u, v);
+      const Eigen::Vector2d sampled(map_u.at<float>(v, u), map_v.at<float>(v, u));
+      worst_map = std::max(worst_map, (refined.ToGiven(std::vector{at})[0] - sampled).norm());
+      worst_round_trip = std::max(worst_round_trip, (back[i] - grid[i]).norm());
+    }
+    EXPECT_LT(worst_map, 1e-3) << refit.k1;
+    EXPECT_LT(worst_round_trip, 1e-6) << refit.k1;
+  }
+  // Nothing refined: the given camera, pixels unmoved.
+  const std::vector<Eigen::Vector2d> same = RefinedCamera(given, CameraRefit{}).ToGiven(grid);
+  for (size_t i = 0; i < grid.size(); ++i) EXPECT_LT((same[i] - grid[i]).norm(), 1e-9);
+  // From a to b and back; a into itself changes nothing; a and b differ by pixels at the corners.
+  const RefinedCamera ra(given, a), rb(given, b);
+  const std::vector<Eigen::Vector2d> in_b = Reexpress(ra, rb, grid), again = Reexpress(rb, ra, in_b),
+                                     self = Reexpress(ra, ra, grid);
+  double largest = 0;
+  for (size_t i = 0; i < grid.size(); ++i) {
+    EXPECT_LT((again[i] - grid[i]).norm(), 1e-6);
+    EXPECT_LT((self[i] - grid[i]).norm(), 1e-6);
+    largest = std::max(largest, (in_b[i] - grid[i]).norm());
+  }
+  EXPECT_GT(largest, 2.0);
+  EXPECT_TRUE(Reexpress(ra, rb, std::vector<Eigen::Vector2d>{}).empty());
 }
 
 }  // namespace

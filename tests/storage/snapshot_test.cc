@@ -306,6 +306,18 @@ TEST(MapSnapshot, ARefinedCameraIsRecorded) {
   const CameraRefit loaded = LoadMapSnapshotFromBytes(bytes, "memory").metadata.camera_refit;
   EXPECT_EQ(loaded.focal_scale, 1.0042);
   EXPECT_EQ(loaded.k1, 0.0153);
+  // The camera the session was given before the refinement comes back with the size of the
+  // calibration; a snapshot that does not record it reads fx 0.
+  EXPECT_EQ(MapSnapshotView::FromBytes(bytes, "memory").given_camera().fx, 0);
+  metadata.given_camera = PinholeCamera{701.5, 702.5, 600.25, 180.75, 0, 0};
+  const std::vector<uint8_t> with_given = SerializeMapSnapshot({&ref, 1}, metadata);
+  const PinholeCamera given = LoadMapSnapshotFromBytes(with_given, "memory").metadata.given_camera;
+  EXPECT_EQ(given.fx, 701.5);
+  EXPECT_EQ(given.fy, 702.5);
+  EXPECT_EQ(given.cx, 600.25);
+  EXPECT_EQ(given.cy, 180.75);
+  EXPECT_EQ(given.width, metadata.calibration.camera.width);
+  EXPECT_EQ(given.height, metadata.calibration.camera.height);
 }
 
 // A checkpoint's session (next frame, dataset, command line, trajectory anchored at keyframes)
