@@ -85,7 +85,11 @@ const char* const kRunUsage =
     "                   the camera model against its own map while it is young (as flatslam map\n"
     "                   calibrate does: focal length and a radial k1) and, when the map disagrees\n"
     "                   with it, starts over with the refined camera: a monocular map's scale\n"
-    "                   through turns follows small errors of the camera model\n"
+    "                   through turns follows small errors of the camera model. After the last\n"
+    "                   frame it checks the whole map once more (a young map cannot always tell:\n"
+    "                   a straight start, turns later) and, when that disagrees, moves the map's\n"
+    "                   keypoints into the refined camera and adjusts the map in it; the\n"
+    "                   trajectory, saved map and checkpoint follow\n"
     "  --camera-from MAP  monocular: run with the camera a saved map's session ran with (refined\n"
     "                   from its map, or as given), not checked: sessions of one camera then share\n"
     "                   it, and their maps merge (flatslam map merge)\n"
@@ -565,13 +569,13 @@ int RunRun(const std::vector<std::string>& original_argv) {
   run.before_checkpoint = [&] { recorder.Flush(); };
   // A live agent's keyframes leave the process as they are made: it keeps the camera it was given.
   run.check_camera = !link && !args.has("keep-camera") && !camera_from;
-  run.on_camera_refined = [&](const CameraRefit& refit, const Calibration& refined) {
+  run.on_camera_refined = [&](const CameraRefit& refit, const Calibration& refined, bool restart) {
     // Saved maps and checkpoints describe the camera the run uses, and how to see the dataset through it.
     metadata.calibration = refined;
     metadata.camera_refit = refit;
     if (!quiet)
-      std::fprintf(stderr, "\rcamera model refined by the map (k1 %+.4f, focal length %+.2f%%): starting over\n",
-                   refit.k1, 100 * (refit.focal_scale - 1));
+      std::fprintf(stderr, "\rcamera model refined by the map (k1 %+.4f, focal length %+.2f%%): %s\n", refit.k1,
+                   100 * (refit.focal_scale - 1), restart ? "starting over" : "the map moves into it");
   };
   const StopSignals stop_signals("flatslam run");
   run.stop = &g_stop;
@@ -593,8 +597,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
                 c.camera.height, c.camera.fx, c.frame_rate_hz,
                 c.sensor == Sensor::kStereo ? (", baseline " + std::to_string(c.baseline_m) + " m").c_str() : "",
                 resolved.orb.features, options.orb.features == 0 ? " (from the camera)" : "");
-    if (result.camera_refit.refined()) {
-      const CameraRefit& refit = result.camera_refit;
+    if (result.camera_restarts > 0) {
+      const CameraRefit& refit = result.camera_refit_tracked;
       const std::string last = DescribeCameraCheck(result.camera_check, result.camera_checked);
       std::printf("camera check  the map of the first %zu frames disagreed with the camera model%s: the run started "
                   "over with k1 %+.4f and the focal length %+.2f%% (undistorted: fx %.2f); --keep-camera keeps "
@@ -602,7 +606,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
                   "              last check, of the camera at fx %.2f: %s\n",
                   result.frames_before_restart,
                   result.camera_restarts > 1 ? " (twice: the first refinement fell short)" : "", refit.k1,
-                  100 * (refit.focal_scale - 1), result.calibration.camera.fx, result.camera_checked.fx,
+                  100 * (refit.focal_scale - 1), result.camera_tracked.fx, result.camera_checked.fx,
                   last.substr(0, last.find('\n')).c_str());
     } else if (const std::string check = DescribeCameraCheck(result.camera_check, c.camera); !check.empty()) {
       std::printf("camera check  %s\n", check.c_str());
@@ -610,6 +614,16 @@ int RunRun(const std::vector<std::string>& original_argv) {
         std::printf("              the run kept the given camera: the refined one moves the image's corner by %.1f px, "
                     "outside what a run corrects by itself (1 px to 5%% of the half-diagonal)\n",
                     CameraCheckCornerShiftPx(result.camera_check, c.camera));
+    }
+    if (const std::string end = DescribeCameraCheck(result.camera_check_at_end, result.camera_tracked); !end.empty()) {
+      std::printf("camera check  after the last frame, the whole map (%.0f ms): %s\n", result.camera_end_ms,
+                  end.substr(0, end.find('\n')).c_str());
+      if (result.camera_refined_at_end)
+        std::printf("              it disagreed: its %zu keypoints moved into the refined camera (k1 %+.4f, focal "
+                    "length %+.2f%% over the given: fx %.2f; up to %.2f px) and it was adjusted in it; the trajectory "
+                    "follows its keyframes\n",
+                    result.camera_end_keypoints, result.camera_refit.k1, 100 * (result.camera_refit.focal_scale - 1),
+                    result.calibration.camera.fx, result.camera_end_max_shift_px);
     }
   }
   std::printf("frames        %zu tracked, %zu lost, %zu before initialization, %zu skipped (unreadable)\n",

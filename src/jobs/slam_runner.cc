@@ -15,6 +15,7 @@
 #include "jobs/background_worker.h"
 #include "jobs/pipeline.h"
 #include "jobs/system_graph.h"
+#include "merge/map_merge.h"
 
 namespace flatslam {
 namespace {
@@ -42,8 +43,10 @@ struct MappingJob {
 
 // One session over the dataset. abandon (may be null): like run.stop, but the run is being
 // replaced, not interrupted.
+// at_end (may be empty): called with the session once every frame is tracked and mapped and no
+// background work is left, unless the run was interrupted, failed or abandoned; counts in wall_s.
 SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run,
-                         const std::atomic<bool>* abandon) {
+                         const std::atomic<bool>* abandon, const std::function<void(SlamSession&)>& at_end = {}) {
   const auto abandoned = [abandon] { return abandon && abandon->load(); };
   SlamSession slam(dataset.calibration(), options);
   // The run's steps and the access they declare: refused before the first frame if two that may
@@ -275,6 +278,8 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
   }
   if (result.interrupted || !result.error.empty() || abandoned()) slam.AbandonBackground();
   background.Wait();
+  if (at_end && !result.interrupted && result.error.empty() && !abandoned() && result.frames > result.frames_skipped)
+    at_end(slam);
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (result.error.empty() && result.frames > 0 && result.frames_skipped == result.frames)
     Fail("none of the ", result.frames, " frames of ", dataset.name(), " could be read; the first: ", first_unreadable);
@@ -361,6 +366,8 @@ class CameraCheckPass {
   [[nodiscard]] bool restart() const { return state_ == kRestart; }
   [[nodiscard]] const CameraCheck& last_check() const { return last_; }
   [[nodiscard]] size_t frames_at_restart() const { return frames_at_restart_; }
+  // The keyframe count of the schedule's next check (the mapping lane's; read after the pass).
+  [[nodiscard]] size_t next_check() const { return next_check_; }
 
  private:
   // A call for run's on_frame or on_skipped: held while undecided, else made (outside the lock).
@@ -432,6 +439,57 @@ bool CameraCheckWindow::Refits(const CameraCheck& check, const PinholeCamera& ca
          shift <= kMaxCornerShiftShare * 0.5 * std::hypot(camera.width, camera.height);
 }
 
+namespace {
+
+// What the check after the last frame found and did (RunSlam).
+struct EndRefinement {
+  CameraCheck check;
+  bool refined = false;
+  CameraRefit refit;  // the dataset's refinement, composed, when refined
+  Calibration calibration;
+  size_t keypoints = 0;
+  double max_shift_px = 0, ms = 0;
+};
+
+// The whole map's check after the last frame, once it holds at least min_keyframes: a map that
+// disagrees with its camera by what CameraCheckWindow::Refits accepts has its keypoints moved
+// from the camera it saw (given, refined by `refit`) into the refinement the map asks for, and is
+// adjusted in it to convergence (ReexpressMapCamera, as a merge re-expresses a map), which takes
+// out what keyframes and points had bent to fit the old model.
+EndRefinement RefineCameraAtEnd(SlamSession& slam, const Calibration& seen, const PinholeCamera& given,
+                                const CameraRefit& refit, size_t min_keyframes) {
+  EndRefinement out;
+  const auto start = std::chrono::steady_clock::now();
+  const CameraGeometry& geometry = slam.context().geometry;
+  bool checked = false;
+  slam.ReadMap([&](const Map& map) {
+    if (map.keyframes().size() < min_keyframes) return;
+    CameraCheckOptions options;
+    options.max_points = CameraCheckWindow::kMaxPoints;
+    out.check = CheckCameraModel(map, geometry, options);
+    checked = true;
+  });
+  if (checked && CameraCheckWindow::Refits(out.check, geometry.camera)) {
+    out.refit = ThenRefit(refit, CameraRefit{out.check.focal_scale, out.check.k1});
+    const RefinedCamera from(given, refit), to(given, out.refit);
+    out.calibration = seen;
+    out.calibration.camera = to.camera();
+    const MergeCamera camera = MergeCamera::FromCalibration(out.calibration, slam.context().map_scales, 0);
+    MapMergeOptions options;
+    options.bundle_adjustment.num_threads = std::max(1, tbb::this_task_arena::max_concurrency());
+    slam.EditMapAfterLastFrame([&](Map& map) {
+      const CameraChange change = ReexpressMapCamera(map, from, to, camera, options);
+      out.keypoints = change.keypoints;
+      out.max_shift_px = change.max_shift_px;
+    });
+    out.refined = true;
+  }
+  out.ms = MsSince(start);
+  return out;
+}
+
+}  // namespace
+
 SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
   if (!run.check_camera || dataset.calibration().sensor != Sensor::kMonocular || run.initial_map)
     return RunSession(dataset, options, run, nullptr);
@@ -444,16 +502,26 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   size_t restarts = 0, frames_before_restart = 0;
   double wall_s = 0;
   SlamRunResult result;
+  EndRefinement at_last;
+  // After the last frame of the pass that goes on: the whole map checked once more (once it
+  // reached the window's next count: a map no larger than the last check's says nothing new).
+  auto at_end = [&](const Dataset& seen, const std::function<size_t()>& min_keyframes) {
+    return [&, min_keyframes](SlamSession& slam) {
+      at_last = RefineCameraAtEnd(slam, seen.calibration(), dataset.calibration().camera, refit, min_keyframes());
+      if (at_last.refined && run.on_camera_refined) run.on_camera_refined(at_last.refit, at_last.calibration, false);
+    };
+  };
   for (;;) {
     const Dataset& seen = refined ? *refined : dataset;
     if (restarts == CameraCheckWindow::kMaxRestarts) {
-      result = RunSession(seen, options, run, nullptr);
+      result = RunSession(seen, options, run, nullptr, at_end(seen, [] { return CameraCheckWindow::kFirst; }));
       wall_s += result.wall_s;
       break;
     }
     CameraCheckPass pass(run, frames);
     try {
-      result = RunSession(seen, options, pass.Options(), pass.abandon());
+      result = RunSession(seen, options, pass.Options(), pass.abandon(),
+                          at_end(seen, [&pass] { return pass.next_check(); }));
     } catch (...) {
       pass.Release();  // what the frames before the error gave is still heard
       throw;
@@ -472,11 +540,21 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     ++restarts;
     frames_before_restart += pass.frames_at_restart();
     refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), refit);
-    if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration());
+    if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration(), true);
   }
   result.camera_check = last_check;
   result.camera_checked = checked_camera;
-  result.camera_refit = refit;
+  result.camera_refit = result.camera_refit_tracked = refit;
+  result.camera_check_at_end = at_last.check;
+  result.camera_tracked = result.calibration.camera;
+  result.camera_end_ms = at_last.ms;
+  if (at_last.refined) {
+    result.camera_refit = at_last.refit;
+    result.calibration = at_last.calibration;
+    result.camera_refined_at_end = true;
+    result.camera_end_keypoints = at_last.keypoints;
+    result.camera_end_max_shift_px = at_last.max_shift_px;
+  }
   result.camera_restarts = restarts;
   result.frames_before_restart = frames_before_restart;
   result.wall_s = wall_s;  // every pass's

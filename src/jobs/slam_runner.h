@@ -95,9 +95,15 @@ struct SlamRunOptions {
   // checkpoint is written, so every output describes one run. Leave it off where keyframes leave
   // the process as they are made (a live agent).
   bool check_camera = false;
-  // Called before each new start, with the refinement of the dataset's camera (all so far,
-  // composed) and the calibration the run uses from then on.
-  std::function<void(const CameraRefit&, const Calibration&)> on_camera_refined;
+  // After the last frame, the pass that went on checks its whole map once more (once it holds the
+  // window's next count of keyframes) and, when the map disagrees by what Refits accepts, moves
+  // its keypoints into the refined camera and adjusts it there in place (no frame is tracked
+  // again; a map's young part cannot tell what its whole motion can: a forward start, turns
+  // later).
+  // Called before each new start (restart = true), and when the end's check refines the camera
+  // in place (false, before on_finished and the last checkpoint), with the refinement of the
+  // dataset's camera (all so far, composed) and the calibration the map is then in.
+  std::function<void(const CameraRefit&, const Calibration&, bool restart)> on_camera_refined;
 };
 
 // When a run checks its camera: at keyframe counts growing by half from kFirst, while no more
@@ -153,6 +159,18 @@ struct SlamRunResult {
   CameraRefit camera_refit;
   size_t camera_restarts = 0;
   size_t frames_before_restart = 0;
+  // The camera the frames were tracked through, and its refinement of the given one (the
+  // restarts'); the check of the whole map after the last frame (ok = false: none ran, or it
+  // could not say), of that camera, and its time (the adjustment included; in wall_s). When it
+  // refined the camera (camera_refit and calibration include that refinement): the keypoints
+  // moved and the largest move.
+  PinholeCamera camera_tracked;
+  CameraRefit camera_refit_tracked;
+  CameraCheck camera_check_at_end;
+  double camera_end_ms = 0;
+  bool camera_refined_at_end = false;
+  size_t camera_end_keypoints = 0;
+  double camera_end_max_shift_px = 0;
   Calibration calibration;  // the calibration the (last) session ran with
 };
 

@@ -35,6 +35,7 @@ constexpr Access kFrameTrajectory = Access::Of({C::kMap, C::kLocalMapping, C::kT
 constexpr Access kKeyFrameTrajectory = Access::Of({C::kMap}, {});
 constexpr Access kReadMap = Access::Of({C::kMap}, {});
 constexpr Access kMoveFrame = Access::Of({}, {C::kMap, C::kTracker, C::kLocalMapping, C::kTrajectory});
+constexpr Access kAfterLastFrame = Access::Of({C::kLoops}, {C::kMap});
 }  // namespace SessionAccess
 
 std::span<const AccessStep> SlamSession::Steps() {
@@ -53,6 +54,7 @@ std::span<const AccessStep> SlamSession::Steps() {
       {"place", kPlace, "mapping", false, true},
       {"mapping.publish", kReadMap, "mapping", false, true},
       {"mapping.move_frame", kMoveFrame, "mapping", false, true},
+      {"mapping.after_last_frame", kAfterLastFrame, "mapping", false, true},
       {"global_ba.build", kBuildGlobalBa, "background", false, true},
       {"global_ba.solve", Access{}, "background", false, false},
       {"global_ba.apply", kApplyGlobalBa, "background", false, true},
@@ -107,6 +109,7 @@ FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandl
   const auto start = std::chrono::steady_clock::now();
   new_keyframe->reset();
   const auto lease = access_.Acquire(SessionAccess::kTrack);
+  FLATSLAM_CHECK(!frames_over_, "frame ", frame.index, ": the session's map was edited after its last frame");
   next_frame_ = frame.index + 1;
   if (tracker_.state != TrackingState::kNotInitialized && map_corrected_ && tracker_.last_frame &&
       !frame_poses_.empty()) {
@@ -312,6 +315,16 @@ void SlamSession::MoveMapFrame(const Eigen::Isometry3d& T_new_old, double scale)
   map_corrected_ = true;
   ++map_epoch_;
   ++map_frame_moves_;
+}
+
+void SlamSession::EditMapAfterLastFrame(const std::function<void(Map&)>& edit) {
+  const auto lease = access_.Acquire(SessionAccess::kAfterLastFrame);
+  FLATSLAM_CHECK(pending_keyframes_.load() == 0 && !global_ba_running_.load(),
+                 "the map can be edited after the last frame only once mapping and global adjustment are done");
+  frames_over_ = true;
+  edit(map_);
+  map_corrected_ = true;
+  ++map_epoch_;
 }
 
 void SlamSession::ForceLost() {

@@ -144,6 +144,12 @@ class SlamSession {
   // adjustment) is dropped. Frames tracked after it report map_frame one higher. The mapping
   // lane, between keyframes (the "mapping.move_frame" step).
   void MoveMapFrame(const Eigen::Isometry3d& T_new_old, double scale = 1.0);
+  // After the last frame, with mapping drained and no global bundle adjustment running: edit(map)
+  // rewrites the map in place (a monocular run's refined camera: every keypoint moved into it and
+  // the map adjusted in it; RunSlam's end). Tracked frames follow their reference keyframes. The
+  // session's context keeps the camera it tracked with, so it tracks no frame after this (Track
+  // throws). The caller's thread (the "mapping.after_last_frame" step).
+  void EditMapAfterLastFrame(const std::function<void(Map&)>& edit);
 
  private:
   static_assert(sizeof(AnchoredFramePose) == 72);
@@ -180,6 +186,7 @@ class SlamSession {
   // chunks spill to a temporary file, so a session of any length holds two chunks in memory.
   ChunkLog<AnchoredFramePose> frame_poses_;
   bool map_corrected_ = false;  // a loop correction moved keyframes: refresh the last frame's pose
+  bool frames_over_ = false;    // kMap: EditMapAfterLastFrame ran
   // Bumped whenever the whole map moves (loop correction, global BA): work computed on a copy
   // from an older epoch (local BA, new points) is dropped instead of written back.
   uint64_t map_epoch_ = 0;
