@@ -335,10 +335,7 @@ std::optional<CameraMove> CameraMoveBetween(const SnapshotMetadata& m, const Sna
 // the calibration error ("" when the refinements agree: the cameras simply differ).
 std::string RefitHint(const std::string& in, const SnapshotMetadata& m, const std::string& first_in,
                       const SnapshotMetadata& first) {
-  const bool refits_differ = first.camera_refit.refined() != m.camera_refit.refined() ||
-                             first.camera_refit.k1 != m.camera_refit.k1 ||
-                             first.camera_refit.focal_scale != m.camera_refit.focal_scale;
-  if (!refits_differ) return "";
+  if (first.camera_refit == m.camera_refit) return "";
   const std::string used = "; " + in + "'s session used " + CameraOrigin(m) + ", " + first_in + "'s " +
                            CameraOrigin(first);
   if (GivenCamera(first) && GivenCamera(m)) return used + ", of another given camera";

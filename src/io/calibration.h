@@ -50,6 +50,7 @@ struct CameraRefit {
   double focal_scale = 1;
   double k1 = 0;
   [[nodiscard]] bool refined() const { return focal_scale != 1 || k1 != 0; }
+  [[nodiscard]] bool operator==(const CameraRefit&) const = default;
 };
 
 // The one refinement of the dataset's images that does what `first` and then `second` do, where

@@ -196,6 +196,21 @@ void MapMergeCli::RefusesAnotherCalibration() {
   run = RunApp(lens + path("lens_both") + " --keep-camera --camera-from " + path("lens_refined"));
   EXPECT_NE(run.exit_code, 0) << run.output;
   EXPECT_TRUE(Contains(run.output, "choose one camera")) << run.output;
+  // A refined session saved before snapshots recorded the camera it was given (fx 0 there): its
+  // keypoints cannot be moved into another camera, so the merge refuses it and says what to do.
+  {
+    LoadedSnapshot old = LoadMapSnapshot(path("lens_refined"));
+    ASSERT_TRUE(old.metadata.camera_refit.refined());
+    old.metadata.given_camera = PinholeCamera{};
+    const SnapshotMapRef ref{old.maps.front().id, &old.maps.front().map};
+    SaveMapSnapshot(path("lens_old"), {&ref, 1}, old.metadata);
+  }
+  const Result refused = RunApp("map merge " + path("lens_kept") + " " + path("lens_old") + " -o " + path("out_old"));
+  EXPECT_EQ(refused.exit_code, 1) << refused.output;
+  EXPECT_TRUE(Contains(refused.output, "cannot be re-expressed in another: run the later sessions with --camera-from " +
+                                           path("lens_kept")))
+      << refused.output;
+  EXPECT_FALSE(fs::exists(path("out_old")));
 }
 
 void MapMergeCli::RefusesAnotherVocabulary() {
