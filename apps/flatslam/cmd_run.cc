@@ -569,6 +569,8 @@ int RunRun(const std::vector<std::string>& original_argv) {
   run.before_checkpoint = [&] { recorder.Flush(); };
   // A live agent's keyframes leave the process as they are made: it keeps the camera it was given.
   run.check_camera = !link && !args.has("keep-camera") && !camera_from;
+  run.continued_refit = continued_refit;
+  run.continued_given = given_camera;
   run.on_camera_refined = [&](const CameraRefit& refit, const Calibration& refined, bool restart) {
     // Saved maps and checkpoints describe the camera the run uses, and how to see the dataset through it.
     metadata.calibration = refined;
@@ -702,7 +704,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::printf("peak RSS      %.0f MiB\n", PeakRssMiB());
   // The run's row of the results table, as `flatslam batch` writes it for each sequence.
   SequenceResult row = ResultOfRun(result, counts);
-  if (continued_refit.refined()) {  // the camera of --camera-from or of the continued map
+  if (continued_refit.refined() && !result.camera_refined_at_end) {  // --camera-from's or the continued map's
     row.camera_refit_k1 = continued_refit.k1;
     row.camera_refit_focal_scale = continued_refit.focal_scale;
   }

@@ -491,11 +491,19 @@ EndRefinement RefineCameraAtEnd(SlamSession& slam, const Calibration& seen, cons
 }  // namespace
 
 SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run) {
-  if (!run.check_camera || dataset.calibration().sensor != Sensor::kMonocular || run.initial_map)
+  // A continued session checks its whole map after its last frame too (composing onto the
+  // refinement the continued map's session made), but never starts over; one that only localizes
+  // leaves the map as it is, and one whose map's given camera is not recorded cannot be moved.
+  const bool continued = run.initial_map != nullptr;
+  const bool movable = !run.continued_refit.refined() || run.continued_given.valid();
+  if (!run.check_camera || dataset.calibration().sensor != Sensor::kMonocular ||
+      (continued && (options.localization_only || !movable)))
     return RunSession(dataset, options, run, nullptr);
+  // The camera the dataset gave, before any refinement.
+  const PinholeCamera given = continued && run.continued_refit.refined() ? run.continued_given : dataset.calibration().camera;
   const size_t end = run.max_frames > 0 ? std::min(run.max_frames, dataset.size()) : dataset.size();
   const size_t frames = end > run.first_frame ? end - run.first_frame : 0;
-  CameraRefit refit;                  // the refinements so far, composed
+  CameraRefit refit = continued ? run.continued_refit : CameraRefit{};  // the refinements so far, composed
   std::unique_ptr<Dataset> refined;   // the dataset seen through refit
   CameraCheck last_check;             // the last check any pass made, and its pass's camera
   PinholeCamera checked_camera = dataset.calibration().camera;
@@ -507,13 +515,13 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
   // reached the window's next count: a map no larger than the last check's says nothing new).
   auto at_end = [&](const Dataset& seen, const std::function<size_t()>& min_keyframes) {
     return [&, min_keyframes](SlamSession& slam) {
-      at_last = RefineCameraAtEnd(slam, seen.calibration(), dataset.calibration().camera, refit, min_keyframes());
+      at_last = RefineCameraAtEnd(slam, seen.calibration(), given, refit, min_keyframes());
       if (at_last.refined && run.on_camera_refined) run.on_camera_refined(at_last.refit, at_last.calibration, false);
     };
   };
   for (;;) {
     const Dataset& seen = refined ? *refined : dataset;
-    if (restarts == CameraCheckWindow::kMaxRestarts) {
+    if (continued || restarts == CameraCheckWindow::kMaxRestarts) {
       result = RunSession(seen, options, run, nullptr, at_end(seen, [] { return CameraCheckWindow::kFirst; }));
       wall_s += result.wall_s;
       break;

@@ -104,6 +104,13 @@ struct SlamRunOptions {
   // in place (false, before on_finished and the last checkpoint), with the refinement of the
   // dataset's camera (all so far, composed) and the calibration the map is then in.
   std::function<void(const CameraRefit&, const Calibration&, bool restart)> on_camera_refined;
+  // With initial_map: the refinement of the dataset's own camera that `dataset` is already seen
+  // through (the continued map's session made it), and that own camera (needed when refined:
+  // without it the map's keypoints cannot move into another refinement, and the end's check is
+  // skipped). A continued session never starts over; with check_camera it checks its whole map
+  // after its last frame as above, composing onto continued_refit.
+  CameraRefit continued_refit;
+  PinholeCamera continued_given;
 };
 
 // When a run checks its camera: at keyframe counts growing by half from kFirst, while no more

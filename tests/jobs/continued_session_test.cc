@@ -100,6 +100,43 @@ TEST(ContinuedSession, SectionsOf200FramesMatchTheUninterruptedRun) {
   std::filesystem::remove_all(dir);
 }
 
+// A monocular session continued with the camera check (as flatslam run --load-map and --resume
+// run it) checks the whole map after its last frame, and moves it into the camera it asks for:
+// here a map built through a lens its calibration leaves out (k1 = 0.03), camera kept. Continued
+// with localization only, the map stays as it is.
+TEST(ContinuedSession, AMonocularContinuationChecksTheWholeMapAfterItsLastFrame) {
+  const auto dataset = OpenDataset("synth:room:duration=8,width=480,height=360,sensor=mono,k1=0.03");
+  SlamRunOptions first;
+  first.deterministic = true;
+  std::vector<uint8_t> saved;
+  SnapshotMetadata metadata;
+  metadata.calibration = dataset->calibration();
+  first.on_finished = [&](const SlamSession& slam) {
+    const SnapshotMapRef ref{0, &slam.map()};
+    saved = SerializeMapSnapshot({&ref, 1}, metadata);
+  };
+  (void)RunSlam(*dataset, OptionsWithDefaultVocabulary(), first);
+  for (const bool localize : {false, true}) {
+    Map map = std::move(LoadMapSnapshotFromBytes(saved, "first session").maps[0].map);
+    SlamOptions options = OptionsWithDefaultVocabulary();
+    options.localization_only = localize;
+    SlamRunOptions run;
+    run.deterministic = true;
+    run.check_camera = true;
+    run.first_frame = 100;  // a stretch the map covers
+    run.initial_map = &map;
+    const SlamRunResult r = RunSlam(*dataset, options, run);
+    EXPECT_GE(r.trajectory.size(), 50u) << localize;
+    EXPECT_EQ(r.camera_restarts, 0u);
+    EXPECT_EQ(r.camera_refined_at_end, !localize);
+    if (localize) continue;
+    EXPECT_TRUE(CameraCheckDisagrees(r.camera_check_at_end));
+    EXPECT_NEAR(r.camera_refit.k1, 0.03, 0.008);
+    EXPECT_NE(r.calibration.camera.fx, dataset->calibration().camera.fx);
+    EXPECT_FALSE(r.camera_refit_tracked.refined());  // the frames were tracked through the given camera
+  }
+}
+
 TEST(ContinuedSession, LocalizationOnlyLeavesTheMapUnchanged) {
   const auto dataset = OpenDataset(kScene);
   SlamRunOptions first;
