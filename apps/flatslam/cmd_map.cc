@@ -499,21 +499,18 @@ int Calibrate(const std::string& file, const Args& args) {
     if (!given)
       Fail(file, " was saved before snapshots recorded the camera a session was given: its refined camera cannot "
            "be refined again (rerun the session with --settings from --settings-out)");
-    const CameraRefit refit = ThenRefit(m.camera_refit, CameraRefit{written->focal_scale, written->k1});
-    const RefinedCamera from(*given, m.camera_refit), to(*given, refit);
-    SnapshotMetadata metadata = m;
-    metadata.calibration.camera = to.camera();
-    metadata.camera_refit = refit;
-    metadata.given_camera = *given;
     LoadedMap& map = loaded.maps.front();
-    MapMergeOptions options;
-    options.bundle_adjustment.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-    const MergeCamera merge_camera = MergeCamera::FromCalibration(metadata.calibration, metadata.scales, 0);
-    const CameraChange c = ReexpressMapCamera(map.map, from, to, merge_camera, options);
+    const MapCameraRefinement r = RefineMapCamera(map.map, m.calibration, m.scales, *given, m.camera_refit,
+                                                  CameraRefit{written->focal_scale, written->k1});
+    SnapshotMetadata metadata = m;
+    metadata.calibration = r.calibration;
+    metadata.camera_refit = r.refit;
+    metadata.given_camera = *given;
+    const CameraChange& c = r.change;
     std::printf("camera        keypoints into the refined camera (fx %.2f, k1 %+.4f over the given): %zu moved, up "
                 "to %.2f px, %zu observations left the image; adjusted, %zu outliers (%.0f ms)\n",
-                to.camera().fx, refit.k1, c.keypoints, c.max_shift_px, c.observations_erased, c.adjustment.outliers,
-                c.adjustment.ms);
+                r.calibration.camera.fx, r.refit.k1, c.keypoints, c.max_shift_px, c.observations_erased,
+                c.adjustment.outliers, c.adjustment.ms);
     const SnapshotMapRef ref{map.id, &map.map};
     SaveMapSnapshot(*out, std::span<const SnapshotMapRef>(&ref, 1), metadata);
     std::printf("wrote         %s\n", out->c_str());

@@ -470,17 +470,13 @@ EndRefinement RefineCameraAtEnd(SlamSession& slam, const Calibration& seen, cons
     checked = true;
   });
   if (checked && CameraCheckWindow::Refits(out.check, geometry.camera)) {
-    out.refit = ThenRefit(refit, CameraRefit{out.check.focal_scale, out.check.k1});
-    const RefinedCamera from(given, refit), to(given, out.refit);
-    out.calibration = seen;
-    out.calibration.camera = to.camera();
-    const MergeCamera camera = MergeCamera::FromCalibration(out.calibration, slam.context().map_scales, 0);
-    MapMergeOptions options;
-    options.bundle_adjustment.num_threads = std::max(1, tbb::this_task_arena::max_concurrency());
     slam.EditMapAfterLastFrame([&](Map& map) {
-      const CameraChange change = ReexpressMapCamera(map, from, to, camera, options);
-      out.keypoints = change.keypoints;
-      out.max_shift_px = change.max_shift_px;
+      const MapCameraRefinement r = RefineMapCamera(map, seen, slam.context().map_scales, given, refit,
+                                                    CameraRefit{out.check.focal_scale, out.check.k1});
+      out.refit = r.refit;
+      out.calibration = r.calibration;
+      out.keypoints = r.change.keypoints;
+      out.max_shift_px = r.change.max_shift_px;
     });
     out.refined = true;
   }

@@ -12,6 +12,7 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 
 #include "core/clock.h"
 #include "core/error.h"
@@ -705,6 +706,19 @@ CameraChange ReexpressMapCamera(Map& map, const RefinedCamera& from, const Refin
   MapMergeOptions adjust = options;
   adjust.refine = true;
   out.adjustment = AdjustMergedMap(map, camera, adjust);
+  return out;
+}
+
+MapCameraRefinement RefineMapCamera(Map& map, const Calibration& calibration, const MapScales& scales,
+                                    const PinholeCamera& given, const CameraRefit& refit, const CameraRefit& more) {
+  MapCameraRefinement out;
+  out.refit = ThenRefit(refit, more);
+  const RefinedCamera from(given, refit), to(given, out.refit);
+  out.calibration = calibration;
+  out.calibration.camera = to.camera();
+  MapMergeOptions options;
+  options.bundle_adjustment.num_threads = std::max(1, tbb::this_task_arena::max_concurrency());
+  out.change = ReexpressMapCamera(map, from, to, MergeCamera::FromCalibration(out.calibration, scales, 0), options);
   return out;
 }
 

@@ -253,6 +253,19 @@ struct CameraChange {
 [[nodiscard]] CameraChange ReexpressMapCamera(Map& map, const RefinedCamera& from, const RefinedCamera& to,
                                               const MergeCamera& camera, const MapMergeOptions& options);
 
+// A map measured through refinement `refit` of the camera `given`, moved into `refit` followed by
+// `more` (ThenRefit: the refinement its own camera check asks for) by ReexpressMapCamera, with
+// the default merge options on every thread of the calling arena. The refinement composed, the
+// calibration the map is then in (`calibration`'s with the refined camera), and what moved.
+struct MapCameraRefinement {
+  CameraRefit refit;
+  Calibration calibration;
+  CameraChange change;
+};
+[[nodiscard]] MapCameraRefinement RefineMapCamera(Map& map, const Calibration& calibration, const MapScales& scales,
+                                                  const PinholeCamera& given, const CameraRefit& refit,
+                                                  const CameraRefit& more);
+
 struct MultiMapMerge {
   std::vector<Map> maps;                         // one per group of overlapping inputs
   std::vector<std::vector<size_t>> members;      // input maps of each output map, first = its frame

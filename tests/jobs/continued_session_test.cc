@@ -3,6 +3,8 @@
 // and trajectory as the uninterrupted run within tracking noise.
 // Localization-only sessions track against a loaded map without changing it.
 #include <cstdio>
+#include <functional>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -25,6 +27,16 @@ double Ate(const Trajectory& gt, const Trajectory& estimate) {
   EvalOptions eval;
   eval.alignment = Alignment::kSE3;
   return Evaluate(gt, estimate, eval).ate_m.rmse;
+}
+
+// An on_finished that serializes the session's map into *bytes, as a snapshot of that calibration.
+std::function<void(const SlamSession&)> SerializeMapInto(std::vector<uint8_t>* bytes, const Calibration& calibration) {
+  return [bytes, calibration](const SlamSession& slam) {
+    SnapshotMetadata metadata;
+    metadata.calibration = calibration;
+    const SnapshotMapRef ref{0, &slam.map()};
+    *bytes = SerializeMapSnapshot({&ref, 1}, metadata);
+  };
 }
 
 // The frames of [first, last) (by timestamp) of a trajectory.
@@ -109,12 +121,7 @@ TEST(ContinuedSession, AMonocularContinuationChecksTheWholeMapAfterItsLastFrame)
   SlamRunOptions first;
   first.deterministic = true;
   std::vector<uint8_t> saved;
-  SnapshotMetadata metadata;
-  metadata.calibration = dataset->calibration();
-  first.on_finished = [&](const SlamSession& slam) {
-    const SnapshotMapRef ref{0, &slam.map()};
-    saved = SerializeMapSnapshot({&ref, 1}, metadata);
-  };
+  first.on_finished = SerializeMapInto(&saved, dataset->calibration());
   (void)RunSlam(*dataset, OptionsWithDefaultVocabulary(), first);
   for (const bool localize : {false, true}) {
     Map map = std::move(LoadMapSnapshotFromBytes(saved, "first session").maps[0].map);
@@ -142,12 +149,7 @@ TEST(ContinuedSession, LocalizationOnlyLeavesTheMapUnchanged) {
   SlamRunOptions first;
   first.max_frames = 300;
   std::vector<uint8_t> before;
-  SnapshotMetadata metadata;
-  metadata.calibration = dataset->calibration();
-  first.on_finished = [&](const SlamSession& slam) {
-    const SnapshotMapRef ref{0, &slam.map()};
-    before = SerializeMapSnapshot({&ref, 1}, metadata);
-  };
+  first.on_finished = SerializeMapInto(&before, dataset->calibration());
   (void)RunSlam(*dataset, OptionsWithDefaultVocabulary(), first);
   LoadedSnapshot snapshot = LoadMapSnapshotFromBytes(before, "first session");
   Map map = std::move(snapshot.maps[0].map);
@@ -159,10 +161,7 @@ TEST(ContinuedSession, LocalizationOnlyLeavesTheMapUnchanged) {
   run.max_frames = 300;
   run.initial_map = &map;
   std::vector<uint8_t> after;
-  run.on_finished = [&](const SlamSession& slam) {
-    const SnapshotMapRef ref{0, &slam.map()};
-    after = SerializeMapSnapshot({&ref, 1}, metadata);
-  };
+  run.on_finished = SerializeMapInto(&after, dataset->calibration());
   const SlamRunResult r = RunSlam(*dataset, options, run);
   size_t keyframes_made = 0;
   for (const FrameReport& f : r.reports) keyframes_made += f.keyframe;
