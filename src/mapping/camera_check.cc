@@ -7,56 +7,227 @@
 #include <unordered_map>
 #include <vector>
 
-#include <ceres/ceres.h>
-#include <ceres/rotation.h>
+#include <Eigen/Cholesky>
 #include <Eigen/Geometry>
 
 namespace flatslam {
 namespace {
 
-// A left-image keypoint against its keyframe's pose (angle-axis, translation), its point and the
-// camera parameters (focal scale, k1); residuals whitened by the keypoint level's sigma.
-struct CameraModelResidual {
-  double u, v, inv_sigma;
-  double fx, fy, cx, cy;
-
-  template <typename T>
-  bool operator()(const T* pose, const T* point, const T* model, T* residual) const {
-    T Xc[3];
-    ceres::AngleAxisRotatePoint(pose, point, Xc);
-    for (int i = 0; i < 3; ++i) Xc[i] += pose[3 + i];
-    if (Xc[2] <= T(1e-9)) {  // behind the camera: no gradient, a bounded cost
-      residual[0] = residual[1] = T(0);
-      return true;
-    }
-    const T x = Xc[0] / Xc[2], y = Xc[1] / Xc[2];
-    const T d = T(1) + model[1] * (x * x + y * y);
-    residual[0] = (T(cx) + model[0] * T(fx) * x * d - T(u)) * T(inv_sigma);
-    residual[1] = (T(cy) + model[0] * T(fy) * y * d - T(v)) * T(inv_sigma);
-    return true;
-  }
-};
-
 // Huber at the 95% chi-square of two degrees of freedom (5.991), on whitened residuals.
 constexpr double kHuberDelta = 2.4477;
 constexpr size_t kMinPoseObservations = 10;
+// The poses adjusted at most: the reduced system is dense in the free poses (6 each) and the two
+// camera parameters, and a 722-wide Cholesky factorization per iteration stays within a few tens
+// of milliseconds; beyond it the keyframes seen by the fewest entered points are held.
+constexpr size_t kMaxFreePoses = 120;
+
+// A left-image keypoint of a keyframe pose and an entered point, whitened by its level's sigma.
+struct CheckObservation {
+  uint32_t pose, point;
+  double u, v, sigma;
+};
+
+struct CheckPose {
+  Eigen::Matrix3d R;
+  Eigen::Vector3d t;
+};
+
+Eigen::Matrix3d Skew(const Eigen::Vector3d& v) {
+  Eigen::Matrix3d m;
+  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
+  return m;
+}
+
+// The model's state: every pose, point and the two camera parameters (focal scale, k1).
+struct CheckState {
+  std::vector<CheckPose> poses;
+  std::vector<Eigen::Vector3d> points;
+  Eigen::Vector2d model{1.0, 0.0};
+};
+
+// One observation's whitened residual through the state, and its Jacobians with respect to the
+// pose (a rotation and a translation applied on the left: R <- exp(w) R, t <- exp(w) t + dt), the
+// point and the model. False behind the camera: no residual and no gradient (a bounded cost).
+struct ObservationTerm {
+  Eigen::Vector2d r;
+  Eigen::Matrix<double, 2, 6> Jc;
+  Eigen::Matrix<double, 2, 3> Jp;
+  Eigen::Matrix2d Jm;
+};
+
+bool Linearize(const CheckState& state, const CheckObservation& o, const PinholeCamera& cam, bool jacobians,
+               ObservationTerm* term) {
+  const CheckPose& pose = state.poses[o.pose];
+  const Eigen::Vector3d Xc = pose.R * state.points[o.point] + pose.t;
+  if (Xc.z() <= 1e-9) return false;
+  const double iz = 1.0 / Xc.z(), x = Xc.x() * iz, y = Xc.y() * iz, r2 = x * x + y * y;
+  const double s = state.model[0], k1 = state.model[1], d = 1 + k1 * r2, w = 1.0 / o.sigma;
+  term->r = Eigen::Vector2d((cam.cx + s * cam.fx * x * d - o.u) * w, (cam.cy + s * cam.fy * y * d - o.v) * w);
+  if (!jacobians) return true;
+  // d(residual)/d(x, y), then d(x, y)/d(Xc).
+  Eigen::Matrix2d Juv;
+  Juv << s * cam.fx * (d + 2 * k1 * x * x), s * cam.fx * 2 * k1 * x * y, s * cam.fy * 2 * k1 * x * y,
+      s * cam.fy * (d + 2 * k1 * y * y);
+  Eigen::Matrix<double, 2, 3> Jxy;
+  Jxy << iz, 0, -x * iz, 0, iz, -y * iz;
+  const Eigen::Matrix<double, 2, 3> JX = w * Juv * Jxy;
+  term->Jc.leftCols<3>() = -JX * Skew(Xc);
+  term->Jc.rightCols<3>() = JX;
+  term->Jp = JX * pose.R;
+  term->Jm << w * cam.fx * x * d, w * s * cam.fx * x * r2, w * cam.fy * y * d, w * s * cam.fy * y * r2;
+  return true;
+}
+
+// Huber's rho on a squared whitened residual (Ceres's convention: the cost is half of it) and its
+// derivative, the weight of the residual in the normal equations.
+double HuberRho(double e2) {
+  return e2 <= kHuberDelta * kHuberDelta ? e2 : 2 * kHuberDelta * std::sqrt(e2) - kHuberDelta * kHuberDelta;
+}
+double HuberWeight(double e2) {
+  return e2 <= kHuberDelta * kHuberDelta ? 1.0 : kHuberDelta / std::sqrt(e2);
+}
+
+double Cost(const CheckState& state, const std::vector<CheckObservation>& obs, const PinholeCamera& cam) {
+  double cost = 0;
+  ObservationTerm term;
+  for (const CheckObservation& o : obs)
+    if (Linearize(state, o, cam, false, &term)) cost += 0.5 * HuberRho(term.r.squaredNorm());
+  return cost;
+}
 
 // Per-coordinate RMS over observations whose whitened squared error is under the chi-square
 // gate, in level-0 pixels.
-double InlierRmse(const ceres::Problem& problem, const std::vector<ceres::ResidualBlockId>& blocks,
-                  const std::vector<double>& sigma) {
+double InlierRmse(const CheckState& state, const std::vector<CheckObservation>& obs, const PinholeCamera& cam) {
   double sum = 0;
   size_t n = 0;
-  for (size_t i = 0; i < blocks.size(); ++i) {
-    double r[2];
-    double cost = 0;
-    problem.EvaluateResidualBlock(blocks[i], false, &cost, r, nullptr);
-    const double e2 = r[0] * r[0] + r[1] * r[1];
+  ObservationTerm term;
+  for (const CheckObservation& o : obs) {
+    if (!Linearize(state, o, cam, false, &term)) {
+      n += 2;  // behind the camera: a zero residual, as the adjustment sees it
+      continue;
+    }
+    const double e2 = term.r.squaredNorm();
     if (e2 > kHuberDelta * kHuberDelta) continue;
-    sum += e2 * sigma[i] * sigma[i];
+    sum += e2 * o.sigma * o.sigma;
     n += 2;
   }
   return n == 0 ? 0.0 : std::sqrt(sum / static_cast<double>(n));
+}
+
+// The normal equations reduced to the free poses and the model (the points eliminated), damped
+// by lambda on their diagonals: S dc = rhs, and what back-substitution needs per point.
+struct ReducedSystem {
+  Eigen::MatrixXd S;
+  Eigen::VectorXd rhs;
+  std::vector<Eigen::Matrix3d> V_inv;        // per point, (Hpp + damping)^-1
+  std::vector<Eigen::Vector3d> g_point;      // per point, J^T W r
+  std::vector<Eigen::Matrix<double, 3, 8>> W;  // per observation, Jp^T W [Jc Jm] (pose columns zero when held)
+};
+
+// free_slot[pose] is the pose's block in the reduced system, or -1 when held. Observations are
+// grouped by point.
+ReducedSystem Reduce(const CheckState& state, const std::vector<CheckObservation>& obs,
+                     const std::vector<int>& free_slot, size_t free_poses, const PinholeCamera& cam, double lambda) {
+  ReducedSystem sys;
+  const Eigen::Index n = static_cast<Eigen::Index>(6 * free_poses + 2), m = n - 2;
+  Eigen::MatrixXd H = Eigen::MatrixXd::Zero(n, n);
+  Eigen::VectorXd g = Eigen::VectorXd::Zero(n);
+  sys.V_inv.assign(state.points.size(), Eigen::Matrix3d::Zero());
+  sys.g_point.assign(state.points.size(), Eigen::Vector3d::Zero());
+  sys.W.assign(obs.size(), Eigen::Matrix<double, 3, 8>::Zero());
+  std::vector<Eigen::Matrix3d> V(state.points.size(), Eigen::Matrix3d::Zero());
+  ObservationTerm term;
+  for (size_t i = 0; i < obs.size(); ++i) {
+    const CheckObservation& o = obs[i];
+    if (!Linearize(state, o, cam, true, &term)) continue;
+    const double w = HuberWeight(term.r.squaredNorm());
+    Eigen::Matrix<double, 2, 8> Jcm;
+    const int slot = free_slot[o.pose];
+    Jcm.leftCols<6>() = slot >= 0 ? term.Jc : Eigen::Matrix<double, 2, 6>::Zero();
+    Jcm.rightCols<2>() = term.Jm;
+    const Eigen::Matrix<double, 8, 8> Hcc = w * Jcm.transpose() * Jcm;
+    const Eigen::Matrix<double, 8, 1> gc = w * Jcm.transpose() * term.r;
+    if (slot >= 0) {
+      H.block<6, 6>(6 * slot, 6 * slot) += Hcc.topLeftCorner<6, 6>();
+      H.block<6, 2>(6 * slot, m) += Hcc.topRightCorner<6, 2>();
+      H.block<2, 6>(m, 6 * slot) += Hcc.bottomLeftCorner<2, 6>();
+      g.segment<6>(6 * slot) += gc.head<6>();
+    }
+    H.block<2, 2>(m, m) += Hcc.bottomRightCorner<2, 2>();
+    g.tail<2>() += gc.tail<2>();
+    V[o.point] += w * term.Jp.transpose() * term.Jp;
+    sys.g_point[o.point] += w * term.Jp.transpose() * term.r;
+    sys.W[i] = w * term.Jp.transpose() * Jcm;
+  }
+  for (Eigen::Index k = 0; k < n; ++k) H(k, k) += lambda * std::max(H(k, k), 1e-6);
+  // Eliminate each point: S = Hcc - sum Wp^T V^-1 Wp over the point's observations.
+  for (size_t begin = 0; begin < obs.size();) {
+    const uint32_t p = obs[begin].point;
+    size_t end = begin;
+    while (end < obs.size() && obs[end].point == p) ++end;
+    Eigen::Matrix3d Vp = V[p];
+    for (int k = 0; k < 3; ++k) Vp(k, k) += lambda * std::max(Vp(k, k), 1e-6);
+    if (std::abs(Vp.determinant()) < 1e-18) {
+      begin = end;
+      continue;
+    }
+    const Eigen::Matrix3d Vi = Vp.inverse();
+    sys.V_inv[p] = Vi;
+    // The model's columns are shared by every observation of the point: summed first.
+    Eigen::Matrix<double, 3, 2> Wm = Eigen::Matrix<double, 3, 2>::Zero();
+    for (size_t a = begin; a < end; ++a) Wm += sys.W[a].rightCols<2>();
+    const Eigen::Vector3d Vg = Vi * sys.g_point[p];
+    const Eigen::Matrix<double, 3, 2> ViWm = Vi * Wm;
+    for (size_t a = begin; a < end; ++a) {
+      const int sa = free_slot[obs[a].pose];
+      if (sa < 0) continue;
+      const Eigen::Matrix<double, 3, 6> Wa = sys.W[a].leftCols<6>();
+      const Eigen::Matrix<double, 6, 3> WaVi = Wa.transpose() * Vi;
+      for (size_t b = begin; b < end; ++b) {
+        const int sb = free_slot[obs[b].pose];
+        if (sb >= 0) H.block<6, 6>(6 * sa, 6 * sb) -= WaVi * sys.W[b].leftCols<6>();
+      }
+      H.block<6, 2>(6 * sa, m) -= Wa.transpose() * ViWm;
+      H.block<2, 6>(m, 6 * sa) -= ViWm.transpose() * Wa;
+      g.segment<6>(6 * sa) -= Wa.transpose() * Vg;
+    }
+    H.block<2, 2>(m, m) -= Wm.transpose() * ViWm;
+    g.tail<2>() -= Wm.transpose() * Vg;
+    begin = end;
+  }
+  sys.S = std::move(H);
+  sys.rhs = -g;
+  return sys;
+}
+
+// The state after the step dc of the reduced system, the points' steps back-substituted.
+CheckState Step(const CheckState& state, const ReducedSystem& sys, const Eigen::VectorXd& dc,
+                const std::vector<CheckObservation>& obs, const std::vector<int>& free_slot) {
+  CheckState next = state;
+  for (size_t i = 0; i < state.poses.size(); ++i) {
+    if (free_slot[i] < 0) continue;
+    const Eigen::Matrix<double, 6, 1> xi = dc.segment<6>(6 * free_slot[i]);
+    const Eigen::Vector3d w = xi.head<3>();
+    const double angle = w.norm();
+    const Eigen::Matrix3d dR =
+        angle > 0 ? Eigen::AngleAxisd(angle, w / angle).toRotationMatrix() : Eigen::Matrix3d::Identity();
+    next.poses[i].R = dR * state.poses[i].R;
+    next.poses[i].t = dR * state.poses[i].t + xi.tail<3>();
+  }
+  next.model += dc.tail<2>();
+  // dp = V^-1 (-g_p - sum W dc) over the point's observations (each W holds the model's columns
+  // of its observation; their sum over the point is what the elimination used).
+  std::vector<Eigen::Vector3d> coupling(state.points.size(), Eigen::Vector3d::Zero());
+  Eigen::Matrix<double, 8, 1> d8;
+  d8.tail<2>() = dc.tail<2>();
+  for (size_t i = 0; i < obs.size(); ++i) {
+    const int slot = free_slot[obs[i].pose];
+    d8.head<6>() = slot >= 0 ? Eigen::Matrix<double, 6, 1>(dc.segment<6>(6 * slot)) : Eigen::Matrix<double, 6, 1>::Zero();
+    coupling[obs[i].point] += sys.W[i] * d8;
+  }
+  for (size_t p = 0; p < state.points.size(); ++p)
+    next.points[p] += sys.V_inv[p] * (-sys.g_point[p] - coupling[p]);
+  return next;
 }
 
 }  // namespace
@@ -72,26 +243,15 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
             [&](KeyFrameHandle a, KeyFrameHandle b) { return map.keyframe(a).id < map.keyframe(b).id; });
   if (order.size() < 3) return check;
   std::unordered_map<uint64_t, size_t> slot;  // handle bits -> pose index
-  std::vector<std::array<double, 6>> poses(order.size());
+  CheckState state;
+  state.poses.resize(order.size());
   for (size_t i = 0; i < order.size(); ++i) {
     const Eigen::Isometry3d& T = map.keyframe(order[i]).T_cam_world;
-    const Eigen::AngleAxisd aa(T.linear());
-    const Eigen::Vector3d w = aa.angle() * aa.axis();
-    poses[i] = {w.x(), w.y(), w.z(), T.translation().x(), T.translation().y(), T.translation().z()};
+    state.poses[i] = {T.linear(), T.translation()};
     slot[order[i].packed()] = i;
   }
 
   const auto point_values = map.points().values();
-  std::vector<std::array<double, 3>> points;
-  points.reserve(point_values.size());
-  double model[2] = {1.0, 0.0};
-  ceres::Problem::Options problem_options;
-  problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
-  ceres::Problem problem(problem_options);
-  ceres::HuberLoss loss(kHuberDelta);
-  std::vector<ceres::ResidualBlockId> blocks;
-  std::vector<double> sigmas;
-  std::vector<size_t> pose_used(order.size(), 0);  // observations per pose
   // A point enters when its left-image rays fix its depth: seen by enough keyframes, rays at
   // least min_ray_angle_deg apart (a stereo or RGB-D map holds points placed from one keyframe's
   // depth and seen again from nearby, whose depth the left images alone leave open).
@@ -114,19 +274,13 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
   for (size_t i = 0; i < point_values.size(); ++i) qualified += entered[i] = enters(point_values[i]) ? 1 : 0;
   const size_t stride =
       options.max_points > 0 && qualified > options.max_points ? (qualified + options.max_points - 1) / options.max_points : 1;
+  std::vector<CheckObservation> obs;
+  std::vector<size_t> pose_used(order.size(), 0);  // observations per pose
   for (size_t i = 0, rank = 0; i < point_values.size(); ++i) {
-    if (!entered[i]) continue;
-    if (rank++ % stride != 0) {
-      entered[i] = 0;
-      continue;
-    }
-    points.push_back({point_values[i].position.x(), point_values[i].position.y(), point_values[i].position.z()});
-  }
-  size_t next_point = 0;  // points keeps its size from here on: the addresses stay fixed
-  for (size_t i = 0; i < point_values.size(); ++i) {
-    if (!entered[i]) continue;
+    if (!entered[i] || rank++ % stride != 0) continue;
     const MapPoint& p = point_values[i];
-    double* X = points[next_point++].data();
+    const auto point = static_cast<uint32_t>(state.points.size());
+    state.points.push_back(p.position);
     for (const Observation& o : p.observations) {
       const auto it = slot.find(o.keyframe.packed());
       if (it == slot.end()) continue;
@@ -135,57 +289,76 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
       const int level = std::min<int>(kf.octave[o.keypoint], std::max(0, geometry.pyramid.levels - 1));
       const double sigma =
           options.pixel_sigma * (geometry.pyramid.levels > 0 ? geometry.pyramid.scale[static_cast<size_t>(level)] : 1.0);
-      auto* cost = new ceres::AutoDiffCostFunction<CameraModelResidual, 2, 6, 3, 2>(
-          new CameraModelResidual{uv.x(), uv.y(), 1.0 / sigma, cam.fx, cam.fy, cam.cx, cam.cy});
-      blocks.push_back(problem.AddResidualBlock(cost, &loss, poses[it->second].data(), X, model));
-      sigmas.push_back(sigma);
+      obs.push_back({static_cast<uint32_t>(it->second), point, uv.x(), uv.y(), sigma});
       ++pose_used[it->second];
     }
   }
-  check.observations = blocks.size();
-  check.points = points.size();
+  check.observations = obs.size();
+  check.points = state.points.size();
   if (check.observations < kCameraCheckMinObservations || !pose_used[0] || !pose_used[1]) return check;
-  problem.SetParameterBlockConstant(poses[0].data());
-  problem.SetParameterBlockConstant(poses[1].data());
-  // A keyframe with too few such observations to fix its pose is held where it is.
+  // Free: every pose but the gauge's two with kMinPoseObservations or more (a keyframe with fewer
+  // is held where it is), at most kMaxFreePoses of them, those with the most observations.
+  std::vector<size_t> candidates;
   for (size_t i = 0; i < order.size(); ++i) {
     if (pose_used[i] > 0) ++check.keyframes;
-    if (pose_used[i] > 0 && pose_used[i] < kMinPoseObservations) problem.SetParameterBlockConstant(poses[i].data());
+    if (i >= 2 && pose_used[i] >= kMinPoseObservations) candidates.push_back(i);
   }
-  check.rmse_before_px = InlierRmse(problem, blocks, sigmas);
+  if (candidates.size() > kMaxFreePoses) {
+    std::stable_sort(candidates.begin(), candidates.end(), [&](size_t a, size_t b) { return pose_used[a] > pose_used[b]; });
+    candidates.resize(kMaxFreePoses);
+    std::sort(candidates.begin(), candidates.end());
+  }
+  std::vector<int> free_slot(order.size(), -1);
+  for (size_t k = 0; k < candidates.size(); ++k) free_slot[candidates[k]] = static_cast<int>(k);
+  const size_t free_poses = candidates.size();
+  check.rmse_before_px = InlierRmse(state, obs, cam);
 
-  ceres::Solver::Options solver_options;
-  solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
-  solver_options.max_num_iterations = options.max_iterations;
-  solver_options.num_threads = 1;
-  ceres::Solver::Summary summary;
-  ceres::Solve(solver_options, &problem, &summary);
-  if (!summary.IsSolutionUsable()) return check;
-  check.rmse_after_px = InlierRmse(problem, blocks, sigmas);
-  check.focal_scale = model[0];
-  check.k1 = model[1];
+  // Levenberg-Marquardt on the robust cost (Huber weights per iteration), to a relative decrease
+  // of 1e-6 of the cost on an accepted step; the damping falls by 3 after an accepted step and
+  // grows by 4 after a rejected one.
+  double cost = Cost(state, obs, cam), lambda = 1e-4;
+  for (int it = 0; it < options.max_iterations && lambda < 1e12; ++it) {
+    const ReducedSystem sys = Reduce(state, obs, free_slot, free_poses, cam, lambda);
+    const Eigen::LLT<Eigen::MatrixXd> llt(sys.S);
+    if (llt.info() != Eigen::Success) {
+      lambda *= 10;
+      continue;
+    }
+    CheckState next = Step(state, sys, llt.solve(sys.rhs), obs, free_slot);
+    const double next_cost = Cost(next, obs, cam);
+    if (!std::isfinite(next_cost) || next_cost >= cost) {
+      lambda *= 4;
+      continue;
+    }
+    const double decrease = (cost - next_cost) / cost;
+    state = std::move(next);
+    cost = next_cost;
+    lambda = std::max(lambda / 3, 1e-12);
+    if (decrease < 1e-6) break;
+  }
+  check.rmse_after_px = InlierRmse(state, obs, cam);
+  check.focal_scale = state.model[0];
+  check.k1 = state.model[1];
 
   // Standard errors of the two camera parameters, the poses and points marginalized: the 2x2
   // block of the inverse of the normal equations, scaled by the residuals' variance per degree of
   // freedom.
-  ceres::Covariance::Options covariance_options;
-  covariance_options.algorithm_type = ceres::SPARSE_QR;
-  covariance_options.num_threads = 1;
-  ceres::Covariance covariance(covariance_options);
-  const std::vector<std::pair<const double*, const double*>> wanted = {{model, model}};
-  if (!covariance.Compute(wanted, &problem)) return check;
-  double cov[4];
-  if (!covariance.GetCovarianceBlock(model, model, cov)) return check;
-  size_t free_parameters = 2 + 3 * points.size();
-  for (size_t i = 2; i < order.size(); ++i)
-    if (pose_used[i] >= kMinPoseObservations) free_parameters += 6;
+  const ReducedSystem sys = Reduce(state, obs, free_slot, free_poses, cam, 0);
+  const Eigen::LDLT<Eigen::MatrixXd> ldlt(sys.S);
+  if (ldlt.info() != Eigen::Success) return check;
+  const Eigen::Index n = sys.S.rows();
+  Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(n, 2);
+  unit(n - 2, 0) = unit(n - 1, 1) = 1;
+  const Eigen::MatrixXd inverse = ldlt.solve(unit);
+  const double cov_focal = inverse(n - 2, 0), cov_k1 = inverse(n - 1, 1);
+  const size_t free_parameters = 2 + 3 * state.points.size() + 6 * free_poses;
   const double dof =
       std::max(1.0, 2.0 * static_cast<double>(check.observations) - static_cast<double>(free_parameters));
-  const double variance = 2.0 * summary.final_cost / dof;
-  check.focal_scale_sigma = std::sqrt(std::max(0.0, cov[0] * variance));
-  check.k1_sigma = std::sqrt(std::max(0.0, cov[3] * variance));
+  const double variance = 2.0 * cost / dof;
+  check.focal_scale_sigma = std::sqrt(std::max(0.0, cov_focal * variance));
+  check.k1_sigma = std::sqrt(std::max(0.0, cov_k1 * variance));
   check.ok = std::isfinite(check.focal_scale) && std::isfinite(check.k1) && std::isfinite(check.focal_scale_sigma) &&
-             std::isfinite(check.k1_sigma);
+             std::isfinite(check.k1_sigma) && cov_focal > 0 && cov_k1 > 0;
   return check;
 }
 

@@ -45,10 +45,12 @@ struct CameraCheck {
 };
 
 // Adjusts a copy of the map's keyframes (the first two by id held: the gauge and, for a monocular
-// map, the scale; those with under 10 observations held too) and points seen by
-// options.min_observations keyframes with rays options.min_ray_angle_deg apart, with the focal
-// scale and k1 free, robustly (Huber at the 95% chi-square of 2 degrees of freedom); left-image
-// observations only. ok = false on a map too small to say.
+// map, the scale; those with under 10 observations held too, and beyond 120 free keyframes those
+// with the fewest observations) and points seen by options.min_observations keyframes with rays
+// options.min_ray_angle_deg apart, with the focal scale and k1 free, robustly (Huber at the 95%
+// chi-square of 2 degrees of freedom, Levenberg-Marquardt over the normal equations reduced to
+// the poses and the two parameters); left-image observations only. Single-threaded, and the same
+// bits on every run. ok = false on a map too small to say.
 [[nodiscard]] CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry,
                                            const CameraCheckOptions& options = {});
 
