@@ -20,6 +20,7 @@
 #include "core/atomic_write.h"
 #include "core/clock.h"
 #include "core/error.h"
+#include "jobs/map_camera.h"
 #include "storage/colmap_export.h"
 #include "storage/snapshot.h"
 #include "mapping/camera_check.h"
@@ -285,13 +286,6 @@ int Export(const std::string& file, const Args& args) {
   return 0;
 }
 
-bool SameCalibration(const Calibration& a, const Calibration& b) {
-  auto near = [](double x, double y) { return std::abs(x - y) <= 1e-9 * std::max(1.0, std::abs(x)); };
-  return a.sensor == b.sensor && a.camera.width == b.camera.width && a.camera.height == b.camera.height &&
-         near(a.camera.fx, b.camera.fx) && near(a.camera.fy, b.camera.fy) && near(a.camera.cx, b.camera.cx) &&
-         near(a.camera.cy, b.camera.cy) && near(a.baseline_m, b.baseline_m);
-}
-
 // How a session's camera came from the dataset's, for a merge's error: "the given camera" or the
 // refinement a monocular run made from its own map (SnapshotMetadata::camera_refit).
 std::string CameraOrigin(const SnapshotMetadata& m) {
@@ -326,7 +320,7 @@ std::optional<CameraMove> CameraMoveBetween(const SnapshotMetadata& m, const Sna
   Calibration a = m.calibration, b = into.calibration;
   a.camera = *given;
   b.camera = *given_into;
-  if (!SameCalibration(a, b)) return std::nullopt;
+  if (!SameCamera(a, b)) return std::nullopt;
   return CameraMove{RefinedCamera(*given, m.camera_refit), RefinedCamera(*given_into, into.camera_refit),
                     CameraOrigin(m), CameraOrigin(into)};
 }
@@ -398,8 +392,8 @@ int Merge(const std::vector<std::string>& inputs, const Args& args) {
     // models: their keypoints are re-expressed in the first one's camera through the camera both
     // were given (snapshots that do not record it are refused).
     std::optional<CameraMove> move;
-    if (!SameCalibration(first.calibration, m.calibration)) move = CameraMoveBetween(m, first);
-    FLATSLAM_CHECK(move || SameCalibration(first.calibration, m.calibration), "cannot merge ", in,
+    if (!SameCamera(first.calibration, m.calibration)) move = CameraMoveBetween(m, first);
+    FLATSLAM_CHECK(move || SameCamera(first.calibration, m.calibration), "cannot merge ", in,
                    ": its calibration (",
                    SensorName(m.calibration.sensor), ", ", m.calibration.camera.width, "x", m.calibration.camera.height,
                    ", fx ", m.calibration.camera.fx, ") differs from ", inputs.front(), " (",
