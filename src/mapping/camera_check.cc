@@ -10,6 +10,8 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
 
+#include "optimization/lm_terms.h"
+
 namespace flatslam {
 namespace {
 
@@ -31,12 +33,6 @@ struct CheckPose {
   Eigen::Matrix3d R;
   Eigen::Vector3d t;
 };
-
-Eigen::Matrix3d Skew(const Eigen::Vector3d& v) {
-  Eigen::Matrix3d m;
-  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
-  return m;
-}
 
 // The model's state: every pose, point and the two camera parameters (focal scale, k1).
 struct CheckState {
@@ -71,20 +67,23 @@ bool Linearize(const CheckState& state, const CheckObservation& o, const Pinhole
   Eigen::Matrix<double, 2, 3> Jxy;
   Jxy << iz, 0, -x * iz, 0, iz, -y * iz;
   const Eigen::Matrix<double, 2, 3> JX = w * Juv * Jxy;
-  term->Jc.leftCols<3>() = -JX * Skew(Xc);
+  term->Jc.leftCols<3>() = -JX * detail::Skew(Xc);
   term->Jc.rightCols<3>() = JX;
   term->Jp = JX * pose.R;
   term->Jm << w * cam.fx * x * d, w * s * cam.fx * x * r2, w * cam.fy * y * d, w * s * cam.fy * y * r2;
   return true;
 }
 
-// Huber's rho on a squared whitened residual (Ceres's convention: the cost is half of it) and its
-// derivative, the weight of the residual in the normal equations.
+// Huber's rho and weight on a squared whitened residual.
 double HuberRho(double e2) {
-  return e2 <= kHuberDelta * kHuberDelta ? e2 : 2 * kHuberDelta * std::sqrt(e2) - kHuberDelta * kHuberDelta;
+  double rho = 0, weight = 0;
+  detail::Huber(e2, kHuberDelta, true, &rho, &weight);
+  return rho;
 }
 double HuberWeight(double e2) {
-  return e2 <= kHuberDelta * kHuberDelta ? 1.0 : kHuberDelta / std::sqrt(e2);
+  double rho = 0, weight = 0;
+  detail::Huber(e2, kHuberDelta, true, &rho, &weight);
+  return weight;
 }
 
 double Cost(const CheckState& state, const std::vector<CheckObservation>& obs, const PinholeCamera& cam) {
@@ -114,28 +113,26 @@ double InlierRmse(const CheckState& state, const std::vector<CheckObservation>& 
   return n == 0 ? 0.0 : std::sqrt(sum / static_cast<double>(n));
 }
 
-// The normal equations reduced to the free poses and the model (the points eliminated), damped
-// by lambda on their diagonals: S dc = rhs, and what back-substitution needs per point.
-struct ReducedSystem {
-  Eigen::MatrixXd S;
-  Eigen::VectorXd rhs;
-  std::vector<Eigen::Matrix3d> V_inv;        // per point, (Hpp + damping)^-1
-  std::vector<Eigen::Vector3d> g_point;      // per point, J^T W r
+// The normal equations at a state, undamped: the camera side (free poses and the model) H and g,
+// the points' 3x3 blocks V and gradients, and each observation's coupling W.
+struct Linearization {
+  Eigen::MatrixXd H;
+  Eigen::VectorXd g;
+  std::vector<Eigen::Matrix3d> V;              // per point, Jp^T W Jp
+  std::vector<Eigen::Vector3d> g_point;        // per point, J^T W r
   std::vector<Eigen::Matrix<double, 3, 8>> W;  // per observation, Jp^T W [Jc Jm] (pose columns zero when held)
 };
 
-// free_slot[pose] is the pose's block in the reduced system, or -1 when held. Observations are
-// grouped by point.
-ReducedSystem Reduce(const CheckState& state, const std::vector<CheckObservation>& obs,
-                     const std::vector<int>& free_slot, size_t free_poses, const PinholeCamera& cam, double lambda) {
-  ReducedSystem sys;
+// free_slot[pose] is the pose's block in the camera side, or -1 when held.
+Linearization LinearizeAll(const CheckState& state, const std::vector<CheckObservation>& obs,
+                           const std::vector<int>& free_slot, size_t free_poses, const PinholeCamera& cam) {
+  Linearization lin;
   const Eigen::Index n = static_cast<Eigen::Index>(6 * free_poses + 2), m = n - 2;
-  Eigen::MatrixXd H = Eigen::MatrixXd::Zero(n, n);
-  Eigen::VectorXd g = Eigen::VectorXd::Zero(n);
-  sys.V_inv.assign(state.points.size(), Eigen::Matrix3d::Zero());
-  sys.g_point.assign(state.points.size(), Eigen::Vector3d::Zero());
-  sys.W.assign(obs.size(), Eigen::Matrix<double, 3, 8>::Zero());
-  std::vector<Eigen::Matrix3d> V(state.points.size(), Eigen::Matrix3d::Zero());
+  lin.H = Eigen::MatrixXd::Zero(n, n);
+  lin.g = Eigen::VectorXd::Zero(n);
+  lin.V.assign(state.points.size(), Eigen::Matrix3d::Zero());
+  lin.g_point.assign(state.points.size(), Eigen::Vector3d::Zero());
+  lin.W.assign(obs.size(), Eigen::Matrix<double, 3, 8>::Zero());
   ObservationTerm term;
   for (size_t i = 0; i < obs.size(); ++i) {
     const CheckObservation& o = obs[i];
@@ -148,24 +145,43 @@ ReducedSystem Reduce(const CheckState& state, const std::vector<CheckObservation
     const Eigen::Matrix<double, 8, 8> Hcc = w * Jcm.transpose() * Jcm;
     const Eigen::Matrix<double, 8, 1> gc = w * Jcm.transpose() * term.r;
     if (slot >= 0) {
-      H.block<6, 6>(6 * slot, 6 * slot) += Hcc.topLeftCorner<6, 6>();
-      H.block<6, 2>(6 * slot, m) += Hcc.topRightCorner<6, 2>();
-      H.block<2, 6>(m, 6 * slot) += Hcc.bottomLeftCorner<2, 6>();
-      g.segment<6>(6 * slot) += gc.head<6>();
+      lin.H.block<6, 6>(6 * slot, 6 * slot) += Hcc.topLeftCorner<6, 6>();
+      lin.H.block<6, 2>(6 * slot, m) += Hcc.topRightCorner<6, 2>();
+      lin.H.block<2, 6>(m, 6 * slot) += Hcc.bottomLeftCorner<2, 6>();
+      lin.g.segment<6>(6 * slot) += gc.head<6>();
     }
-    H.block<2, 2>(m, m) += Hcc.bottomRightCorner<2, 2>();
-    g.tail<2>() += gc.tail<2>();
-    V[o.point] += w * term.Jp.transpose() * term.Jp;
-    sys.g_point[o.point] += w * term.Jp.transpose() * term.r;
-    sys.W[i] = w * term.Jp.transpose() * Jcm;
+    lin.H.block<2, 2>(m, m) += Hcc.bottomRightCorner<2, 2>();
+    lin.g.tail<2>() += gc.tail<2>();
+    lin.V[o.point] += w * term.Jp.transpose() * term.Jp;
+    lin.g_point[o.point] += w * term.Jp.transpose() * term.r;
+    lin.W[i] = w * term.Jp.transpose() * Jcm;
   }
+  return lin;
+}
+
+// The normal equations reduced to the free poses and the model (the points eliminated), damped
+// by lambda on their diagonals: S dc = rhs, and each point's (V + damping)^-1 for back-substitution.
+struct ReducedSystem {
+  Eigen::MatrixXd S;
+  Eigen::VectorXd rhs;
+  std::vector<Eigen::Matrix3d> V_inv;
+};
+
+// Observations are grouped by point.
+ReducedSystem Eliminate(const Linearization& lin, const std::vector<CheckObservation>& obs,
+                        const std::vector<int>& free_slot, double lambda) {
+  ReducedSystem sys;
+  Eigen::MatrixXd H = lin.H;
+  Eigen::VectorXd g = lin.g;
+  const Eigen::Index n = H.rows(), m = n - 2;
+  sys.V_inv.assign(lin.V.size(), Eigen::Matrix3d::Zero());
   for (Eigen::Index k = 0; k < n; ++k) H(k, k) += lambda * std::max(H(k, k), 1e-6);
   // Eliminate each point: S = Hcc - sum Wp^T V^-1 Wp over the point's observations.
   for (size_t begin = 0; begin < obs.size();) {
     const uint32_t p = obs[begin].point;
     size_t end = begin;
     while (end < obs.size() && obs[end].point == p) ++end;
-    Eigen::Matrix3d Vp = V[p];
+    Eigen::Matrix3d Vp = lin.V[p];
     for (int k = 0; k < 3; ++k) Vp(k, k) += lambda * std::max(Vp(k, k), 1e-6);
     if (std::abs(Vp.determinant()) < 1e-18) {
       begin = end;
@@ -175,17 +191,17 @@ ReducedSystem Reduce(const CheckState& state, const std::vector<CheckObservation
     sys.V_inv[p] = Vi;
     // The model's columns are shared by every observation of the point: summed first.
     Eigen::Matrix<double, 3, 2> Wm = Eigen::Matrix<double, 3, 2>::Zero();
-    for (size_t a = begin; a < end; ++a) Wm += sys.W[a].rightCols<2>();
-    const Eigen::Vector3d Vg = Vi * sys.g_point[p];
+    for (size_t a = begin; a < end; ++a) Wm += lin.W[a].rightCols<2>();
+    const Eigen::Vector3d Vg = Vi * lin.g_point[p];
     const Eigen::Matrix<double, 3, 2> ViWm = Vi * Wm;
     for (size_t a = begin; a < end; ++a) {
       const int sa = free_slot[obs[a].pose];
       if (sa < 0) continue;
-      const Eigen::Matrix<double, 3, 6> Wa = sys.W[a].leftCols<6>();
+      const Eigen::Matrix<double, 3, 6> Wa = lin.W[a].leftCols<6>();
       const Eigen::Matrix<double, 6, 3> WaVi = Wa.transpose() * Vi;
       for (size_t b = begin; b < end; ++b) {
         const int sb = free_slot[obs[b].pose];
-        if (sb >= 0) H.block<6, 6>(6 * sa, 6 * sb) -= WaVi * sys.W[b].leftCols<6>();
+        if (sb >= 0) H.block<6, 6>(6 * sa, 6 * sb) -= WaVi * lin.W[b].leftCols<6>();
       }
       H.block<6, 2>(6 * sa, m) -= Wa.transpose() * ViWm;
       H.block<2, 6>(m, 6 * sa) -= ViWm.transpose() * Wa;
@@ -201,16 +217,13 @@ ReducedSystem Reduce(const CheckState& state, const std::vector<CheckObservation
 }
 
 // The state after the step dc of the reduced system, the points' steps back-substituted.
-CheckState Step(const CheckState& state, const ReducedSystem& sys, const Eigen::VectorXd& dc,
+CheckState Step(const CheckState& state, const Linearization& lin, const ReducedSystem& sys, const Eigen::VectorXd& dc,
                 const std::vector<CheckObservation>& obs, const std::vector<int>& free_slot) {
   CheckState next = state;
   for (size_t i = 0; i < state.poses.size(); ++i) {
     if (free_slot[i] < 0) continue;
     const Eigen::Matrix<double, 6, 1> xi = dc.segment<6>(6 * free_slot[i]);
-    const Eigen::Vector3d w = xi.head<3>();
-    const double angle = w.norm();
-    const Eigen::Matrix3d dR =
-        angle > 0 ? Eigen::AngleAxisd(angle, w / angle).toRotationMatrix() : Eigen::Matrix3d::Identity();
+    const Eigen::Matrix3d dR = detail::ExpSo3(xi.head<3>());
     next.poses[i].R = dR * state.poses[i].R;
     next.poses[i].t = dR * state.poses[i].t + xi.tail<3>();
   }
@@ -223,10 +236,10 @@ CheckState Step(const CheckState& state, const ReducedSystem& sys, const Eigen::
   for (size_t i = 0; i < obs.size(); ++i) {
     const int slot = free_slot[obs[i].pose];
     d8.head<6>() = slot >= 0 ? Eigen::Matrix<double, 6, 1>(dc.segment<6>(6 * slot)) : Eigen::Matrix<double, 6, 1>::Zero();
-    coupling[obs[i].point] += sys.W[i] * d8;
+    coupling[obs[i].point] += lin.W[i] * d8;
   }
   for (size_t p = 0; p < state.points.size(); ++p)
-    next.points[p] += sys.V_inv[p] * (-sys.g_point[p] - coupling[p]);
+    next.points[p] += sys.V_inv[p] * (-lin.g_point[p] - coupling[p]);
   return next;
 }
 
@@ -316,15 +329,18 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
   // Levenberg-Marquardt on the robust cost (Huber weights per iteration), to a relative decrease
   // of 1e-6 of the cost on an accepted step; the damping falls by 3 after an accepted step and
   // grows by 4 after a rejected one.
+  // A rejected step only changes the damping: the linearization is kept until a step is accepted,
+  // and the one at the solution gives the standard errors below.
   double cost = Cost(state, obs, cam), lambda = 1e-4;
+  Linearization lin = LinearizeAll(state, obs, free_slot, free_poses, cam);
   for (int it = 0; it < options.max_iterations && lambda < 1e12; ++it) {
-    const ReducedSystem sys = Reduce(state, obs, free_slot, free_poses, cam, lambda);
+    const ReducedSystem sys = Eliminate(lin, obs, free_slot, lambda);
     const Eigen::LLT<Eigen::MatrixXd> llt(sys.S);
     if (llt.info() != Eigen::Success) {
       lambda *= 10;
       continue;
     }
-    CheckState next = Step(state, sys, llt.solve(sys.rhs), obs, free_slot);
+    CheckState next = Step(state, lin, sys, llt.solve(sys.rhs), obs, free_slot);
     const double next_cost = Cost(next, obs, cam);
     if (!std::isfinite(next_cost) || next_cost >= cost) {
       lambda *= 4;
@@ -333,6 +349,7 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
     const double decrease = (cost - next_cost) / cost;
     state = std::move(next);
     cost = next_cost;
+    lin = LinearizeAll(state, obs, free_slot, free_poses, cam);
     lambda = std::max(lambda / 3, 1e-12);
     if (decrease < 1e-6) break;
   }
@@ -343,7 +360,7 @@ CameraCheck CheckCameraModel(const Map& map, const CameraGeometry& geometry, con
   // Standard errors of the two camera parameters, the poses and points marginalized: the 2x2
   // block of the inverse of the normal equations, scaled by the residuals' variance per degree of
   // freedom.
-  const ReducedSystem sys = Reduce(state, obs, free_slot, free_poses, cam, 0);
+  const ReducedSystem sys = Eliminate(lin, obs, free_slot, 0);
   const Eigen::LDLT<Eigen::MatrixXd> ldlt(sys.S);
   if (ldlt.info() != Eigen::Success) return check;
   const Eigen::Index n = sys.S.rows();

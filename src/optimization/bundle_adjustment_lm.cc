@@ -29,6 +29,7 @@
 
 #include "core/cpu_features.h"
 #include "optimization/inverse_depth.h"
+#include "optimization/lm_terms.h"
 
 namespace flatslam::detail {
 
@@ -50,28 +51,6 @@ constexpr size_t kPointGrain = 64;
 using Mat6 = Eigen::Matrix<double, 6, 6>;
 using Mat63 = Eigen::Matrix<double, 6, 3>;
 using Vec6 = Eigen::Matrix<double, 6, 1>;
-
-Eigen::Matrix3d ExpSo3(const Eigen::Vector3d& w) {
-  const double theta = w.norm();
-  if (theta < 1e-12) {
-    Eigen::Matrix3d W;
-    W << 0, -w.z(), w.y(), w.z(), 0, -w.x(), -w.y(), w.x(), 0;
-    return Eigen::Matrix3d::Identity() + W;
-  }
-  return Eigen::AngleAxisd(theta, w / theta).toRotationMatrix();
-}
-
-// Huber on the squared whitened error s: rho(s) and its derivative rho'(s) (the IRLS weight).
-inline void Huber(double s, double delta, bool robust, double* rho, double* weight) {
-  if (!robust || s <= delta * delta) {
-    *rho = s;
-    *weight = 1.0;
-    return;
-  }
-  const double e = std::sqrt(s);
-  *rho = 2.0 * delta * e - delta * delta;
-  *weight = delta / e;
-}
 
 }  // namespace
 
