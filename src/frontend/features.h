@@ -54,6 +54,23 @@ struct Keypoints {
     right_u.reserve(n);
     depth.reserve(n);
   }
+  // Keeps keypoint i where keep[i] is non-zero, in order (keep has size() elements).
+  void Keep(const std::vector<uint8_t>& keep) {
+    FLATSLAM_CHECK(keep.size() == size(), "Keypoints::Keep: ", keep.size(), " flags for ", size(), " keypoints");
+    size_t n = 0;
+    for (size_t i = 0; i < keep.size(); ++i) {
+      if (!keep[i]) continue;
+      uv[n] = uv[i];
+      angle[n] = angle[i];
+      octave[n] = octave[i];
+      response[n] = response[i];
+      descriptor[n] = descriptor[i];
+      right_u[n] = right_u[i];
+      depth[n] = depth[i];
+      ++n;
+    }
+    resize(n);
+  }
   // True when all columns have the same length (a debug invariant).
   [[nodiscard]] bool consistent() const {
     const size_t n = uv.size();

@@ -33,7 +33,8 @@ struct PinholeCamera {
   }
 };
 
-// What a reader delivers: images are already undistorted and, for stereo, rectified.
+// What a reader delivers: images are already undistorted and, for stereo, rectified (or, from
+// ApplyCameraRefit, monocular frames carry the lens that undistorts their keypoints: Frame::lens).
 struct Calibration {
   Sensor sensor = Sensor::kMonocular;
   PinholeCamera camera;      // left / RGB camera (depth is registered to it)

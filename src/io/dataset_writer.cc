@@ -60,6 +60,8 @@ std::vector<int64_t> ForEachFrame(const Dataset& dataset, const std::function<vo
     const size_t end = std::min(n, begin + kChunk);
     tbb::parallel_for(begin, end, [&](size_t i) {
       const Frame frame = dataset.read(i);
+      FLATSLAM_CHECK(!frame.lens, "cannot write ", dataset.name(),
+                     ": its images are not yet undistorted into its calibration's camera");
       stamps[i] = frame.t_ns;
       write(frame);
     });

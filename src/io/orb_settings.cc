@@ -600,6 +600,37 @@ class SettingsDataset final : public Dataset {
   std::optional<Trajectory> ground_truth_;
 };
 
+// A monocular dataset seen through a refined camera: the images pass unchanged, each with the
+// lens that moves its keypoints into the refined camera (Frame::lens).
+class RefitDataset final : public Dataset {
+ public:
+  RefitDataset(std::unique_ptr<Dataset> given, const CameraRefit& refit)
+      : given_(std::move(given)),
+        lens_(std::make_shared<const RefinedCamera>(given_->calibration().camera, refit)),
+        calibration_(given_->calibration()) {
+    calibration_.camera = lens_->camera();
+  }
+
+  [[nodiscard]] std::string name() const override {
+    return given_->name() + ", calibration from the camera its map refined";
+  }
+  [[nodiscard]] const Calibration& calibration() const override { return calibration_; }
+  [[nodiscard]] size_t size() const override { return given_->size(); }
+  [[nodiscard]] Frame read(size_t i) const override {
+    Frame frame = given_->read(i);
+    // Refinements compose into one of the given camera (ThenRefit), never one onto another.
+    FLATSLAM_CHECK(!frame.lens, given_->name(), " already delivers frames through a refined camera");
+    frame.lens = lens_;
+    return frame;
+  }
+  [[nodiscard]] std::optional<Trajectory> ground_truth() const override { return given_->ground_truth(); }
+
+ private:
+  std::unique_ptr<Dataset> given_;
+  std::shared_ptr<const RefinedCamera> lens_;
+  Calibration calibration_;
+};
+
 }  // namespace
 
 std::unique_ptr<Dataset> ApplyOrbSettings(std::unique_ptr<Dataset> raw, std::shared_ptr<const OrbSettings> settings) {
@@ -612,10 +643,7 @@ std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, cons
   const Calibration& given = dataset->calibration();
   FLATSLAM_CHECK(given.sensor == Sensor::kMonocular, "a refined camera applies to monocular datasets; ",
                  dataset->name(), " is read as ", given.sensor == Sensor::kStereo ? "stereo" : "RGB-D");
-  auto settings = std::make_shared<OrbSettings>();
-  settings->file = "the camera its map refined";
-  settings->camera = RefitLens(given.camera, refit);
-  return ApplyOrbSettings(std::move(dataset), std::move(settings));
+  return std::make_unique<RefitDataset>(std::move(dataset), refit);
 }
 
 RefinedCamera::RefinedCamera(const PinholeCamera& given, const CameraRefit& refit)

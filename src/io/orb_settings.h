@@ -96,9 +96,11 @@ struct OrbSettings {
 [[nodiscard]] std::unique_ptr<Dataset> ApplyOrbSettings(std::unique_ptr<Dataset> raw,
                                                         std::shared_ptr<const OrbSettings> settings);
 
-// The dataset seen through a refined camera: its images undistorted by refit.k1 at its focal
-// lengths times refit.focal_scale (principal point kept), its calibration the undistorted
-// camera's. A monocular dataset only (throws naming the dataset otherwise).
+// The dataset seen through a refined camera: the lens of its camera at its focal lengths times
+// refit.focal_scale (principal point kept) with radial refit.k1, undistorted to the camera that
+// keeps only valid pixels. Its calibration is that undistorted camera's; its images pass as
+// given, each frame carrying the lens (Frame::lens) that takes its keypoints into that camera.
+// A monocular dataset only (throws naming the dataset otherwise).
 [[nodiscard]] std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, const CameraRefit& refit);
 
 // One refinement of a given camera as ApplyCameraRefit applies it: the camera of the images it

@@ -10,6 +10,7 @@
 #include "core/clock.h"
 #include "core/error.h"
 #include "frontend/stereo_matcher.h"
+#include "io/orb_settings.h"
 #include "place/vocabulary.h"
 
 namespace flatslam {
@@ -76,11 +77,32 @@ SlamSession::SlamSession(const Calibration& calibration, SlamOptions&& resolved)
   frame_poses_.SpillToFile();  // a session of any length keeps two chunks of frame records in memory
 }
 
+namespace {
+
+// Moves keypoints measured in the given camera's image into `camera` through `lens` and drops
+// those that land outside its image, as an undistorted image would have no pixel there.
+void UndistortKeypoints(const RefinedCamera& lens, const PinholeCamera& camera, Keypoints* keypoints) {
+  std::vector<Eigen::Vector2d> given(keypoints->size());
+  for (size_t i = 0; i < given.size(); ++i) given[i] = keypoints->uv[i].cast<double>();
+  const std::vector<Eigen::Vector2d> moved = lens.FromGiven(given);
+  std::vector<uint8_t> keep(moved.size());
+  for (size_t i = 0; i < moved.size(); ++i) {
+    const Eigen::Vector2d& p = moved[i];
+    keep[i] = p.x() >= 0 && p.y() >= 0 && p.x() <= camera.width - 1 && p.y() <= camera.height - 1;
+    keypoints->uv[i] = p.cast<float>();
+  }
+  keypoints->Keep(keep);
+}
+
+}  // namespace
+
 void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
   const Calibration& calibration = context_.calibration;
   const PinholeCamera& cam = calibration.camera;
   FLATSLAM_CHECK(frame.left.cols == cam.width && frame.left.rows == cam.height, "frame ", frame.index, " is ",
                  frame.left.cols, "x", frame.left.rows, ", calibration says ", cam.width, "x", cam.height);
+  FLATSLAM_CHECK(!frame.lens || calibration.sensor == Sensor::kMonocular, "frame ", frame.index,
+                 ": only monocular images are undistorted keypoint by keypoint");
   out->index = frame.index;
   out->t_ns = frame.t_ns;
   // Pooled pyramids: their levels are not reallocated per frame.
@@ -98,6 +120,7 @@ void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
     FLATSLAM_CHECK(calibration.sensor == Sensor::kMonocular || !frame.depth.empty(), "frame ", frame.index,
                    " has no depth image");
     extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get());
+    if (frame.lens) UndistortKeypoints(*frame.lens, cam, &out->keypoints);
     if (calibration.sensor == Sensor::kRgbd)
       DepthFromImage(frame.depth, cam.fx, context_.options.rgbd_virtual_baseline_m, &out->keypoints);
   }

@@ -8,6 +8,7 @@
 
 #include "core/error.h"
 #include "io/dataset.h"
+#include "io/orb_settings.h"
 #include "test_data.h"
 
 namespace flatslam {
@@ -124,6 +125,16 @@ TEST(DatasetWriter, RefusesToOverwriteAndLeavesNothingOnError) {
   EXPECT_THROW(WriteDataset(*SmallScene("rgbd"), root / "k", DatasetFormat::kKitti), Error);
   EXPECT_FALSE(fs::exists(root / "k"));
   EXPECT_THROW((void)ParseDatasetFormat("bag"), Error);
+  // Frames whose images are not yet undistorted into the calibration's camera (a refined
+  // camera's lens) would be written with a calibration they do not have.
+  try {
+    WriteDataset(*ApplyCameraRefit(SmallScene("mono"), CameraRefit{1.01, 0.02}), root / "refined",
+                 DatasetFormat::kKitti);
+    FAIL() << "images written with a calibration they do not have";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("not yet undistorted"), std::string::npos) << e.what();
+  }
+  EXPECT_FALSE(fs::exists(root / "refined"));
 }
 
 }  // namespace

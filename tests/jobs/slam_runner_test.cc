@@ -20,6 +20,7 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 #include <tbb/task_arena.h>
 
@@ -298,6 +299,75 @@ TEST(SlamSession, OnlyAMonocularMapMovesWithAScale) {
   }
   EXPECT_THROW(session.MoveMapFrame(Eigen::Isometry3d::Identity(), 0.0), Error);
   session.MoveMapFrame(Eigen::Isometry3d::Identity(), 1.0);
+}
+
+// A dataset seen through a refined camera passes its images as given, each frame with the lens;
+// the session moves the keypoints measured in them into the refined camera, where they land on
+// the keypoints of the image undistorted pixel by pixel (the same corners, within resampling).
+TEST(SlamSession, KeypointsOfAGivenImageMoveThroughTheFramesLens) {
+  DatasetOptions mono;
+  mono.sensor = Sensor::kMonocular;
+  const std::string scene = "synth:room:duration=0.5,width=480,height=360,k1=0.03";
+  const auto given = OpenDataset(scene, mono);
+  const CameraRefit refit{1.004, 0.03};
+  const auto refined = ApplyCameraRefit(OpenDataset(scene, mono), refit);
+  const Frame raw = given->read(3), frame = refined->read(3);
+  ASSERT_TRUE(frame.lens);
+  EXPECT_FALSE(raw.lens);
+  EXPECT_EQ(cv::norm(raw.left, frame.left, cv::NORM_INF), 0);  // no pixel resampled
+  const PinholeCamera& cam = refined->calibration().camera;
+
+  SlamOptions options;
+  options.orb.features = 1000;
+  SlamSession session(refined->calibration(), options);
+  TrackedFrame through_lens, of_given, of_undistorted;
+  session.Extract(frame, &through_lens);
+  session.Extract(raw, &of_given);
+  // The same image undistorted pixel by pixel into the refined camera.
+  const PinholeCamera& g = given->calibration().camera;
+  const cv::Matx33d lens(g.fx * refit.focal_scale, 0, g.cx, 0, g.fy * refit.focal_scale, g.cy, 0, 0, 1);
+  const cv::Matx33d undistorted(cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
+  cv::Mat map_u, map_v, image;
+  cv::initUndistortRectifyMap(lens, cv::Mat(cv::Vec4d(refit.k1, 0, 0, 0)), cv::Mat::eye(3, 3, CV_64F), undistorted,
+                              raw.left.size(), CV_32FC1, map_u, map_v);
+  cv::remap(raw.left, image, map_u, map_v, cv::INTER_LINEAR);
+  Frame resampled = raw;
+  resampled.left = image;
+  session.Extract(resampled, &of_undistorted);
+
+  const Keypoints& k = through_lens.keypoints;
+  ASSERT_GT(k.size(), 500u);
+  EXPECT_TRUE(k.consistent());
+  EXPECT_LE(k.size(), of_given.keypoints.size());  // those beyond the refined image are dropped
+  EXPECT_EQ(through_lens.points.size(), k.size());
+  const RefinedCamera refined_camera(g, refit);
+  size_t moved = 0, near = 0;
+  for (size_t i = 0; i < k.size(); ++i) {
+    EXPECT_TRUE(k.uv[i].x() >= 0 && k.uv[i].y() >= 0 && k.uv[i].x() <= cam.width - 1 && k.uv[i].y() <= cam.height - 1);
+    // Each is a keypoint of the given image, moved by the lens.
+    const Eigen::Vector2d back = refined_camera.ToGiven(std::vector{Eigen::Vector2d(k.uv[i].cast<double>())})[0];
+    bool found = false;
+    for (size_t j = 0; j < of_given.keypoints.size() && !found; ++j)
+      found = (of_given.keypoints.uv[j].cast<double>() - back).norm() < 1e-3 &&
+              of_given.keypoints.descriptor[j] == k.descriptor[i];
+    EXPECT_TRUE(found) << i;
+    if ((k.uv[i].cast<double>() - back).norm() > 0.5) ++moved;
+    for (const Eigen::Vector2f& q : of_undistorted.keypoints.uv)
+      if ((q - k.uv[i]).norm() < 1.5f) {
+        ++near;
+        break;
+      }
+  }
+  EXPECT_GT(moved, k.size() / 2) << moved << " of " << k.size();  // most move by over half a pixel
+  EXPECT_GT(near, k.size() * 6 / 10) << near << " of " << k.size();  // onto the undistorted image's corners
+
+  // Only a monocular image is undistorted keypoint by keypoint.
+  const auto stereo = OpenDataset("synth:room:duration=0.5,width=480,height=360");
+  SlamSession stereo_session(stereo->calibration(), options);
+  Frame stereo_frame = stereo->read(0);
+  stereo_frame.lens = frame.lens;
+  TrackedFrame out;
+  EXPECT_THROW(stereo_session.Extract(stereo_frame, &out), Error);
 }
 
 // Several sessions live in one process (nothing static): two runs on different scenes at the same
