@@ -75,6 +75,7 @@ struct OrbOptions {
   bool use_avx2 = true;       // where the CPU has it; false forces the baseline kernels (same output)
 
   FLATSLAM_OPTION_MEMBERS(FLATSLAM_ORB_OPTIONS)
+  [[nodiscard]] bool operator==(const OrbOptions&) const = default;
   // The first requirement a field breaks, as its condition's text (empty: valid).
   [[nodiscard]] std::string Problem() const { return FieldsProblem(); }
   [[nodiscard]] bool Check() const { return Problem().empty(); }

@@ -5,7 +5,10 @@
 #include <cmath>
 #include <condition_variable>
 #include <functional>
+#include <memory>
 #include <mutex>
+#include <optional>
+#include <unordered_map>
 
 #include <tbb/task_arena.h>
 
@@ -41,12 +44,88 @@ struct MappingJob {
   bool capture = false;
 };
 
+// Keypoints a pass that checks its camera measured in the dataset's images (before any lens),
+// kept for the pass that may start over: the images and the ORB options are the same, only the
+// lens its frames carry differs, so those frames are made from them without reading or
+// extracting again (SlamSession::ExtractFrom). Kept for the run's first
+// CameraCheckWindow::kKeptFrames frames, until the run goes on. Concurrency: the extract stage
+// puts and finds from many threads; one mutex.
+class MeasuredFrames {
+ public:
+  static constexpr size_t kCapacity = CameraCheckWindow::kKeptFrames;
+
+  explicit MeasuredFrames(size_t first_frame) : first_frame_(first_frame) {}
+
+  // The pass about to run: the ORB options it extracts with (the first pass's are those of the
+  // keypoints kept), the lens its frames carry, and whether it may start over (keeps more).
+  void StartPass(const OrbOptions& orb, std::shared_ptr<const RefinedCamera> lens, bool may_restart) {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    if (!orb_) orb_ = orb;
+    usable_ = orb == *orb_;
+    reusing_ = passes_++ > 0;
+    lens_ = std::move(lens);
+    if (!may_restart) StopKeepingLocked();
+  }
+  [[nodiscard]] bool Wants(size_t index) const {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    return recording_ && usable_ && index >= first_frame_ && index - first_frame_ < kCapacity && !kept_.contains(index);
+  }
+  void Put(size_t index, int64_t t_ns, Keypoints&& keypoints) {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    if (recording_ && usable_) kept_.emplace(index, Entry{t_ns, std::move(keypoints)});
+  }
+  // The frame's header (index, time, this pass's lens) and its measured keypoints, if kept.
+  [[nodiscard]] bool Find(size_t index, Frame* header, Keypoints* keypoints) {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    if (!usable_) return false;
+    const auto it = kept_.find(index);
+    if (it == kept_.end()) return false;
+    header->index = index;
+    header->t_ns = it->second.t_ns;
+    header->lens = lens_;
+    if (recording_) {
+      *keypoints = it->second.keypoints;
+    } else {
+      *keypoints = std::move(it->second.keypoints);  // no later pass reads it
+      kept_.erase(it);
+    }
+    return true;
+  }
+  // The pass that runs goes on: nothing more is kept; the first pass's keypoints are freed, a
+  // later pass's as it reads them.
+  void StopKeeping() {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    StopKeepingLocked();
+  }
+
+ private:
+  struct Entry {
+    int64_t t_ns = 0;
+    Keypoints keypoints;
+  };
+  void StopKeepingLocked() {
+    recording_ = false;
+    if (!reusing_) kept_.clear();
+  }
+
+  const size_t first_frame_;
+  std::optional<OrbOptions> orb_;  // what the kept keypoints were extracted with
+  mutable std::mutex mutex_;
+  bool recording_ = true, usable_ = true, reusing_ = false;
+  size_t passes_ = 0;
+  std::shared_ptr<const RefinedCamera> lens_;
+  std::unordered_map<size_t, Entry> kept_;
+};
+
 // One session over the dataset. abandon (may be null): like run.stop, but the run is being
 // replaced, not interrupted.
 // at_end (may be empty): called with the session once every frame is tracked and mapped and no
 // background work is left, unless the run was interrupted, failed or abandoned; counts in wall_s.
+// measured (may be null): monocular frames it keeps are made from their kept keypoints, and those
+// it wants are kept.
 SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, const SlamRunOptions& run,
-                         const std::atomic<bool>* abandon, const std::function<void(SlamSession&)>& at_end = {}) {
+                         const std::atomic<bool>* abandon, const std::function<void(SlamSession&)>& at_end = {},
+                         MeasuredFrames* measured = nullptr) {
   const auto abandoned = [abandon] { return abandon && abandon->load(); };
   SlamSession slam(dataset.calibration(), options);
   // The run's steps and the access they declare: refused before the first frame if two that may
@@ -191,8 +270,20 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
     item.index = order[seq];
     return item;
   });
+  std::atomic<size_t> from_kept{0};
   pipeline.add_parallel_stage("extract", [&](Item& item) {
     if (abandoned()) return;  // the run is being replaced: frames in flight are dropped
+    if (measured) {
+      Frame header;
+      Keypoints keypoints;
+      if (measured->Find(item.index, &header, &keypoints)) {
+        const auto start = std::chrono::steady_clock::now();
+        slam.ExtractFrom(keypoints, header, &item.frame);
+        item.extract_ms = MsSince(start);
+        ++from_kept;
+        return;
+      }
+    }
     Frame frame;
     try {
       frame = dataset.read(item.index);
@@ -203,7 +294,13 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
       return;
     }
     const auto start = std::chrono::steady_clock::now();
-    slam.Extract(frame, &item.frame);
+    if (measured && measured->Wants(item.index)) {
+      Keypoints keypoints;
+      slam.Extract(frame, &item.frame, &keypoints);
+      measured->Put(item.index, frame.t_ns, std::move(keypoints));
+    } else {
+      slam.Extract(frame, &item.frame);
+    }
     item.extract_ms = MsSince(start);
   });
   // Mapping runs inline, in the track stage, where tracking would wait for every keyframe's
@@ -281,6 +378,7 @@ SlamRunResult RunSession(const Dataset& dataset, const SlamOptions& options, con
   if (at_end && !result.interrupted && result.error.empty() && !abandoned() && result.frames > result.frames_skipped)
     at_end(slam);
   result.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  result.frames_from_kept_keypoints = from_kept.load();
   if (result.error.empty() && result.frames > 0 && result.frames_skipped == result.frames)
     Fail("none of the ", result.frames, " frames of ", dataset.name(), " could be read; the first: ", first_unreadable);
   result.trajectory = slam.FrameTrajectory();
@@ -320,8 +418,10 @@ class BorrowedDataset final : public Dataset {
 // starts over). Callbacks come from the track stage and the mapping lane; one mutex orders them.
 class CameraCheckPass {
  public:
-  CameraCheckPass(const SlamRunOptions& run, size_t frames)
-      : run_(run), window_frames_(static_cast<size_t>(CameraCheckWindow::kFrameShare * static_cast<double>(frames))) {}
+  CameraCheckPass(const SlamRunOptions& run, size_t frames, MeasuredFrames* measured)
+      : run_(run),
+        window_frames_(static_cast<size_t>(CameraCheckWindow::kFrameShare * static_cast<double>(frames))),
+        measured_(measured) {}
 
   // The options of the first pass: run's, with its callbacks wrapped.
   [[nodiscard]] SlamRunOptions Options() {
@@ -416,12 +516,14 @@ class CameraCheckPass {
   // The first pass is the run: everything held goes out, in order, before anything heard later.
   void GoOnLocked() {
     state_ = kGoOn;
+    measured_->StopKeeping();  // no pass starts over after this one
     for (const auto& call : held_) call();
     held_.clear();
   }
 
   const SlamRunOptions& run_;
   const size_t window_frames_;
+  MeasuredFrames* const measured_;
   std::mutex mutex_;
   enum State { kUndecided, kGoOn, kRestart } state_ = kUndecided;
   std::vector<std::function<void()>> held_;
@@ -515,17 +617,23 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
       if (at_last.refined && run.on_camera_refined) run.on_camera_refined(at_last.refit, at_last.calibration, false);
     };
   };
+  // The first pass's keypoints, for a pass that starts over (a continued session never does).
+  MeasuredFrames measured(run.first_frame);
+  std::shared_ptr<const RefinedCamera> lens;  // the lens the frames of `refined` carry
   for (;;) {
     const Dataset& seen = refined ? *refined : dataset;
-    if (continued || restarts == CameraCheckWindow::kMaxRestarts) {
-      result = RunSession(seen, options, run, nullptr, at_end(seen, [] { return CameraCheckWindow::kFirst; }));
+    const bool last = continued || restarts == CameraCheckWindow::kMaxRestarts;
+    measured.StartPass(ResolvedOptions(options, seen.calibration()).orb, lens, !last);
+    if (last) {
+      result = RunSession(seen, options, run, nullptr, at_end(seen, [] { return CameraCheckWindow::kFirst; }),
+                          continued ? nullptr : &measured);
       wall_s += result.wall_s;
       break;
     }
-    CameraCheckPass pass(run, frames);
+    CameraCheckPass pass(run, frames, &measured);
     try {
       result = RunSession(seen, options, pass.Options(), pass.abandon(),
-                          at_end(seen, [&pass] { return pass.next_check(); }));
+                          at_end(seen, [&pass] { return pass.next_check(); }), &measured);
     } catch (...) {
       pass.Release();  // what the frames before the error gave is still heard
       throw;
@@ -544,6 +652,7 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     ++restarts;
     frames_before_restart += pass.frames_at_restart();
     refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), refit);
+    lens = std::make_shared<const RefinedCamera>(dataset.calibration().camera, refit);  // as ApplyCameraRefit's
     if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration(), true);
   }
   result.camera_check = last_check;

@@ -199,11 +199,11 @@ ReducedSystem Eliminate(const Linearization& lin, const std::vector<CheckObserva
       if (sa < 0) continue;
       const Eigen::Matrix<double, 3, 6> Wa = lin.W[a].leftCols<6>();
       const Eigen::Matrix<double, 6, 3> WaVi = Wa.transpose() * Vi;
+      // Only the lower triangle: the Cholesky and LDLT factorizations read nothing else.
       for (size_t b = begin; b < end; ++b) {
         const int sb = free_slot[obs[b].pose];
-        if (sb >= 0) H.block<6, 6>(6 * sa, 6 * sb) -= WaVi * lin.W[b].leftCols<6>();
+        if (sb >= 0 && sb <= sa) H.block<6, 6>(6 * sa, 6 * sb) -= WaVi * lin.W[b].leftCols<6>();
       }
-      H.block<6, 2>(6 * sa, m) -= Wa.transpose() * ViWm;
       H.block<2, 6>(m, 6 * sa) -= ViWm.transpose() * Wa;
       g.segment<6>(6 * sa) -= Wa.transpose() * Vg;
     }
@@ -211,7 +211,7 @@ ReducedSystem Eliminate(const Linearization& lin, const std::vector<CheckObserva
     g.tail<2>() -= Wm.transpose() * Vg;
     begin = end;
   }
-  sys.S = std::move(H);
+  sys.S = std::move(H);  // its upper triangle is not reduced: read it through a lower view only
   sys.rhs = -g;
   return sys;
 }

@@ -96,13 +96,15 @@ void UndistortKeypoints(const RefinedCamera& lens, const PinholeCamera& camera, 
 
 }  // namespace
 
-void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
+void SlamSession::Extract(const Frame& frame, TrackedFrame* out, Keypoints* measured) const {
   const Calibration& calibration = context_.calibration;
   const PinholeCamera& cam = calibration.camera;
   FLATSLAM_CHECK(frame.left.cols == cam.width && frame.left.rows == cam.height, "frame ", frame.index, " is ",
                  frame.left.cols, "x", frame.left.rows, ", calibration says ", cam.width, "x", cam.height);
   FLATSLAM_CHECK(!frame.lens || calibration.sensor == Sensor::kMonocular, "frame ", frame.index,
                  ": only monocular images are undistorted keypoint by keypoint");
+  FLATSLAM_CHECK(!measured || calibration.sensor == Sensor::kMonocular, "frame ", frame.index,
+                 ": only a monocular frame is made again from its measured keypoints");
   out->index = frame.index;
   out->t_ns = frame.t_ns;
   // Pooled pyramids: their levels are not reallocated per frame.
@@ -120,12 +122,24 @@ void SlamSession::Extract(const Frame& frame, TrackedFrame* out) const {
     FLATSLAM_CHECK(calibration.sensor == Sensor::kMonocular || !frame.depth.empty(), "frame ", frame.index,
                    " has no depth image");
     extractor_.Extract(frame.left, &out->keypoints, left_pyramid.get());
+    if (measured) *measured = out->keypoints;
     if (frame.lens) UndistortKeypoints(*frame.lens, cam, &out->keypoints);
     if (calibration.sensor == Sensor::kRgbd)
       DepthFromImage(frame.depth, cam.fx, context_.options.rgbd_virtual_baseline_m, &out->keypoints);
   }
   left_pyramid->levels[0].release();
   out->Prepare(cam.width, cam.height);
+}
+
+void SlamSession::ExtractFrom(const Keypoints& measured, const Frame& frame, TrackedFrame* out) const {
+  const Calibration& calibration = context_.calibration;
+  FLATSLAM_CHECK(calibration.sensor == Sensor::kMonocular, "frame ", frame.index,
+                 ": only a monocular frame is made again from its measured keypoints");
+  out->index = frame.index;
+  out->t_ns = frame.t_ns;
+  out->keypoints = measured;
+  if (frame.lens) UndistortKeypoints(*frame.lens, calibration.camera, &out->keypoints);
+  out->Prepare(calibration.camera.width, calibration.camera.height);
 }
 
 FrameReport SlamSession::Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe) {

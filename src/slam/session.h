@@ -47,8 +47,14 @@ class SlamSession {
   // Throws flatslam::Error on invalid options or calibration.
   SlamSession(const Calibration& calibration, const SlamOptions& options);
 
-  // Extracts features (left and right in parallel) and stereo/RGB-D depth into *out.
-  void Extract(const Frame& frame, TrackedFrame* out) const;
+  // Extracts features (left and right in parallel) and stereo/RGB-D depth into *out; keypoints
+  // of a frame with a lens are moved through it (Frame::lens). A monocular frame's keypoints as
+  // measured in its image, before the lens, go to *measured when it is not null.
+  void Extract(const Frame& frame, TrackedFrame* out, Keypoints* measured = nullptr) const;
+  // A monocular frame made from the keypoints an earlier Extract measured in the same image with
+  // the same ORB options (its *measured), moved through frame.lens: Extract's result without
+  // reading or extracting the image again. frame gives the index, time and lens only.
+  void ExtractFrom(const Keypoints& measured, const Frame& frame, TrackedFrame* out) const;
   // Tracks the frame. When it becomes a keyframe, *new_keyframe is set: pass it to MapKeyFrame().
   FrameReport Track(TrackedFrame&& frame, std::optional<KeyFrameHandle>* new_keyframe);
   // Local mapping for one keyframe: point upkeep, triangulation, fusion, local BA, culling.

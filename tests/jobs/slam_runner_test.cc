@@ -831,6 +831,20 @@ TEST(SlamRun, AMonocularRunRefinesALensItsCalibrationLeavesOutAndStartsOver) {
   EXPECT_TRUE(HeardEachFrameOnceInOrder(refined, frames));
   EXPECT_EQ(refined.run.frames, frames);
   EXPECT_LT(refined.sim3_m, 0.5 * kept.sim3_m);
+  // The pass that went on made its first frames from the keypoints the first pass measured in the
+  // same images, moved through its own lens: it is the run over the refined images from the start.
+  EXPECT_GT(refined.run.frames_from_kept_keypoints, 0u);
+  EXPECT_LE(refined.run.frames_from_kept_keypoints,
+            std::min(CameraCheckWindow::kKeptFrames, refined.run.frames_before_restart + 64));
+  ASSERT_FALSE(refined.run.camera_refined_at_end);  // else its map moved after the last frame
+  SlamRunOptions run;
+  run.deterministic = true;
+  const SlamRunResult direct = RunSlam(*ApplyCameraRefit(OpenDataset(spec), refined.run.camera_refit_tracked),
+                                       testing::OptionsWithDefaultVocabulary(), run);
+  EXPECT_EQ(direct.frames_from_kept_keypoints, 0u);
+  ASSERT_EQ(direct.trajectory.size(), refined.run.trajectory.size());
+  for (size_t i = 0; i < direct.trajectory.size(); ++i)
+    EXPECT_TRUE(direct.trajectory[i].T_world_cam.isApprox(refined.run.trajectory[i].T_world_cam, 1e-12)) << i;
 }
 
 // The street seen by KITTI's camera through a lens its calibration leaves out (k1 = 0.02 moves
