@@ -88,7 +88,8 @@ struct SlamRunOptions {
   // (mapping/camera_check.h). With check_camera, a monocular run without an initial map checks
   // the model against its own map early on (CameraCheckWindow); when the map disagrees with it
   // by an amount CameraCheckWindow::Refits accepts, the run starts over from its first frame
-  // with the refined camera (the images undistorted by it), and checks that camera the same way
+  // with the refined camera (each frame's keypoints undistorted by it: ApplyCameraRefit; its first
+  // frames made from the keypoints the first pass measured), and checks that camera the same way
   // (a young map's refinement can fall short of the lens: what is left starts it over again, up
   // to CameraCheckWindow::kMaxRestarts times). Until a pass's check has decided, what on_frame
   // and on_skipped would hear is held back (and dropped if the run starts over) and no
