@@ -604,10 +604,8 @@ class SettingsDataset final : public Dataset {
 // lens that moves its keypoints into the refined camera (Frame::lens).
 class RefitDataset final : public Dataset {
  public:
-  RefitDataset(std::unique_ptr<Dataset> given, const CameraRefit& refit)
-      : given_(std::move(given)),
-        lens_(std::make_shared<const RefinedCamera>(given_->calibration().camera, refit)),
-        calibration_(given_->calibration()) {
+  RefitDataset(std::unique_ptr<Dataset> given, std::shared_ptr<const RefinedCamera> lens)
+      : given_(std::move(given)), lens_(std::move(lens)), calibration_(given_->calibration()) {
     calibration_.camera = lens_->camera();
   }
 
@@ -640,10 +638,16 @@ std::unique_ptr<Dataset> ApplyOrbSettings(std::unique_ptr<Dataset> raw, std::sha
 
 std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, const CameraRefit& refit) {
   FLATSLAM_CHECK(dataset, "ApplyCameraRefit: null dataset");
+  auto lens = std::make_shared<const RefinedCamera>(dataset->calibration().camera, refit);
+  return ApplyCameraRefit(std::move(dataset), std::move(lens));
+}
+
+std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, std::shared_ptr<const RefinedCamera> lens) {
+  FLATSLAM_CHECK(dataset && lens, "ApplyCameraRefit: null dataset or lens");
   const Calibration& given = dataset->calibration();
   FLATSLAM_CHECK(given.sensor == Sensor::kMonocular, "a refined camera applies to monocular datasets; ",
                  dataset->name(), " is read as ", given.sensor == Sensor::kStereo ? "stereo" : "RGB-D");
-  return std::make_unique<RefitDataset>(std::move(dataset), refit);
+  return std::make_unique<RefitDataset>(std::move(dataset), std::move(lens));
 }
 
 RefinedCamera::RefinedCamera(const PinholeCamera& given, const CameraRefit& refit)

@@ -52,8 +52,6 @@ struct MappingJob {
 // puts and finds from many threads; one mutex.
 class MeasuredFrames {
  public:
-  static constexpr size_t kCapacity = CameraCheckWindow::kKeptFrames;
-
   explicit MeasuredFrames(size_t first_frame) : first_frame_(first_frame) {}
 
   // The pass about to run: the ORB options it extracts with (the first pass's are those of the
@@ -68,7 +66,7 @@ class MeasuredFrames {
   }
   [[nodiscard]] bool Wants(size_t index) const {
     const std::lock_guard<std::mutex> lock(mutex_);
-    return recording_ && usable_ && index >= first_frame_ && index - first_frame_ < kCapacity && !kept_.contains(index);
+    return recording_ && usable_ && index >= first_frame_ && index - first_frame_ < CameraCheckWindow::kKeptFrames && !kept_.contains(index);
   }
   void Put(size_t index, int64_t t_ns, Keypoints&& keypoints) {
     const std::lock_guard<std::mutex> lock(mutex_);
@@ -651,8 +649,8 @@ SlamRunResult RunSlam(const Dataset& dataset, const SlamOptions& options, const 
     refit = ThenRefit(refit, CameraRefit{pass.last_check().focal_scale, pass.last_check().k1});
     ++restarts;
     frames_before_restart += pass.frames_at_restart();
-    refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), refit);
-    lens = std::make_shared<const RefinedCamera>(dataset.calibration().camera, refit);  // as ApplyCameraRefit's
+    lens = std::make_shared<const RefinedCamera>(dataset.calibration().camera, refit);
+    refined = ApplyCameraRefit(std::make_unique<BorrowedDataset>(dataset), lens);
     if (run.on_camera_refined) run.on_camera_refined(refit, refined->calibration(), true);
   }
   result.camera_check = last_check;
