@@ -1,5 +1,6 @@
 // Small pieces shared by the hand-written Levenberg-Marquardt solvers (bundle_adjustment_lm.cc,
-// mapping/camera_check.cc): the rotation of a left perturbation and Huber's robust cost.
+// mapping/camera_check.cc) and the pose optimizer's manifold: the rotation of a left perturbation
+// (as a matrix or a quaternion) and Huber's robust cost.
 // Concurrency: pure functions.
 #pragma once
 
@@ -22,6 +23,14 @@ inline Eigen::Matrix3d ExpSo3(const Eigen::Vector3d& w) {
   const double theta = w.norm();
   if (theta < 1e-12) return Eigen::Matrix3d::Identity() + Skew(w);
   return Eigen::AngleAxisd(theta, w / theta).toRotationMatrix();
+}
+
+// The same rotation as a unit quaternion, for parameters stored as quaternions (the pose
+// optimizer's manifold); to first order below 1e-12 rad.
+inline Eigen::Quaterniond ExpSo3Quaternion(const Eigen::Vector3d& w) {
+  const double theta = w.norm();
+  if (theta < 1e-12) return Eigen::Quaterniond(1.0, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z()).normalized();
+  return Eigen::Quaterniond(Eigen::AngleAxisd(theta, w / theta));
 }
 
 // Huber on the squared whitened error s: rho(s) (the cost is half of it, as in Ceres) and its

@@ -8,16 +8,11 @@
 
 #include "core/error.h"
 #include "core/requirements.h"
+#include "optimization/lm_terms.h"
 
 namespace flatslam {
 namespace detail {
 namespace {
-
-Eigen::Quaterniond ExpSo3(const Eigen::Vector3d& w) {
-  const double theta = w.norm();
-  if (theta < 1e-12) return Eigen::Quaterniond(1.0, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z()).normalized();
-  return Eigen::Quaterniond(Eigen::AngleAxisd(theta, w / theta));
-}
 
 Eigen::Vector3d LogSo3(const Eigen::Quaterniond& q) {
   const Eigen::AngleAxisd aa(q);
@@ -34,7 +29,7 @@ class PoseManifold final : public ceres::Manifold {
     const Eigen::Map<const Eigen::Vector3d> t(x + 4);
     const Eigen::Map<const Eigen::Vector3d> dw(delta);
     const Eigen::Map<const Eigen::Vector3d> dv(delta + 3);
-    const Eigen::Quaterniond dq = ExpSo3(dw);
+    const Eigen::Quaterniond dq = ExpSo3Quaternion(dw);
     const Eigen::Quaterniond q_new = (dq * q).normalized();
     const Eigen::Vector3d t_new = dq * t + dv;
     Eigen::Map<Eigen::Quaterniond> q_out(x_plus_delta);
