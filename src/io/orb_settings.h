@@ -102,11 +102,6 @@ struct OrbSettings {
 // given, each frame carrying the lens (Frame::lens) that takes its keypoints into that camera.
 // A monocular dataset only (throws naming the dataset otherwise).
 [[nodiscard]] std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset, const CameraRefit& refit);
-class RefinedCamera;
-// The same with the lens given, a RefinedCamera of the dataset's own camera, which its frames
-// then share (for a caller that keeps the lens too).
-[[nodiscard]] std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset,
-                                                        std::shared_ptr<const RefinedCamera> lens);
 
 // One refinement of a given camera as ApplyCameraRefit applies it: the camera of the images it
 // gives, and where their pixels lie in the given images. Two refinements of one camera see the
@@ -126,6 +121,11 @@ class RefinedCamera {
   SettingsCamera lens_;   // the given camera at the refined focal lengths, with the refined k1
   PinholeCamera camera_;  // the undistorted camera
 };
+
+// ApplyCameraRefit with the lens given, a RefinedCamera of the dataset's own camera, which its
+// frames then share (for a caller that keeps the lens too).
+[[nodiscard]] std::unique_ptr<Dataset> ApplyCameraRefit(std::unique_ptr<Dataset> dataset,
+                                                        std::shared_ptr<const RefinedCamera> lens);
 
 // Pixels of the images of refinement `from` in those of refinement `to` of the same given camera.
 [[nodiscard]] std::vector<Eigen::Vector2d> Reexpress(const RefinedCamera& from, const RefinedCamera& to,

@@ -66,7 +66,8 @@ class MeasuredFrames {
   }
   [[nodiscard]] bool Wants(size_t index) const {
     const std::lock_guard<std::mutex> lock(mutex_);
-    return recording_ && usable_ && index >= first_frame_ && index - first_frame_ < CameraCheckWindow::kKeptFrames && !kept_.contains(index);
+    return recording_ && usable_ && index >= first_frame_ && index - first_frame_ < CameraCheckWindow::kKeptFrames &&
+           !kept_.contains(index);
   }
   void Put(size_t index, int64_t t_ns, Keypoints&& keypoints) {
     const std::lock_guard<std::mutex> lock(mutex_);
