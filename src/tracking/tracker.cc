@@ -186,16 +186,20 @@ struct Tracking {
       ComputeFrameWords(*options.vocabulary, frame);
       const int by_words = MatchByBow(frame, *reference, map, options.matcher, options.reference_bow_ratio);
       const int words_inliers = by_words >= options.min_reference_matches ? OptimizeFramePose(map, context, frame) : 0;
-      // Where the two poses place a tenth of the matched points farther apart than the motion
-      // search window, their inlier counts are not comparable: around the wrong pose the wide
-      // window still matches the far points, which fit any translation, while the words match
-      // fewer points, right ones (the motorway with noisy images: 223 inliers at 0.01 m against
-      // 214 at the true 2.49 m, and every later prediction kept the wrong speed). Each pose then
-      // searches around itself with the motion window, as tracking with a prior does, and the
-      // one that finds more wins (there: 609 against 275).
+      // Where the two poses place a tenth of the matched points farther apart than the pose
+      // optimizer's inlier gate at level 0 (sqrt(chi2_mono) pixels), they cannot share those
+      // inliers, and their counts are not comparable: around the wrong pose the wide window still
+      // matches the far points, which fit any translation, while the words match fewer points,
+      // right ones (the motorway with noisy images: 223 inliers at 0.01 m against 214 at the true
+      // 2.49 m, and every later prediction kept the wrong speed). Each pose then searches around
+      // itself with the motion window, as tracking with a prior does, and the one that finds more
+      // wins (there: 609 against 275). The gap is in pixels, so a camera with a short focal length
+      // shows the same wrong translation as a smaller one: a 672x376 camera with fx 350 on the
+      // motorway placed the two poses (0.33 m and 2.45 m from the last) 5.2 pixels apart.
       const float gap = PredictionError(map, context.geometry.camera, around_last, frame, 0.9);
+      const double inlier_gate_px = std::sqrt(options.pose.chi2_mono);
       if (words_inliers >= options.min_motion_inliers && inliers >= options.min_motion_inliers &&
-          gap > options.motion_search_radius) {
+          gap > inlier_gate_px) {
         const Eigen::Isometry3d by_words_pose = frame.T_cam_world;
         const int words_around = search_around(by_words_pose, options.motion_search_radius);
         const Eigen::Isometry3d words_pose = frame.T_cam_world;
