@@ -50,7 +50,7 @@ enum class InjectedFault : uint8_t { kNone, kGlobalBundleAdjustment, kLoopClosin
   X(double, far_stereo_level_px, kFarStereoLevelPixels, far_stereo_level_px >= 0,                                     \
     "stereo keypoints whose disparity is under this many pixels of their pyramid level count as monocular "           \
     "observations too (0: never): there the sub-pixel step of stereo matching pulls the disparity towards zero, "     \
-    "depths long (a rig short for its scene: EuRoC's camera on a motorway came out 4% long with them)")               \
+    "depths long; with them a rig short for its scene lost scale (EuRoC's camera on a motorway: 4% short)")           \
   X(int, min_init_points, 150, min_init_points > 0, "keypoints with depth needed to start a map (stereo/RGB-D)")      \
   X(int, min_init_matches, 100, min_init_matches > 0, "monocular: matches between the two initial frames")            \
   X(float, init_search_px, 100, init_search_px > 0,                                                                   \

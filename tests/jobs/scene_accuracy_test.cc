@@ -118,7 +118,7 @@ TEST(SceneAccuracy, HighwayStereoOnASmallWideCameraKeepsItsSpeedFromTheFirstFram
 // scale 1.025). The keyframe rule now counts at least a frame's 100 nearest keypoints as close.
 // With 0.12 m most of the motorway's matched disparities lie under a pixel of their pyramid level,
 // where the sub-pixel step pulls them towards zero; with them in optimization the trajectory came
-// out 1.1% long (10 s: 0.7769 m, scale 1.0109). They count as monocular now (far_stereo_level_px):
+// out 1.0% short (10 s: 0.7769 m, scale 1.0109). They count as monocular now (far_stereo_level_px):
 // 0.2621 m, 1.0035. Bar: the motorway's.
 TEST(SceneAccuracy, HighwayStereoWithAShortBaseline) {
   for (const char* spec : {"synth:highway:duration=10,baseline=0.25", "synth:highway:duration=10,baseline=0.12"}) {
