@@ -7,7 +7,14 @@
 namespace flatslam::app {
 
 Args::Args(const std::vector<std::string>& argv, const std::set<std::string>& flags,
-           const std::set<std::string>& switches) {
+           const std::set<std::string>& switches, const std::set<std::string>& lists) {
+  auto store = [&](const std::string& name, const std::string& value) {
+    auto [it, fresh] = values_.emplace(name, value);
+    if (fresh || it->second == value) return;
+    if (!lists.count(name))
+      throw UsageError{"option --" + name + " given twice ('" + it->second + "' and '" + value + "'): give it once"};
+    it->second += "," + value;
+  };
   for (size_t i = 0; i < argv.size(); ++i) {
     const std::string& a = argv[i];
     if (a == "--help" || a == "-h") {
@@ -26,10 +33,10 @@ Args::Args(const std::vector<std::string>& argv, const std::set<std::string>& fl
         values_[name] = "1";
       } else if (flags.count(name)) {
         if (inline_value) {
-          values_[name] = *inline_value;
+          store(name, *inline_value);
         } else {
           if (i + 1 >= argv.size()) throw UsageError{"option --" + name + " needs a value"};
-          values_[name] = argv[++i];
+          store(name, argv[++i]);
         }
       } else {
         throw UsageError{"unknown option --" + name};

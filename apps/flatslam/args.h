@@ -18,8 +18,12 @@ struct UsageError {
 
 class Args {
  public:
-  // flags: names (without "--") that take a value; switches: names that take none.
-  Args(const std::vector<std::string>& argv, const std::set<std::string>& flags, const std::set<std::string>& switches);
+  // flags: names (without "--") that take a value; switches: names that take none; lists: flags
+  // that may be given more than once, their values joined by commas in the order given
+  // (`--set a=1 --set b=2` reads as `--set a=1,b=2`). Any other flag given twice with two values
+  // is a UsageError naming both, so that no value is dropped unseen; a switch may repeat.
+  Args(const std::vector<std::string>& argv, const std::set<std::string>& flags, const std::set<std::string>& switches,
+       const std::set<std::string>& lists = {});
 
   [[nodiscard]] const std::vector<std::string>& positional() const { return positional_; }
   [[nodiscard]] bool has(const std::string& name) const { return values_.count(name) > 0; }

@@ -238,7 +238,7 @@ int Collect(const Args& args, const std::filesystem::path& out) {
 }  // namespace
 
 int RunBatch(const std::vector<std::string>& argv) {
-  const Args args(argv, kBatchFlags, kBatchSwitches);
+  const Args args(argv, kBatchFlags, kBatchSwitches, {"set"});
   if (args.help()) {
     std::fputs(kBatchUsage, stdout);
     return 0;

@@ -76,7 +76,7 @@ const char* const kRunUsage =
     "  --agent N        agent id stamped on the map's keyframes (for map merge; default 0)\n"
     "  --save-map FILE  save the final map as a snapshot (see flatslam map); written atomically\n"
     "  --config FILE    SLAM options as 'key = value' lines (# comments); see --list-options\n"
-    "  --set K=V,...    set options by name after --config and the flags above\n"
+    "  --set K=V,...    set options by name after --config and the flags above; may repeat (joined in order)\n"
     "  --list-options   print every option with its value for this dataset, in the config format\n"
     "  --settings FILE  an ORB-SLAM2/3 settings YAML: its camera, distortion, baseline and frame rate\n"
     "                   replace the dataset's calibration, its ORBextractor.* and ThDepth set options\n"
@@ -300,7 +300,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
   std::optional<std::filesystem::path> resume_file;
   std::optional<SnapshotSession> resume_session;
   {
-    const Args first(original_argv, kRunFlags, kRunSwitches);
+    const Args first(original_argv, kRunFlags, kRunSwitches, {"set"});
     if (auto r = first.get("resume")) {
       for (const std::string& a : original_argv)
         if (a.rfind("--", 0) == 0 && a != "--quiet" && a.rfind("--resume", 0) != 0)
@@ -315,7 +315,7 @@ int RunRun(const std::vector<std::string>& original_argv) {
       if (first.has("quiet")) argv.push_back("--quiet");
     }
   }
-  const Args args(argv, kRunFlags, kRunSwitches);
+  const Args args(argv, kRunFlags, kRunSwitches, {"set"});
   if (args.help()) {
     std::fputs(kRunUsage, stdout);
     return 0;

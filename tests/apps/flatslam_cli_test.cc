@@ -44,6 +44,19 @@ TEST(FlatslamCli, HelpAndUsageErrors) {
   EXPECT_TRUE(Contains(r.output, "unknown synthetic scene 'moon'")) << r.output;
 }
 
+// A flag given twice must not drop a value unseen: --set accumulates, any other flag is refused.
+TEST(FlatslamCli, RepeatedFlagsAccumulateOrAreRefused) {
+  Result r = RunApp("run synth:room:duration=1 --set orb.features=900 --set stereo.outlier_factor=1.9 --list-options");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(Contains(r.output, "orb.features = 900")) << r.output;
+  EXPECT_TRUE(Contains(r.output, "stereo.outlier_factor = 1.9")) << r.output;
+  r = RunApp("run synth:room:duration=1 --max-frames 5 --max-frames=6 --quiet");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_TRUE(Contains(r.output, "option --max-frames given twice ('5' and '6')")) << r.output;
+  r = RunApp("run synth:room:duration=1 --max-frames 3 --quiet --quiet");  // a switch may repeat
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+}
+
 TEST(FlatslamCli, BadDatasetNamesWhatIsWrong) {
   const auto dir = testing::FreshTempDir("cli_bad");
   Result r = RunApp("info " + (dir / "nowhere").string());
