@@ -76,7 +76,7 @@ const char* const kRunUsage =
     "  --agent N        agent id stamped on the map's keyframes (for map merge; default 0)\n"
     "  --save-map FILE  save the final map as a snapshot (see flatslam map); written atomically\n"
     "  --config FILE    SLAM options as 'key = value' lines (# comments); see --list-options\n"
-    "  --set K=V,...    set options by name after --config and the flags above; may repeat (joined in order)\n"
+    "  --set K=V,...    set options by name after --config and the flags above (may repeat)\n"
     "  --list-options   print every option with its value for this dataset, in the config format\n"
     "  --settings FILE  an ORB-SLAM2/3 settings YAML: its camera, distortion, baseline and frame rate\n"
     "                   replace the dataset's calibration, its ORBextractor.* and ThDepth set options\n"
