@@ -190,12 +190,10 @@ struct Tracking {
       // optimizer's inlier gate at level 0 (sqrt(chi2_mono) pixels), they cannot share those
       // inliers, and their counts are not comparable: around the wrong pose the wide window still
       // matches the far points, which fit any translation, while the words match fewer points,
-      // right ones (the motorway with noisy images: 223 inliers at 0.01 m against 214 at the true
-      // 2.49 m, and every later prediction kept the wrong speed). Each pose then searches around
-      // itself with the motion window, as tracking with a prior does, and the one that finds more
-      // wins (there: 609 against 275). The gap is in pixels, and a short focal length shows the same
-      // wrong translation as a smaller gap: a 672x376 camera with fx 350 on the motorway placed
-      // the two poses (0.33 m and 2.45 m from the last) 5.2 pixels apart.
+      // right ones. Each pose then searches around itself with the motion window, as tracking with
+      // a prior does, and the one that finds more wins. The gap is in pixels, so a short focal
+      // length shows the same wrong translation as a smaller gap (figures: docs/STATUS.md, the
+      // first frame's two poses).
       const float gap = PredictionError(map, context.geometry.camera, around_last, frame, 0.9);
       const double inlier_gate_px = std::sqrt(options.pose.chi2_mono);
       if (words_inliers >= options.min_motion_inliers && inliers >= options.min_motion_inliers &&
